@@ -1,0 +1,290 @@
+"""The PSF protocol every model satisfies, and shared helpers.
+
+Units: positions in nm, photons in photons, images in expected photons per pixel.
+Coordinates follow design.md: the window's outer corner of pixel (0, 0) sits at ``origin``
+(default (0, 0)); the centre of pixel (r, c) is at ``x = origin_x + (c + 0.5) * pixel_size``,
+``y = origin_y + (r + 0.5) * pixel_size``; ``x`` runs along columns, ``y`` along rows.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "PSFBase",
+    "PSFModel",
+    "as_emitters",
+    "check_pixel_size",
+    "check_shape",
+    "pixel_centres",
+]
+
+
+@runtime_checkable
+class PSFModel(Protocol):
+    """What the dictionary, the solvers, the simulator and the CRLB need from a PSF.
+
+    Every method takes emitter positions ``x, y, z`` (nm, arrays of shape ``(K,)``), a window
+    ``shape = (rows, cols)`` and a ``pixel_size`` (nm), and an optional ``origin`` (nm, x then y)
+    of the window's outer corner.
+    """
+
+    name: str
+
+    @property
+    def z_range(self) -> tuple[float, float]:
+        """Valid axial range ``(z_min, z_max)`` in nm (inclusive)."""
+        ...
+
+    def images(
+        self,
+        x: ArrayLike,
+        y: ArrayLike,
+        z: ArrayLike,
+        shape: tuple[int, int],
+        pixel_size: float,
+        *,
+        origin: tuple[float, float] = (0.0, 0.0),
+        derivatives: bool = False,
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Unit-photon images ``(K, rows, cols)``; with ``derivatives`` also ``(K, 3, rows, cols)``
+        holding d/dx, d/dy, d/dz (per nm) of each unit-photon image."""
+        ...
+
+    def render(
+        self,
+        x: ArrayLike,
+        y: ArrayLike,
+        z: ArrayLike,
+        photons: ArrayLike,
+        shape: tuple[int, int],
+        pixel_size: float,
+        *,
+        origin: tuple[float, float] = (0.0, 0.0),
+    ) -> NDArray[np.float64]:
+        """Expected photons per pixel ``(rows, cols)`` of K emitters (no background)."""
+        ...
+
+    def gradients(
+        self,
+        x: ArrayLike,
+        y: ArrayLike,
+        z: ArrayLike,
+        photons: ArrayLike,
+        shape: tuple[int, int],
+        pixel_size: float,
+        *,
+        origin: tuple[float, float] = (0.0, 0.0),
+    ) -> NDArray[np.float64]:
+        """Derivatives ``(K, 4, rows, cols)`` of the rendered image with respect to each emitter's
+        x, y, z (photons per pixel per nm) and photons (per photon)."""
+        ...
+
+    def support_radius(self, pixel_size: float) -> float:
+        """Radius (nm) around the emitter that holds nearly all of its image over the z range."""
+        ...
+
+
+def check_pixel_size(pixel_size: float) -> float:
+    """Return ``pixel_size`` as float or raise a ``ValueError`` naming it."""
+    p = float(pixel_size)
+    if not np.isfinite(p) or p <= 0:
+        raise ValueError(f"pixel_size must be a positive number of nm, got {pixel_size!r}")
+    return p
+
+
+def check_shape(shape: tuple[int, int]) -> tuple[int, int]:
+    """Return a validated ``(rows, cols)`` window shape."""
+    try:
+        rows, cols = (int(s) for s in shape)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"shape must be (rows, cols) of positive integers, got {shape!r}") from exc
+    if rows <= 0 or cols <= 0:
+        raise ValueError(f"shape must be (rows, cols) of positive integers, got {shape!r}")
+    return rows, cols
+
+
+def as_emitters(
+    x: ArrayLike,
+    y: ArrayLike,
+    z: ArrayLike,
+    z_range: tuple[float, float] | None = None,
+    photons: ArrayLike | None = None,
+) -> tuple[NDArray[np.float64], ...]:
+    """Broadcast emitter parameters to 1-D float arrays of one length and validate them.
+
+    Raises ``ValueError`` naming the argument when a value is not finite, a z lies outside
+    ``z_range`` (nm) or a photon count is negative.
+    """
+    arrays = [np.atleast_1d(np.asarray(v, dtype=np.float64)) for v in (x, y, z)]
+    if photons is not None:
+        arrays.append(np.atleast_1d(np.asarray(photons, dtype=np.float64)))
+    try:
+        arrays = list(np.broadcast_arrays(*arrays))
+    except ValueError as exc:
+        raise ValueError("x, y, z (and photons) must have the same length") from exc
+    names = ["x", "y", "z", "photons"]
+    for name, arr in zip(names, arrays, strict=False):
+        if arr.ndim != 1:
+            raise ValueError(f"{name} must be a scalar or a 1-D array, got shape {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} must be finite (no NaN or inf)")
+    if z_range is not None:
+        z = arrays[2]
+        lo, hi = z_range
+        tol = 1e-9 * max(1.0, abs(lo), abs(hi))
+        bad = (z < lo - tol) | (z > hi + tol)
+        if np.any(bad):
+            raise ValueError(
+                f"z = {z[bad][0]:.1f} nm is outside the model's valid range "
+                f"[{lo:.1f}, {hi:.1f}] nm"
+            )
+    if photons is not None and np.any(arrays[3] < 0):
+        raise ValueError("photons must be >= 0")
+    return tuple(np.ascontiguousarray(a) for a in arrays)
+
+
+def pixel_centres(n: int, pixel_size: float, origin: float = 0.0) -> NDArray[np.float64]:
+    """Centres (nm) of ``n`` pixels of size ``pixel_size`` starting at ``origin``."""
+    return origin + (np.arange(n, dtype=np.float64) + 0.5) * pixel_size
+
+
+class PSFBase:
+    """Shared behaviour: ``render`` and ``gradients`` from ``images``; support radius.
+
+    Subclasses implement ``_images(x, y, z, shape, pixel_size, origin, derivatives)`` on
+    validated arrays and set ``name`` and ``_z_range``.
+    """
+
+    name: str = "psf"
+    _z_range: tuple[float, float] = (-1000.0, 1000.0)
+
+    def __init__(self) -> None:
+        self._support_cache: dict[float, float] = {}
+
+    @property
+    def z_range(self) -> tuple[float, float]:
+        return self._z_range
+
+    # -- the one method subclasses provide -------------------------------------------------
+    def _images(
+        self,
+        x: NDArray[np.float64],
+        y: NDArray[np.float64],
+        z: NDArray[np.float64],
+        shape: tuple[int, int],
+        pixel_size: float,
+        origin: tuple[float, float],
+        derivatives: bool,
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
+        raise NotImplementedError
+
+    # -- public API ------------------------------------------------------------------------
+    def images(
+        self,
+        x: ArrayLike,
+        y: ArrayLike,
+        z: ArrayLike,
+        shape: tuple[int, int],
+        pixel_size: float,
+        *,
+        origin: tuple[float, float] = (0.0, 0.0),
+        derivatives: bool = False,
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Unit-photon images of K emitters.
+
+        Parameters
+        ----------
+        x, y, z : array_like, shape (K,)
+            Emitter positions in nm (x along columns, y along rows, z from focus).
+        shape : (rows, cols)
+            Window shape in pixels.
+        pixel_size : float
+            Pixel size in nm (sample space).
+        origin : (float, float)
+            Position (nm) of the window's outer corner of pixel (0, 0), x then y.
+        derivatives : bool
+            Also return derivatives with respect to x, y, z.
+
+        Returns
+        -------
+        images : ndarray, shape (K, rows, cols)
+            Expected photons per pixel for one photon per emitter.
+        derivs : ndarray, shape (K, 3, rows, cols)
+            Only with ``derivatives``: d/dx, d/dy, d/dz in photons per pixel per nm.
+        """
+        xs, ys, zs = as_emitters(x, y, z, self.z_range)
+        shp = check_shape(shape)
+        px = check_pixel_size(pixel_size)
+        ox, oy = (float(o) for o in origin)
+        return self._images(xs, ys, zs, shp, px, (ox, oy), derivatives)
+
+    def render(
+        self,
+        x: ArrayLike,
+        y: ArrayLike,
+        z: ArrayLike,
+        photons: ArrayLike,
+        shape: tuple[int, int],
+        pixel_size: float,
+        *,
+        origin: tuple[float, float] = (0.0, 0.0),
+    ) -> NDArray[np.float64]:
+        """Expected photons per pixel, shape ``(rows, cols)``, of K emitters without background.
+
+        See :meth:`images` for the parameters; ``photons`` has shape (K,).
+        """
+        xs, ys, zs, ns = as_emitters(x, y, z, self.z_range, photons)
+        imgs = self.images(xs, ys, zs, shape, pixel_size, origin=origin)
+        return np.tensordot(ns, imgs, axes=(0, 0))
+
+    def gradients(
+        self,
+        x: ArrayLike,
+        y: ArrayLike,
+        z: ArrayLike,
+        photons: ArrayLike,
+        shape: tuple[int, int],
+        pixel_size: float,
+        *,
+        origin: tuple[float, float] = (0.0, 0.0),
+    ) -> NDArray[np.float64]:
+        """Derivatives of the rendered image, shape ``(K, 4, rows, cols)``.
+
+        Index 0..2 are d/dx, d/dy, d/dz (photons per pixel per nm) and 3 is d/dphotons.
+        """
+        xs, ys, zs, ns = as_emitters(x, y, z, self.z_range, photons)
+        imgs, der = self.images(xs, ys, zs, shape, pixel_size, origin=origin, derivatives=True)
+        out = np.empty((len(xs), 4, *imgs.shape[1:]))
+        out[:, :3] = der * ns[:, None, None, None]
+        out[:, 3] = imgs
+        return out
+
+    def support_radius(self, pixel_size: float, fraction: float = 0.99) -> float:
+        """Radius (nm) of the disc around the emitter that holds ``fraction`` of its image.
+
+        The largest radius over 9 planes across the z range, computed once per pixel size.
+        Used to size simulation patches and dictionary margins.
+        """
+        px = check_pixel_size(pixel_size)
+        key = round(px, 6)
+        if key not in self._support_cache:
+            zs = np.linspace(*self.z_range, 9)
+            n = int(np.ceil(8000.0 / px)) | 1  # 8 um field: larger than any practical SMLM PSF
+            n = min(n, 161)
+            half = n * px / 2
+            imgs = self.images(np.full(9, half), np.full(9, half), zs, (n, n), px)
+            c = pixel_centres(n, px) - half
+            r = np.hypot(c[None, :], c[:, None]).ravel()
+            order = np.argsort(r)
+            radius = 0.0
+            for img in imgs:
+                cum = np.cumsum(img.ravel()[order])
+                total = cum[-1]
+                idx = int(np.searchsorted(cum, fraction * total))
+                radius = max(radius, float(r[order[min(idx, len(r) - 1)]]))
+            self._support_cache[key] = radius + px
+        return self._support_cache[key]
