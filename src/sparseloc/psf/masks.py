@@ -91,7 +91,11 @@ def zernike(n: int, m: int, rho: NDArray[np.float64], phi: NDArray[np.float64]) 
         c = (
             (-1) ** k
             * math.factorial(n - k)
-            / (math.factorial(k) * math.factorial((n + ma) // 2 - k) * math.factorial((n - ma) // 2 - k))
+            / (
+                math.factorial(k)
+                * math.factorial((n + ma) // 2 - k)
+                * math.factorial((n - ma) // 2 - k)
+            )
         )
         radial = radial + c * rho ** (n - 2 * k)
     norm = math.sqrt(2 * (n + 1)) if m != 0 else math.sqrt(n + 1)

@@ -1,0 +1,327 @@
+"""Camera models: photons to ADU with noise, ADU back to photons, and the per-pixel noise variance.
+
+Units
+-----
+Brightness in **photons** (incident on the detector), charge in **electrons** (e-), camera output
+in **ADU** (analog-to-digital units). The conversion used everywhere (design.md, section 4) is::
+
+    photons = (ADU - offset) * gain / em_gain / qe
+
+with ``gain`` in e- per ADU. Image arrays are ``(frames, rows, cols)`` or ``(rows, cols)``.
+
+Noise models
+------------
+``"ideal"``
+    Poisson shot noise only: ``e- ~ Poisson(qe * mu)``.
+``"emccd"``
+    Poisson shot noise, then stochastic electron multiplication modelled as a gamma distribution
+    with shape ``n`` (the number of photo-electrons) and scale ``em_gain``; this gives the excess
+    noise factor ``F^2 = 2`` of a high-gain EMCCD. Then Gaussian read noise (``read_noise`` e-
+    rms at the output).
+``"scmos"``
+    Poisson shot noise plus per-pixel Gaussian read noise (``variance_map`` in ADU^2, or the
+    scalar ``read_noise`` in e- rms), per-pixel gain (``gain_map``) and offset (``offset_map``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = ["CAMERA_KINDS", "Camera", "apply_noise", "noise_variance", "to_photons"]
+
+#: Allowed values of :attr:`Camera.kind`.
+CAMERA_KINDS: tuple[str, ...] = ("ideal", "emccd", "scmos")
+
+_UINT16_MAX = np.iinfo(np.uint16).max
+
+
+def _as_map(name: str, value: ArrayLike | None) -> NDArray[np.float64] | None:
+    if value is None:
+        return None
+    arr = np.array(value, dtype=np.float64)  # copy: the camera must not change under us
+    if arr.ndim != 2 or arr.size == 0:
+        raise ValueError(f"{name} must be a 2-D (rows, cols) array, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite (no NaN or inf)")
+    arr.flags.writeable = False
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """Camera parameters that convert between photons and ADU.
+
+    Parameters
+    ----------
+    kind : {"ideal", "emccd", "scmos"}
+        Noise model (see the module docstring).
+    offset : float
+        Baseline added to every pixel, in ADU (>= 0).
+    gain : float
+        Conversion gain in e- per ADU (> 0).
+    em_gain : float
+        Electron-multiplying gain (>= 1); only for ``kind="emccd"``, 1 otherwise.
+    qe : float
+        Quantum efficiency in (0, 1].
+    read_noise : float
+        Read noise in e- rms (>= 0); 0 for ``kind="ideal"``. For ``"scmos"`` it applies to every
+        pixel unless ``variance_map`` is given.
+    offset_map, variance_map, gain_map : ndarray, shape (rows, cols), optional
+        sCMOS per-pixel offset (ADU), read-noise variance (ADU^2) and gain (e-/ADU). They replace
+        ``offset``, ``read_noise`` and ``gain`` respectively; only for ``kind="scmos"``.
+
+    Raises
+    ------
+    ValueError
+        Naming the offending field and its allowed values.
+    """
+
+    kind: str = "ideal"
+    offset: float = 100.0
+    gain: float = 1.0
+    em_gain: float = 1.0
+    qe: float = 1.0
+    read_noise: float = 0.0
+    offset_map: NDArray[np.float64] | None = None
+    variance_map: NDArray[np.float64] | None = None
+    gain_map: NDArray[np.float64] | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in CAMERA_KINDS:
+            allowed = ", ".join(repr(k) for k in CAMERA_KINDS)
+            raise ValueError(f"kind must be one of {allowed}, got {self.kind!r}")
+        scalars = {}
+        for name in ("offset", "gain", "em_gain", "qe", "read_noise"):
+            try:
+                v = float(getattr(self, name))
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"{name} must be a number, got {getattr(self, name)!r}") from exc
+            if not np.isfinite(v):
+                raise ValueError(f"{name} must be finite, got {v}")
+            scalars[name] = v
+            object.__setattr__(self, name, v)
+        if scalars["offset"] < 0:
+            raise ValueError(f"offset must be >= 0 ADU, got {scalars['offset']}")
+        if scalars["gain"] <= 0:
+            raise ValueError(f"gain must be > 0 e-/ADU, got {scalars['gain']}")
+        if scalars["em_gain"] < 1:
+            raise ValueError(f"em_gain must be >= 1, got {scalars['em_gain']}")
+        if self.kind != "emccd" and scalars["em_gain"] != 1.0:
+            raise ValueError(
+                f"em_gain must be 1 unless kind='emccd' (kind={self.kind!r}, "
+                f"em_gain={scalars['em_gain']})"
+            )
+        if not 0 < scalars["qe"] <= 1:
+            raise ValueError(f"qe must be in (0, 1], got {scalars['qe']}")
+        if scalars["read_noise"] < 0:
+            raise ValueError(f"read_noise must be >= 0 e- rms, got {scalars['read_noise']}")
+        if self.kind == "ideal" and scalars["read_noise"] != 0:
+            raise ValueError(
+                "read_noise must be 0 for kind='ideal' (Poisson only); "
+                "use kind='emccd' or 'scmos' for read noise"
+            )
+        maps = {}
+        for name in ("offset_map", "variance_map", "gain_map"):
+            arr = _as_map(name, getattr(self, name))
+            if arr is not None and self.kind != "scmos":
+                raise ValueError(
+                    f"{name} is only allowed with kind='scmos', got kind={self.kind!r}"
+                )
+            maps[name] = arr
+            object.__setattr__(self, name, arr)
+        shapes = {m.shape for m in maps.values() if m is not None}
+        if len(shapes) > 1:
+            raise ValueError(
+                "offset_map, variance_map and gain_map must have the same shape, got "
+                + ", ".join(f"{k}={v.shape}" for k, v in maps.items() if v is not None)
+            )
+        if maps["offset_map"] is not None and np.any(maps["offset_map"] < 0):
+            raise ValueError("offset_map must be >= 0 ADU everywhere")
+        if maps["variance_map"] is not None:
+            if np.any(maps["variance_map"] < 0):
+                raise ValueError("variance_map must be >= 0 ADU^2 everywhere")
+            if scalars["read_noise"] != 0:
+                raise ValueError(
+                    "give either read_noise (e- rms, all pixels) or variance_map (ADU^2), not both"
+                )
+        if maps["gain_map"] is not None and np.any(maps["gain_map"] <= 0):
+            raise ValueError("gain_map must be > 0 e-/ADU everywhere")
+
+    # Frozen dataclasses compare fields as tuples, which fails for arrays: compare explicitly.
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Camera):
+            return NotImplemented
+        for name in ("kind", "offset", "gain", "em_gain", "qe", "read_noise"):
+            if getattr(self, name) != getattr(other, name):
+                return False
+        for name in ("offset_map", "variance_map", "gain_map"):
+            a, b = getattr(self, name), getattr(other, name)
+            if (a is None) != (b is None) or (a is not None and not np.array_equal(a, b)):
+                return False
+        return True
+
+    def __hash__(self) -> int:
+        return hash((self.kind, self.offset, self.gain, self.em_gain, self.qe, self.read_noise))
+
+    @property
+    def map_shape(self) -> tuple[int, int] | None:
+        """Shape ``(rows, cols)`` of the sCMOS maps, or ``None`` when there are none."""
+        for m in (self.offset_map, self.variance_map, self.gain_map):
+            if m is not None:
+                return m.shape  # type: ignore[return-value]
+        return None
+
+    def to_dict(self) -> dict:
+        """Scalar parameters as a plain dict (maps are summarised by their shape)."""
+        return {
+            "kind": self.kind,
+            "offset": self.offset,
+            "gain": self.gain,
+            "em_gain": self.em_gain,
+            "qe": self.qe,
+            "read_noise": self.read_noise,
+            "map_shape": self.map_shape,
+        }
+
+    # -- per-pixel parameters broadcast to an image ---------------------------------------
+    def _pixel_params(
+        self, image_shape: tuple[int, ...]
+    ) -> tuple[float | NDArray[np.float64], float | NDArray[np.float64]]:
+        """Offset (ADU) and gain (e-/ADU) as scalars or (rows, cols) maps checked against
+        ``image_shape``."""
+        ms = self.map_shape
+        if ms is not None and tuple(image_shape[-2:]) != ms:
+            raise ValueError(
+                f"image of shape {tuple(image_shape)} does not match the camera maps of "
+                f"shape {ms} (rows, cols)"
+            )
+        offset = self.offset_map if self.offset_map is not None else self.offset
+        gain = self.gain_map if self.gain_map is not None else self.gain
+        return offset, gain
+
+    def _read_variance_e(self, image_shape: tuple[int, ...]) -> float | NDArray[np.float64]:
+        """Read-noise variance in e-^2 (scalar or (rows, cols) map)."""
+        _, gain = self._pixel_params(image_shape)
+        if self.variance_map is not None:
+            return self.variance_map * np.asarray(gain) ** 2
+        return self.read_noise**2
+
+
+def _check_expected(expected_photons: ArrayLike) -> NDArray[np.float64]:
+    mu = np.asarray(expected_photons, dtype=np.float64)
+    if mu.ndim not in (2, 3):
+        raise ValueError(
+            f"expected_photons must be (rows, cols) or (frames, rows, cols), got shape {mu.shape}"
+        )
+    if not np.all(np.isfinite(mu)):
+        raise ValueError("expected_photons must be finite (no NaN or inf)")
+    if np.any(mu < 0):
+        raise ValueError("expected_photons must be >= 0")
+    return mu
+
+
+def apply_noise(
+    expected_photons: ArrayLike, camera: Camera, rng: np.random.Generator
+) -> NDArray[np.uint16]:
+    """Draw a noisy camera image from expected photons per pixel.
+
+    Parameters
+    ----------
+    expected_photons : array_like, shape (frames, rows, cols) or (rows, cols)
+        Expected photons per pixel (>= 0), background included.
+    camera : Camera
+        Camera model.
+    rng : numpy.random.Generator
+        Source of randomness; the result is a pure function of its state.
+
+    Returns
+    -------
+    adu : ndarray of uint16, same shape
+        Camera counts in ADU, rounded and clipped to [0, 65535].
+    """
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
+    mu = _check_expected(expected_photons)
+    offset, gain = camera._pixel_params(mu.shape)
+    electrons = rng.poisson(mu * camera.qe).astype(np.float64)
+    if camera.kind == "emccd":
+        if camera.em_gain != 1.0:
+            # Gamma(shape=n, scale=G): the output of a high-gain multiplication register; a
+            # shape of 0 gives exactly 0. Mean n*G, variance n*G^2 -> excess noise factor 2.
+            electrons = rng.gamma(electrons, camera.em_gain)
+        if camera.read_noise > 0:
+            electrons = electrons + rng.normal(0.0, camera.read_noise, size=mu.shape)
+    elif camera.kind == "scmos":
+        var_e = camera._read_variance_e(mu.shape)
+        if np.any(np.asarray(var_e) > 0):
+            sd = np.sqrt(np.broadcast_to(var_e, mu.shape))
+            electrons = electrons + rng.normal(0.0, 1.0, size=mu.shape) * sd
+    adu = electrons / gain + offset
+    return np.clip(np.rint(adu), 0, _UINT16_MAX).astype(np.uint16)
+
+
+def to_photons(adu: ArrayLike, camera: Camera) -> NDArray[np.float64]:
+    """Convert camera counts to photons: ``(ADU - offset) * gain / em_gain / qe``.
+
+    Parameters
+    ----------
+    adu : array_like, shape (..., rows, cols)
+        Camera counts in ADU (any numeric dtype).
+    camera : Camera
+        Camera model; sCMOS maps are applied per pixel.
+
+    Returns
+    -------
+    photons : ndarray of float64, same shape
+        Photons per pixel (can be negative where noise pulls the counts below the offset).
+    """
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
+    a = np.asarray(adu, dtype=np.float64)
+    if a.ndim < 2 and camera.map_shape is not None:
+        raise ValueError(f"adu must be at least 2-D (rows, cols) for sCMOS maps, got {a.shape}")
+    offset, gain = camera._pixel_params(a.shape)
+    return (a - offset) * (np.asarray(gain) / (camera.em_gain * camera.qe))
+
+
+def noise_variance(expected_photons: ArrayLike, camera: Camera) -> NDArray[np.float64]:
+    """Per-pixel variance, in photons^2, of :func:`to_photons` applied to a noisy image.
+
+    Parameters
+    ----------
+    expected_photons : array_like, shape (..., rows, cols)
+        Expected photons per pixel ``mu`` (>= 0), background included.
+    camera : Camera
+        Camera model.
+
+    Returns
+    -------
+    variance : ndarray of float64, same shape
+        - ideal: ``mu / qe`` (``mu`` for ``qe = 1``);
+        - EMCCD: ``2 mu / qe + (read_noise / (em_gain qe))^2`` (excess noise factor 2 when
+          ``em_gain > 1``; ``mu / qe + ...`` at ``em_gain = 1``);
+        - sCMOS: ``mu / qe + read variance / qe^2`` with the read variance in e-^2
+          (``variance_map * gain_map^2`` or ``read_noise^2``).
+
+        ADU rounding (``gain^2 / 12`` e-^2) is neglected.
+    """
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
+    mu = np.asarray(expected_photons, dtype=np.float64)
+    if np.any(mu < 0):
+        raise ValueError("expected_photons must be >= 0")
+    qe = camera.qe
+    if camera.kind == "ideal":
+        return mu / qe
+    if camera.kind == "emccd":
+        enf = 2.0 if camera.em_gain > 1.0 else 1.0
+        return enf * mu / qe + (camera.read_noise / (camera.em_gain * qe)) ** 2
+    if mu.ndim < 2 and camera.map_shape is not None:
+        raise ValueError(
+            f"expected_photons must be at least 2-D (rows, cols) for sCMOS maps, got {mu.shape}"
+        )
+    var_e = camera._read_variance_e(mu.shape)
+    return mu / qe + np.asarray(var_e) / qe**2

@@ -1,0 +1,243 @@
+"""Tests of matching and SMLM-challenge metrics (sparseloc.evaluate)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from sparseloc.evaluate import Evaluation, efficiency, evaluate, match_localizations
+
+
+def table(rows, z=True):
+    cols = ["frame", "x_nm", "y_nm", "z_nm"] if z else ["frame", "x_nm", "y_nm"]
+    return pd.DataFrame([r[: len(cols)] for r in rows], columns=cols)
+
+
+# --------------------------------------------------------------------------------------------
+# Efficiency
+# --------------------------------------------------------------------------------------------
+def test_efficiency_published_check_value():
+    assert efficiency(91.204, 32.077, 1.0) == pytest.approx(66.739, abs=5e-4)
+
+
+def test_efficiency_perfect_and_axial_weight():
+    assert efficiency(100.0, 0.0, 1.0) == 100.0
+    # alpha 0.5 halves the RMSE's weight
+    assert efficiency(100.0, 40.0, 0.5) == pytest.approx(80.0)
+    assert math.isnan(efficiency(50.0, math.nan, 1.0))
+
+
+# --------------------------------------------------------------------------------------------
+# Hand-built matching case
+# --------------------------------------------------------------------------------------------
+@pytest.fixture
+def scene():
+    truth = table(
+        [
+            (0, 1000.0, 1000.0, 0.0),  # t0: matched, error (+10, -20, +30)
+            (0, 3000.0, 3000.0, 0.0),  # t1: lateral just inside  (249 nm)
+            (0, 6000.0, 6000.0, 0.0),  # t2: lateral just outside (251 nm) -> FN
+            (1, 1000.0, 1000.0, 100.0),  # t3: axial just inside (499 nm)
+            (1, 5000.0, 5000.0, 100.0),  # t4: axial just outside (501 nm) -> FN
+            (2, 2000.0, 2000.0, 0.0),  # t5: only truth in frame 2 -> FN
+        ]
+    )
+    locs = table(
+        [
+            (0, 1010.0, 980.0, 30.0),  # -> t0
+            (0, 3249.0, 3000.0, 0.0),  # -> t1 (dx = +249)
+            (0, 6251.0, 6000.0, 0.0),  # FP (dx = 251)
+            (1, 1000.0, 1000.0, 599.0),  # -> t3 (dz = +499)
+            (1, 5000.0, 5000.0, -401.0),  # FP (dz = -501)
+            (3, 0.0, 0.0, 0.0),  # FP: frame with no truth
+        ]
+    )
+    return locs, truth
+
+
+def test_match_hand_built(scene):
+    locs, truth = scene
+    m = match_localizations(locs, truth)
+    assert list(m["truth_row"]) == [0, 1, 3]
+    assert list(m["loc_row"]) == [0, 1, 3]
+    assert list(m["frame"]) == [0, 0, 1]
+    np.testing.assert_allclose(m["dx"], [10.0, 249.0, 0.0])
+    np.testing.assert_allclose(m["dy"], [-20.0, 0.0, 0.0])
+    np.testing.assert_allclose(m["dz"], [30.0, 0.0, 499.0])
+    np.testing.assert_allclose(m["dist_lateral"], [math.hypot(10, 20), 249.0, 0.0])
+
+
+def test_evaluate_hand_built(scene):
+    locs, truth = scene
+    ev = evaluate(locs, truth)
+    assert isinstance(ev, Evaluation)
+    assert (ev.n_truth, ev.n_locs, ev.tp, ev.fp, ev.fn) == (6, 6, 3, 3, 3)
+    assert ev.jaccard == pytest.approx(100 * 3 / 9)
+    assert ev.recall == pytest.approx(0.5)
+    assert ev.precision == pytest.approx(0.5)
+    dx = np.array([10.0, 249.0, 0.0])
+    dy = np.array([-20.0, 0.0, 0.0])
+    dz = np.array([30.0, 0.0, 499.0])
+    assert ev.rmse_lateral == pytest.approx(np.sqrt(np.mean(dx**2 + dy**2)))
+    assert ev.rmse_axial == pytest.approx(np.sqrt(np.mean(dz**2)))
+    assert ev.rmse_x == pytest.approx(np.sqrt(np.mean(dx**2)))
+    assert ev.rmse_y == pytest.approx(np.sqrt(np.mean(dy**2)))
+    assert ev.rmse_z == pytest.approx(ev.rmse_axial)
+    assert ev.bias_x == pytest.approx(dx.mean())
+    assert ev.bias_y == pytest.approx(dy.mean())
+    assert ev.bias_z == pytest.approx(dz.mean())
+    assert ev.efficiency_lateral == pytest.approx(efficiency(ev.jaccard, ev.rmse_lateral, 1.0))
+    assert ev.efficiency_axial == pytest.approx(efficiency(ev.jaccard, ev.rmse_axial, 0.5))
+    assert ev.efficiency_3d == pytest.approx(0.5 * (ev.efficiency_lateral + ev.efficiency_axial))
+    d = ev.as_dict()
+    assert d["tp"] == 3 and d["jaccard"] == ev.jaccard
+    text = ev.summary()
+    assert "Jaccard" in text and "TP / FP / FN" in text and "3 / 3 / 3" in text
+
+
+def test_tolerances_are_parameters(scene):
+    locs, truth = scene
+    assert evaluate(locs, truth, lateral_tol=252.0).tp == 4
+    assert evaluate(locs, truth, axial_tol=502.0).tp == 4
+    assert evaluate(locs, truth, axial_tol=498.0).tp == 2
+
+
+def test_hungarian_beats_greedy():
+    # On a line: t0 = 0, a = 230, t1 = 240, b = 480 (nm); allowed pairs a-t0 (230),
+    # a-t1 (10), b-t1 (240); b-t0 (480) is beyond the 250 nm tolerance.
+    # Greedy nearest-neighbour takes a-t1 first and leaves b and t0 unmatched: 1 pair.
+    # Hungarian: a-t0 and b-t1, 2 pairs.
+    truth = table([(0, 0.0, 0.0, 0.0), (0, 240.0, 0.0, 0.0)])
+    locs = table([(0, 230.0, 0.0, 0.0), (0, 480.0, 0.0, 0.0)])
+    m = match_localizations(locs, truth)
+    assert len(m) == 2
+    assert dict(zip(m["loc_row"], m["truth_row"], strict=True)) == {0: 0, 1: 1}
+
+
+def test_hungarian_minimises_total_distance():
+    # Both assignments have 2 pairs; the optimal total is 20 + 20 (crossed pairs cost 180 + 220).
+    truth = table([(5, 0.0, 0.0, 0.0), (5, 200.0, 0.0, 0.0)])
+    locs = table([(5, 180.0, 0.0, 0.0), (5, 20.0, 0.0, 0.0)])
+    m = match_localizations(locs, truth)
+    assert dict(zip(m["loc_row"], m["truth_row"], strict=True)) == {0: 1, 1: 0}
+    np.testing.assert_allclose(m["dist_3d"], [20.0, 20.0])
+
+
+def test_tolerance_is_inclusive():
+    truth = table([(0, 0.0, 0.0, 0.0), (1, 0.0, 0.0, 0.0)])
+    locs = table([(0, 250.0, 0.0, 0.0), (1, 0.0, 0.0, -500.0)])
+    assert evaluate(locs, truth).tp == 2
+
+
+def test_bias_sign():
+    truth = table([(0, 1000.0, 1000.0, 0.0), (1, 1000.0, 1000.0, 0.0)])
+    locs = table([(0, 1005.0, 990.0, -40.0), (1, 1015.0, 990.0, -20.0)])
+    ev = evaluate(locs, truth)
+    assert ev.bias_x == pytest.approx(10.0)  # locs to the right of the truth
+    assert ev.bias_y == pytest.approx(-10.0)
+    assert ev.bias_z == pytest.approx(-30.0)
+
+
+def test_2d_locs_without_z():
+    truth = table([(0, 0.0, 0.0, 100.0), (0, 1000.0, 0.0, -300.0)])
+    locs = table([(0, 3.0, 4.0), (0, 1000.0, 0.0)], z=False)
+    m = match_localizations(locs, truth, axial_tol=1.0)  # axial tolerance ignored in 2D
+    assert len(m) == 2
+    assert m["dz"].isna().all()
+    ev = evaluate(locs, truth)
+    assert ev.tp == 2 and not ev.three_d
+    assert ev.rmse_lateral == pytest.approx(np.sqrt(25.0 / 2))
+    assert math.isnan(ev.rmse_axial) and math.isnan(ev.bias_z)
+    assert math.isnan(ev.efficiency_axial) and math.isnan(ev.efficiency_3d)
+    assert ev.efficiency_lateral == pytest.approx(efficiency(100.0, ev.rmse_lateral, 1.0))
+    assert "2D" in ev.summary()
+
+
+def test_empty_tables_and_frames():
+    truth = table([(0, 0.0, 0.0, 0.0), (2, 0.0, 0.0, 0.0)])
+    empty = truth.iloc[:0]
+    ev = evaluate(empty, truth)
+    assert (ev.tp, ev.fp, ev.fn) == (0, 0, 2)
+    assert ev.jaccard == 0.0 and ev.recall == 0.0 and math.isnan(ev.precision)
+    assert math.isnan(ev.rmse_lateral)
+    ev = evaluate(truth, empty)
+    assert (ev.tp, ev.fp, ev.fn) == (0, 2, 0)
+    m = match_localizations(empty, truth)
+    assert len(m) == 0 and "dx" in m.columns
+    # frames present in only one table
+    locs = table([(1, 0.0, 0.0, 0.0), (2, 1.0, 0.0, 0.0)])
+    ev = evaluate(locs, truth)
+    assert (ev.tp, ev.fp, ev.fn) == (1, 1, 1)
+
+
+def test_many_frames_matches_bruteforce():
+    rng = np.random.default_rng(0)
+    n_frames, per = 40, 15
+    truth = pd.DataFrame(
+        {
+            "frame": np.repeat(np.arange(n_frames), per),
+            "x_nm": rng.uniform(0, 3000, n_frames * per),
+            "y_nm": rng.uniform(0, 3000, n_frames * per),
+            "z_nm": rng.uniform(-500, 500, n_frames * per),
+        }
+    )
+    keep = rng.random(len(truth)) < 0.8
+    locs = truth[keep].copy()
+    locs[["x_nm", "y_nm"]] += rng.normal(0, 60, (len(locs), 2))
+    locs["z_nm"] += rng.normal(0, 150, len(locs))
+    extra = truth.sample(50, random_state=1).copy()
+    extra[["x_nm", "y_nm"]] += rng.uniform(-400, 400, (50, 2))
+    locs = pd.concat([locs, extra], ignore_index=True).sample(frac=1, random_state=2)
+    m = match_localizations(locs, truth)
+    # one-to-one and within tolerance
+    assert m["loc_row"].is_unique and m["truth_row"].is_unique
+    assert (m["dist_lateral"] <= 250).all() and (m["dz"].abs() <= 500).all()
+    # same cardinality and total cost as a dense Hungarian per frame
+    from scipy.optimize import linear_sum_assignment
+
+    total_n, total_cost = 0, 0.0
+    for f in range(n_frames):
+        lf = locs[locs["frame"] == f]
+        tf = truth[truth["frame"] == f]
+        d = lf[["x_nm", "y_nm"]].to_numpy()[:, None] - tf[["x_nm", "y_nm"]].to_numpy()[None]
+        dz = lf["z_nm"].to_numpy()[:, None] - tf["z_nm"].to_numpy()[None]
+        lat = np.hypot(d[..., 0], d[..., 1])
+        ok = (lat <= 250) & (np.abs(dz) <= 500)
+        cost = np.sqrt(lat**2 + dz**2)
+        big = 1e7
+        r, c = linear_sum_assignment(np.where(ok, cost, big))
+        sel = ok[r, c]
+        total_n += sel.sum()
+        total_cost += cost[r, c][sel].sum()
+    assert len(m) == total_n
+    assert m["dist_3d"].sum() == pytest.approx(total_cost)
+
+
+# --------------------------------------------------------------------------------------------
+# Validation
+# --------------------------------------------------------------------------------------------
+def test_missing_columns_named():
+    truth = table([(0, 0.0, 0.0, 0.0)])
+    bad = pd.DataFrame({"frame": [0], "x": [0.0], "y_nm": [0.0]})
+    with pytest.raises(ValueError, match="x_nm"):
+        evaluate(bad, truth)
+    with pytest.raises(ValueError, match=r"truth.*frame"):
+        evaluate(truth, truth.drop(columns="frame"))
+
+
+def test_negative_tolerances():
+    truth = table([(0, 0.0, 0.0, 0.0)])
+    with pytest.raises(ValueError, match="lateral_tol"):
+        evaluate(truth, truth, lateral_tol=-1.0)
+    with pytest.raises(ValueError, match="axial_tol"):
+        match_localizations(truth, truth, axial_tol=-5.0)
+
+
+def test_nan_coordinates_rejected():
+    truth = table([(0, 0.0, 0.0, 0.0)])
+    locs = table([(0, np.nan, 0.0, 0.0)])
+    with pytest.raises(ValueError, match="x_nm"):
+        evaluate(locs, truth)
