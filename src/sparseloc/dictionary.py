@@ -243,6 +243,8 @@ class Dictionary:
         )  # (nz, s, s, CR, CC): z, phase_y, phase_x
         self._spectra = sfft.rfft2(self.templates, axes=(-2, -1), workers=-1)
         self._norms: NDArray[np.float64] | None = None
+        self._sums: NDArray[np.float64] | None = None
+        self._qerr: float | None = None
 
     # -- construction ------------------------------------------------------------------------
     def _render_templates(self, px_pos, py_pos, zs, corner) -> NDArray[np.float64]:
@@ -396,9 +398,55 @@ class Dictionary:
             self._norms = np.sqrt(np.maximum(self._from_template_order(corr[..., :ay, :ax]), 0))
         return self._norms
 
+    @property
+    def sums(self) -> NDArray[np.float64]:
+        """Sum of every atom's pixels (photons in the window per photon), shape (nz, ny, nx)."""
+        if self._sums is None:
+            self._sums = self.rmatvec(np.ones(self.shape))
+        return self._sums
+
     def positions(self, index: ArrayLike) -> NDArray[np.float64]:
         """(x, y, z) in nm of flat atom indices, shape (n, 3)."""
         return self.grid.positions(index)
+
+    @property
+    def quantization_error(self) -> float:
+        """Relative error of the grid: the median of ``||image - a * best_atom|| / ||image||``
+        over 24 random off-grid emitters in the window centre (seeded, computed once).
+
+        The coarse paper grid (80 nm / 120 nm) leaves about 17 % of an emitter's signal norm
+        unexplained, the fine one (10 nm / 15 nm) about 2 %. Stopping rules use it to tell
+        grid mismatch from a missing emitter.
+        """
+        if self._qerr is None:
+            rng = np.random.default_rng(12345)
+            rows, cols = self.shape
+            px = self.pixel_size
+            g = self.grid
+            n = 24
+            x = self.origin[0] + rng.uniform(0.35, 0.65, n) * cols * px
+            y = self.origin[1] + rng.uniform(0.35, 0.65, n) * rows * px
+            z = rng.uniform(g.z[0], g.z[-1], n) if g.z.size > 1 else np.full(n, g.z[0])
+            imgs = self.model.images(x, y, z, self.shape, px, origin=self.origin)
+            # The best atom for an emitter is one of its grid neighbours: search the 3x3x3
+            # grid points around it instead of correlating with the whole dictionary.
+            ix = np.clip(np.floor((x - g.x[0]) / g.dxy).astype(int), 0, g.x.size - 2)
+            iy = np.clip(np.floor((y - g.y[0]) / g.dxy).astype(int), 0, g.y.size - 2)
+            iz = np.clip(np.floor((z - g.z[0]) / g.dz).astype(int), 0, max(g.z.size - 2, 0))
+            off = np.array(np.meshgrid([-1, 0, 1, 2], [-1, 0, 1, 2], [-1, 0, 1, 2])).reshape(3, -1)
+            rel = np.empty(n)
+            for j in range(n):
+                cz = np.clip(iz[j] + off[0], 0, g.z.size - 1)
+                cy = np.clip(iy[j] + off[1], 0, g.y.size - 1)
+                cx = np.clip(ix[j] + off[2], 0, g.x.size - 1)
+                cand = np.unique(np.ravel_multi_index((cz, cy, cx), self.coef_shape))
+                atoms = self.atoms(cand).reshape(cand.size, -1)
+                img = imgs[j].ravel()
+                amp = atoms @ img / np.einsum("ij,ij->i", atoms, atoms)
+                resid = np.linalg.norm(img[None] - amp[:, None] * atoms, axis=1)
+                rel[j] = resid.min() / np.linalg.norm(img)
+            self._qerr = float(np.median(rel))
+        return self._qerr
 
     # -- dense and restricted views --------------------------------------------------------------
     def dense(self, index: ArrayLike | None = None, *, max_memory: int = 2 * 1024**3) -> NDArray:
@@ -425,7 +473,13 @@ class Dictionary:
         if m.shape != self.coef_shape:
             raise ValueError(f"mask has shape {m.shape}; expected {self.coef_shape}")
         idx = np.flatnonzero(m)
-        return DenseDictionary(self.dense(idx), self.positions(idx), self.shape, index=idx)
+        return DenseDictionary(
+            self.dense(idx),
+            self.positions(idx),
+            self.shape,
+            index=idx,
+            steps=(self.grid.dxy, self.grid.dz),
+        )
 
     def box_mask(self, centres: ArrayLike, half_width: tuple[float, float, float]) -> NDArray:
         """Boolean mask (nz, ny, nx) of atoms within boxes ``|x - xc| <= hx`` etc. of any centre.
@@ -463,6 +517,8 @@ class DenseDictionary:
         Window shape.
     index : ndarray, shape (n,), optional
         Flat indices of these atoms in a parent :class:`Dictionary`.
+    steps : (dxy, dz), optional
+        Grid steps (nm) of the atoms, used to group coefficients into emitters.
     """
 
     def __init__(
@@ -472,6 +528,7 @@ class DenseDictionary:
         shape: tuple[int, int],
         *,
         index: NDArray | None = None,
+        steps: tuple[float, float] | None = None,
     ) -> None:
         self.matrix = np.ascontiguousarray(matrix, dtype=np.float64)
         self.atom_positions = np.asarray(positions, dtype=np.float64)
@@ -482,6 +539,7 @@ class DenseDictionary:
                 f"positions and a {self.shape} window"
             )
         self.index = index
+        self.steps = steps
         self._norms = np.linalg.norm(self.matrix, axis=0)
 
     @classmethod
@@ -502,6 +560,14 @@ class DenseDictionary:
     @property
     def size(self) -> int:
         return self.matrix.shape[1]
+
+    @property
+    def sums(self) -> NDArray[np.float64]:
+        """Sum of every atom's pixels, shape (n,)."""
+        return self.matrix.sum(axis=0)
+
+    #: Relative grid error (see :attr:`Dictionary.quantization_error`); 0 unless set.
+    quantization_error: float = 0.0
 
     @property
     def norms(self) -> NDArray[np.float64]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -12,7 +13,10 @@ from numpy.typing import NDArray
 
 from .psf.base import PSFModel
 
-__all__ = ["plot_crlb", "plot_psf_montage", "plot_scene", "save_figure"]
+if TYPE_CHECKING:
+    from .solvers.emitters import Emitters, WindowSolution
+
+__all__ = ["plot_crlb", "plot_psf_montage", "plot_scene", "plot_solve", "save_figure"]
 
 
 def save_figure(fig, path: str | Path, dpi: int = 120) -> Path:
@@ -129,4 +133,270 @@ def plot_crlb(z: NDArray, bound: NDArray, path: str | Path, *, title: str = "") 
     ax.grid(alpha=0.3)
     ax.legend()
     ax.set_title(title, fontsize=9)
+    return save_figure(fig, path)
+
+
+_METHOD_LABELS = {"mp": "MP", "omp": "OMP", "co": "CO", "hybrid": "MP+CO"}
+
+
+def _scale_bar(ax, extent_um: tuple[float, float, float, float], color: str) -> None:
+    """A horizontal scale bar (1 um, or the largest of 0.5/0.2/0.1 um that fits) bottom left."""
+    x0, x1, y_bottom, y_top = extent_um
+    width, height = x1 - x0, y_bottom - y_top
+    length = next((v for v in (1.0, 0.5, 0.2, 0.1) if v <= 0.8 * width), 0.1)
+    xs = x0 + 0.06 * width
+    ys = y_bottom - 0.07 * height
+    from matplotlib import patheffects
+
+    edge = "black" if color == "white" else "white"
+    ax.plot(
+        [xs, xs + length],
+        [ys, ys],
+        color=color,
+        lw=3,
+        solid_capstyle="butt",
+        path_effects=[patheffects.withStroke(linewidth=5, foreground=edge)],
+    )
+    ax.text(
+        xs + length / 2,
+        ys - 0.025 * height,
+        f"{length:g} µm",
+        color=color,
+        ha="center",
+        va="bottom",
+        fontsize=9,
+        path_effects=[patheffects.withStroke(linewidth=2, foreground=edge)],
+    )
+
+
+def _photon_summary(label: str, photons: NDArray | None, count: int) -> str:
+    if photons is None:
+        return f"{label}: {count}"
+    ph = np.sort(np.asarray(photons, dtype=float))[::-1]
+    shown = ", ".join(f"{p:.0f}" for p in ph[:6]) + (", ..." if ph.size > 6 else "")
+    total = f"  (sum {ph.sum():.0f})" if ph.size > 1 else ""
+    return f"{label}: {count}" + (f"\n  photons {shown}{total}" if ph.size else "")
+
+
+def plot_solve(
+    window: NDArray,
+    solution: WindowSolution,
+    path: str | Path,
+    *,
+    pixel_size: float,
+    origin: tuple[float, float] = (0.0, 0.0),
+    truth: NDArray | None = None,
+    mp_emitters: Emitters | None = None,
+    title: str = "",
+) -> Path:
+    """One window's solve, laid out like the paper's Figs 2-3.
+
+    Top row: the window, the reconstruction (``solution.model_image``) and the residual (window
+    minus reconstruction, diverging colours centred at 0), in µm with colour bars and a 1 µm
+    scale bar. Bottom row: positions (nm) in x-y and x-z with the true positions, the matching
+    pursuit positions, the final positions and the refined dictionary's boxes (hybrid only),
+    the window's extent as a frame, and a panel with the legend and each set's count and
+    photons.
+
+    Parameters
+    ----------
+    window : ndarray, shape (rows, cols)
+        The window in photons.
+    solution : WindowSolution
+        Any window solver's result (MP, CO or hybrid; boxes are drawn when
+        ``details`` holds ``box_centres`` and ``box_half_width``).
+    path : path
+        Output PNG.
+    pixel_size : float
+        Pixel size (nm).
+    origin : (float, float)
+        Position (nm) of the window's outer corner of pixel (0, 0), x then y.
+    truth : ndarray, shape (K, 3) or (K, 4), optional
+        True x, y, z (nm) and optionally photons.
+    mp_emitters : Emitters, optional
+        Matching pursuit's emitters; default ``solution.details["mp"].emitters`` if present.
+    title : str
+        Figure title; default the method and the count.
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch, Rectangle
+
+    img = np.asarray(window, dtype=np.float64)
+    model = np.asarray(solution.model_image, dtype=np.float64).reshape(img.shape)
+    rows, cols = img.shape
+    px = float(pixel_size)
+    ox, oy = float(origin[0]), float(origin[1])
+    x_lo, x_hi, y_lo, y_hi = ox, ox + cols * px, oy, oy + rows * px
+    ext_um = (x_lo / 1000, x_hi / 1000, y_hi / 1000, y_lo / 1000)
+
+    details = solution.details or {}
+    if mp_emitters is None and details.get("mp") is not None:
+        mp_emitters = details["mp"].emitters
+    final = solution.emitters
+    method = _METHOD_LABELS.get(solution.method, solution.method or "estimate")
+    tru = None
+    if truth is not None:
+        tru = np.asarray(truth, dtype=np.float64)
+        tru = tru.reshape(-1, tru.shape[-1] if tru.ndim > 1 else 3)
+    centres = np.asarray(details.get("box_centres", np.zeros((0, 3))), dtype=float)
+    centres = centres.reshape(-1, 3)
+    half = details.get("box_half_width")
+    if half is None:
+        centres = centres[:0]
+
+    fig = Figure(figsize=(14.0, 9.0), layout="constrained")
+    axes = fig.subplots(2, 3, gridspec_kw={"height_ratios": [1.0, 1.0]})
+
+    # -- top row: images ----------------------------------------------------------------------
+    vmin, vmax = float(min(img.min(), model.min())), float(max(img.max(), model.max()))
+    resid = img - model
+    rmax = float(np.abs(resid).max()) or 1.0
+    panels = (
+        (img, "window (photons)", "magma", vmin, vmax, "white"),
+        (model, f"reconstruction ({method})", "magma", vmin, vmax, "white"),
+        (resid, "residual (window - reconstruction)", "RdBu_r", -rmax, rmax, "black"),
+    )
+    for ax, (data, name, cmap, lo, hi, bar) in zip(axes[0], panels, strict=True):
+        im = ax.imshow(data, cmap=cmap, vmin=lo, vmax=hi, extent=ext_um, interpolation="nearest")
+        cb = fig.colorbar(im, ax=ax, shrink=0.85)
+        cb.set_label("photons / pixel", fontsize=8)
+        cb.ax.tick_params(labelsize=7)
+        _scale_bar(ax, ext_um, bar)
+        ax.set_title(name, fontsize=10)
+        ax.set_xlabel("x (µm)")
+        ax.set_ylabel("y (µm)")
+        ax.tick_params(labelsize=8)
+
+    # -- bottom row: positions ----------------------------------------------------------------
+    ax_xy, ax_xz, ax_info = axes[1]
+    sets = []  # (label, xyz (n, 3), style)
+    if tru is not None:
+        sets.append(
+            (
+                "truth",
+                tru[:, :3],
+                {
+                    "marker": "o",
+                    "s": 70,
+                    "facecolors": "none",
+                    "edgecolors": "black",
+                    "linewidths": 1.4,
+                },
+            )
+        )
+    if mp_emitters is not None:
+        sets.append(
+            (
+                "MP",
+                mp_emitters.as_array()[:, :3],
+                {
+                    "marker": "s",
+                    "s": 55,
+                    "facecolors": "none",
+                    "edgecolors": "tab:orange",
+                    "linewidths": 1.6,
+                },
+            )
+        )
+    if mp_emitters is None and solution.method in ("mp", "omp"):
+        final_style = {
+            "marker": "s",
+            "s": 55,
+            "facecolors": "none",
+            "edgecolors": "tab:orange",
+            "linewidths": 1.6,
+        }
+    else:
+        final_style = {"marker": "x", "s": 60, "color": "tab:blue", "linewidths": 2.0}
+    sets.append((method, final.as_array()[:, :3], final_style))
+    box_style = {
+        "fill": False,
+        "edgecolor": "tab:blue",
+        "linewidth": 1.0,
+        "alpha": 0.7,
+        "linestyle": "-",
+    }
+
+    all_pts = np.vstack([p for _, p, _ in sets] + [np.zeros((0, 3))])
+    xs = np.concatenate([[x_lo, x_hi], all_pts[:, 0]])
+    ys = np.concatenate([[y_lo, y_hi], all_pts[:, 1]])
+    zs = all_pts[:, 2]
+    if len(centres):
+        hx, hy, hz = (float(h) for h in half)
+        xs = np.concatenate([xs, centres[:, 0] - hx, centres[:, 0] + hx])
+        ys = np.concatenate([ys, centres[:, 1] - hy, centres[:, 1] + hy])
+        zs = np.concatenate([zs, centres[:, 2] - hz, centres[:, 2] + hz])
+        for cx, cy, cz in centres:
+            ax_xy.add_patch(Rectangle((cx - hx, cy - hy), 2 * hx, 2 * hy, **box_style))
+            ax_xz.add_patch(Rectangle((cx - hx, cz - hz), 2 * hx, 2 * hz, **box_style))
+
+    frame_style = {"color": "0.45", "linestyle": "--", "linewidth": 1.0}
+    ax_xy.add_patch(Rectangle((x_lo, y_lo), x_hi - x_lo, y_hi - y_lo, fill=False, **frame_style))
+    ax_xz.axvline(x_lo, **frame_style)
+    ax_xz.axvline(x_hi, **frame_style)
+
+    for label, p, style in sets:
+        ax_xy.scatter(p[:, 0], p[:, 1], label=label, zorder=3, **style)
+        ax_xz.scatter(p[:, 0], p[:, 2], label=label, zorder=3, **style)
+
+    pad_xy = 0.05 * max(xs.max() - xs.min(), ys.max() - ys.min())
+    xlim = (xs.min() - pad_xy, xs.max() + pad_xy)
+    ax_xy.set_xlim(xlim)
+    ax_xy.set_ylim(ys.max() + pad_xy, ys.min() - pad_xy)  # y grows downwards, as in the images
+    z_lo, z_hi = (float(zs.min()), float(zs.max())) if zs.size else (0.0, 0.0)
+    pad_z = max(0.1 * (z_hi - z_lo), 50.0)
+    z_lo, z_hi = z_lo - pad_z, z_hi + pad_z
+    grow = max(0.5 * (xlim[1] - xlim[0]) - (z_hi - z_lo), 0.0) / 2  # keep x-z from going flat
+    zlim = (z_lo - grow, z_hi + grow)
+    ax_xz.set_xlim(xlim)
+    ax_xz.set_ylim(zlim)
+    for ax, name, ylab in ((ax_xy, "positions x-y", "y (nm)"), (ax_xz, "positions x-z", "z (nm)")):
+        ax.set_aspect("equal", adjustable="box")
+        ax.set_xlabel("x (nm)")
+        ax.set_ylabel(ylab)
+        ax.set_title(name, fontsize=10)
+        ax.tick_params(labelsize=8)
+        ax.grid(alpha=0.25)
+
+    # -- legend and summary -------------------------------------------------------------------
+    ax_info.axis("off")
+    handles, labels = ax_xy.get_legend_handles_labels()
+    if len(centres):
+        handles.append(Patch(**box_style))
+        labels.append("refined dictionary boxes")
+    handles.append(Line2D([], [], **frame_style))
+    labels.append("window extent")
+    ax_info.legend(
+        handles,
+        labels,
+        loc="upper left",
+        fontsize=9,
+        frameon=False,
+        title="positions",
+        title_fontsize=10,
+    )
+    lines = []
+    if tru is not None:
+        lines.append(_photon_summary("truth", tru[:, 3] if tru.shape[1] > 3 else None, len(tru)))
+    if mp_emitters is not None:
+        lines.append(_photon_summary("MP", mp_emitters.photons, len(mp_emitters)))
+    lines.append(_photon_summary(method, final.photons, len(final)))
+    lines.append(f"background {solution.background:.2f} photons/pixel")
+    chi2 = float(np.sum(resid**2 / np.maximum(model, 1e-9)))
+    lines.append(f"Pearson χ²/pixel {chi2 / img.size:.2f}")
+    ax_info.text(
+        0.0,
+        0.55,
+        "\n".join(lines),
+        transform=ax_info.transAxes,
+        va="top",
+        ha="left",
+        fontsize=9,
+        family="monospace",
+        bbox={"boxstyle": "round", "facecolor": "0.96", "edgecolor": "0.7"},
+    )
+
+    count = f"{len(final)} emitter" + ("" if len(final) == 1 else "s")
+    fig.suptitle(title or f"{method}: {count} in a {rows}x{cols} window ({px:g} nm pixels)")
     return save_figure(fig, path)

@@ -27,6 +27,10 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise ValueError(f"the output folder {str(folder)!r} does not exist")
     fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=dest.suffix, dir=folder)
     os.close(fd)
+    # mkstemp creates 0600; give the file the permissions a plain open() would have
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
     tmp_path = Path(tmp)
     try:
         yield tmp_path
