@@ -116,6 +116,8 @@ def run_demo(
 
     # Conservatively, two images overlap when their centres are closer than the radius that
     # holds half of an image's photons (about 1.3 um for this double helix).
+    solve_text = _demo_solve(dh, out, seed, files)
+
     overlap = _overlap_fraction(sim.truth, dh.support_radius(pixel_size, fraction=0.5))
     per_frame = len(sim.truth) / n_frames
     i0 = int(np.argmin(np.abs(zs)))
@@ -130,6 +132,7 @@ def run_demo(
             f"  CRLB at z = 0, 2000 photons: x {bound[i0, 0]:.1f} nm, y {bound[i0, 1]:.1f} nm, "
             f"z {bound[i0, 2]:.1f} nm; worst over z (x, y, z): "
             f"{bound[:, :3].max(axis=0).round(1).tolist()} nm",
+            solve_text,
         ]
     )
     return {
@@ -139,3 +142,44 @@ def run_demo(
         "overlap_fraction": overlap,
         "crlb": bound.tolist(),
     }
+
+
+def _demo_solve(model, out: Path, seed: int, files: list) -> str:
+    """The paper's Figure 2 case: three overlapping emitters in one 11x11 window, MP+CO."""
+    from scipy.optimize import linear_sum_assignment
+
+    from .dictionary import Dictionary
+    from .plotting import plot_solve
+    from .solvers import hybrid_solve
+
+    rng = np.random.default_rng(seed)
+    w, px, zr = 11, 160.0, (-300.0, 300.0)
+    centre = np.array([w * px / 2, w * px / 2, 0.0])
+    truth = centre + rng.uniform(-0.5, 0.5, (3, 3)) * np.array([800.0, 800.0, 600.0])
+    photons = rng.uniform(1000.0, 1200.0, 3)
+    mu = model.render(truth[:, 0], truth[:, 1], truth[:, 2], photons, (w, w), px) + 5.0
+    window = rng.poisson(mu).astype(float)
+    coarse = Dictionary(model, w, px, 80.0, 120.0, zr)
+    fine = Dictionary(model, w, px, 10.0, 15.0, zr)
+    sol = hybrid_solve(window, coarse, fine)
+    files.append(
+        plot_solve(
+            window,
+            sol,
+            out / "hybrid_solve.png",
+            pixel_size=px,
+            truth=np.column_stack([truth, photons]),
+            title="MP+CO on three overlapping double-helix emitters",
+        )
+    )
+    est = sol.emitters.as_array()
+    if len(est):
+        d = np.linalg.norm(est[:, None, :3] - truth[None], axis=2)
+        r, c = linear_sum_assignment(d)
+        err = f"mean 3D error {d[r, c].mean():.0f} nm"
+    else:
+        err = "nothing found"
+    return (
+        f"  MP+CO on one 11x11 window with 3 overlapping emitters ({fine.size:,}-atom fine "
+        f"dictionary): found {len(est)}, {err}"
+    )

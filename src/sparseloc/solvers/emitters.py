@@ -68,6 +68,12 @@ class WindowSolution:
         ``"mp"``, ``"omp"``, ``"co"`` or ``"hybrid"``.
     details : dict
         Method-specific extras (atom indices and coefficients, stop reason, boxes, ...).
+    sigma : ndarray, shape (K, 4), optional
+        Standard errors of x, y, z (nm) and photons (after a maximum-likelihood fit).
+    flags : ndarray of str, shape (K,), optional
+        ``"ok"`` or why an emitter is doubtful (after a fit).
+    gof : float, optional
+        Goodness of fit of the window (deviance per degree of freedom; about 1 is good).
     """
 
     emitters: Emitters
@@ -75,6 +81,9 @@ class WindowSolution:
     model_image: NDArray[np.float64]
     method: str
     details: dict[str, Any] = field(default_factory=dict)
+    sigma: NDArray[np.float64] | None = None
+    flags: NDArray[np.str_] | None = None
+    gof: float | None = None
 
 
 def group_coefficients(

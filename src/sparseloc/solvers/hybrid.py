@@ -20,7 +20,9 @@ from numpy.typing import ArrayLike
 from ..dictionary import DenseDictionary, Dictionary, check_window
 from .convex import noise_epsilon, solve_constrained
 from .emitters import Emitters, WindowSolution, group_by_boxes, group_coefficients
-from .mp import estimate_background, matching_pursuit, pearson_chi2
+from .mp import matching_pursuit, pearson_chi2
+from .polish import PointModel, nearest_atoms, polish, prune
+from .refine import refine_solution
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +43,7 @@ def convex_solve(
     eps: float | None = None,
     eps_factor: float = 1.0,
     min_photons: float = 200.0,
+    min_snr: float = 4.0,
     link: float = 1.5,
 ) -> WindowSolution:
     """Non-negative L1 recovery of one window (the paper's CO, constrained form).
@@ -61,6 +64,9 @@ def convex_solve(
         norm of Poisson noise.
     min_photons : float
         Drop emitters with fewer photons.
+    min_snr : float
+        With a structured dictionary, drop emitters whose photons are less significant than
+        this many standard errors (noise plus the grid's quantisation error); 0 disables.
     link : float
         Grouping distance in grid steps.
     """
@@ -72,6 +78,20 @@ def convex_solve(
     emitters = group_coefficients(
         dense.atom_positions, res.coef, steps, link=link, min_photons=min_photons
     )
+    if min_snr > 0 and isinstance(dictionary, Dictionary) and len(emitters):
+        # Significance test of each emitter as a point source on this grid (the L1 solution
+        # adds small groups to reach the noise level); report the survivors' weighted centres.
+        point = PointModel(y, dictionary, nearest_atoms(dictionary, emitters), background)
+        point = prune(
+            point,
+            min_snr=min_snr,
+            min_photons=min_photons,
+            model_error=dictionary.quantization_error,
+        )
+        keep = np.sort(point.ids)
+        emitters = Emitters(
+            emitters.x[keep], emitters.y[keep], emitters.z[keep], emitters.photons[keep]
+        )
     model = dense.matvec(res.coef) + res.background
     support = res.support
     return WindowSolution(
@@ -101,6 +121,7 @@ def hybrid_solve(
     box_steps: float = 1.0,
     eps_factor: float = 1.0,
     min_photons: float = 200.0,
+    min_snr: float = 4.0,
     max_emitters: int = 10,
     mp_chi2_sigma: float = 1.0,
     mp_min_photons: float | None = None,
@@ -110,9 +131,34 @@ def hybrid_solve(
     noise_factor: float = 1.0,
     max_rounds: int = 3,
     recentre: int = 1,
+    add_delta_chi2: float = 18.5,
+    polish_fine: bool = True,
+    refine: bool = True,
+    count_selection: bool = True,
+    noise: str = "poisson",
+    read_variance: float | np.ndarray | None = None,
+    plane: bool = False,
     link: float = 1.5,
 ) -> WindowSolution:
-    """The hybrid MP+CO solver.
+    """The hybrid MP+CO solver, with a continuous maximum-likelihood fit as its last stage.
+
+    1. Matching pursuit (OMP with replacement) on the coarse dictionary: count and rough
+       positions.
+    2. Convex L1 recovery on the fine dictionary restricted to boxes of ``box_steps`` coarse
+       steps each way around the MP positions; one emitter per box (weighted centre).
+    3. Point-source check: each emitter becomes its best single fine atom (:func:`polish`);
+       while that model leaves more than noise, MP looks for one more emitter in its residual
+       and step 2 runs again with a box around it; the larger model is kept if chi2 drops
+       by more than ``add_delta_chi2`` (at most ``max_rounds`` solves).
+    4. Boxes re-centred on the estimates and step 2 repeated (``recentre`` times) when an
+       estimate moved: MP's coarse position can be more than one coarse step off.
+    5. Insignificant emitters dropped (:func:`prune`, ``min_snr``).
+    6. With ``refine`` (default): maximum-likelihood fit of the emitters with the continuous
+       PSF model, off the grid, and (``count_selection``) the likelihood-ratio test of one
+       emitter fewer or more (:mod:`sparseloc.solvers.refine`).
+
+    With ``polish_fine`` the emitters are those of the point-source model (positions on the
+    fine grid); without it, the weighted centres of step 2 (the paper's conversion).
 
     Parameters
     ----------
@@ -124,29 +170,39 @@ def hybrid_solve(
         Fine dictionary (the paper: 10 nm / 15 nm) covering the same window; only the atoms
         inside the boxes are used.
     background : float, optional
-        Known background (photons/pixel); estimated when ``None``.
+        Known background (photons/pixel). When ``None`` it is estimated by the MP stage
+        (least squares, jointly with the atoms) and then held fixed: the L1 objective does not
+        penalise the background, so left free it soaks up the emitters' light.
     box_steps : float
         Box half-width around each MP emitter in coarse grid steps (x, y and z).
     eps_factor : float
         Scale of the residual bound of the convex stage (see :func:`convex_solve`).
-    min_photons : float
-        Smallest emitter kept.
+    min_photons, min_snr : float
+        Smallest emitter kept, in photons and in standard errors of its photons.
     max_emitters : int
-        Cap on MP's count.
-    mp_replace_sweeps : int
-        Replacement sweeps of the MP stage (see ``matching_pursuit``).
+        Cap on the count.
+    mp_chi2_sigma, mp_min_photons, mp_min_snr, mp_replace_sweeps
+        Stopping rule and replacement sweeps of the MP stage (see ``matching_pursuit``); looser
+        than the final rule so that no emitter is missed.
     chi2_sigma, noise_factor : float
-        Noise test of the fine fit (as in ``matching_pursuit``, with the fine dictionary's
-        grid error). While the fine fit fails it, MP looks for one more emitter in its residual
-        and the convex stage runs again, at most ``max_rounds`` times in all.
+        Noise test of the point-source model (as in ``matching_pursuit``, with the fine
+        dictionary's grid error).
     max_rounds : int
-        Cap on rounds that add an emitter.
+        Cap on convex solves that try one more emitter.
+    add_delta_chi2 : float
+        A further emitter is kept only if it lowers Pearson's chi2 of the point-source model
+        by more than this (default 18.5: the 0.1 % tail of a chi-square with 4 degrees of
+        freedom, the new emitter's x, y, z and photons).
     recentre : int
-        Cap on re-solves with boxes re-centred on the convex estimates (stops early once no
-        box centre moves by more than a quarter of its half-width).
-    mp_chi2_sigma, mp_min_photons, mp_min_snr : float
-        Stopping rule of the MP stage (see :func:`~sparseloc.solvers.mp.matching_pursuit`);
-        looser than the final rule so that no emitter is missed.
+        Cap on re-solves with boxes re-centred on the estimates.
+    polish_fine : bool
+        Report the point-source (polished) emitters rather than the L1 weighted centres.
+    refine, count_selection : bool
+        Run the maximum-likelihood stage, and its count selection.
+    noise, read_variance, plane
+        Likelihood and background model of the maximum-likelihood stage (see
+        :func:`~sparseloc.solvers.refine.fit_emitters`). ``noise="emccd"`` also sets the
+        sparse stages' ``noise_factor`` to 2.
     link : float
         Grouping distance in grid steps.
 
@@ -154,12 +210,16 @@ def hybrid_solve(
     -------
     WindowSolution
         ``details``: ``mp`` (the MP stage's solution), ``box_centres`` (k, 3) nm,
-        ``box_half_width`` (hx, hy, hz) nm, ``co`` details.
+        ``box_half_width`` (hx, hy, hz) nm, ``co`` (the last convex stage's details),
+        ``centres_emitters`` (the weighted-centre emitters), ``rounds``, ``chi2``.
     """
     y = check_window(window, fine.shape)
+    if y.ndim != 2:
+        raise ValueError("hybrid_solve takes one window (rows, cols)")
+    if noise == "emccd" and noise_factor == 1.0:
+        noise_factor = 2.0
     if tuple(coarse.shape) != tuple(fine.shape):
         raise ValueError(f"coarse {coarse.shape} and fine {fine.shape} windows differ")
-    b0 = background if background is not None else estimate_background(y)
     mp = matching_pursuit(
         y,
         coarse,
@@ -171,6 +231,7 @@ def hybrid_solve(
         min_snr=mp_min_snr,
         replace_sweeps=mp_replace_sweeps,
         link=link,
+        noise_factor=noise_factor,
     )
     if len(mp.emitters) == 0:
         return WindowSolution(
@@ -183,110 +244,116 @@ def hybrid_solve(
     cs = coarse.grid if isinstance(coarse, Dictionary) else None
     dxy_c, dz_c = (cs.dxy, cs.dz) if cs is not None else coarse.steps
     half = (box_steps * dxy_c, box_steps * dxy_c, box_steps * dz_c)
-    centres = mp.emitters.as_array()[:, :3]
     fine_error = fine.quantization_error
     n_pix = y.size
     chi2_limit = n_pix + chi2_sigma * np.sqrt(2.0 * n_pix)
-    # The L1 objective does not penalise the background, so left free it soaks up light that
-    # belongs to the emitters (photons come out ~20 % low). Unless the caller knows it, fix it
-    # at the MP stage's least-squares estimate.
-    b_fit = mp.background if background is None else background
-    rounds = 0
-    while True:
-        rounds += 1
-        mask = fine.box_mask(centres, half)
-        sub = fine.restrict(mask)
+    b_fit = mp.background if background is None else float(background)
+
+    def solve_boxes(centres: np.ndarray):
+        sub = fine.restrict(fine.box_mask(centres, half))
         co = convex_solve(
             y, sub, background=b_fit, eps_factor=eps_factor, min_photons=0.0, link=link
         )
-        # One emitter per box (the paper's blue boxes), not per connected group of fine atoms:
-        # an L1 solution often spreads an off-grid emitter over atoms 50-100 nm apart.
-        emitters = group_by_boxes(
-            co.details["positions"], co.details["coef"], centres, half, min_photons=min_photons
+        em = group_by_boxes(
+            co.details["positions"], co.details["coef"], centres, half, min_photons=0.0
         )
-        # MP's coarse estimate is often more than one coarse step from the emitter, so the
-        # convex estimate can sit on its box's wall: re-centre the boxes on the convex
-        # estimates and solve again until they stop moving (at most ``recentre`` times).
-        for _ in range(recentre):
-            new_centres = emitters.as_array()[:, :3]
-            if len(new_centres) == 0:
-                break
-            moved = _max_shift(new_centres, centres, half)
-            centres = new_centres
-            if moved < 0.25:
-                break
-            sub = fine.restrict(fine.box_mask(centres, half))
-            co = convex_solve(
-                y, sub, background=b_fit, eps_factor=eps_factor, min_photons=0.0, link=link
-            )
-            emitters = group_by_boxes(
-                co.details["positions"], co.details["coef"], centres, half, min_photons=min_photons
-            )
-        # The convex fit always reaches the noise level (its residual norm is eps), so it
-        # cannot tell whether an emitter is missing. A model of one point source per emitter
-        # can: snap each emitter to its nearest fine atom and refit photons and background.
-        signal, b_pt = _point_model(y, fine, emitters, b_fit)
-        chi2 = pearson_chi2(y, signal + b_pt, noise_factor, signal, fine_error)
-        if chi2 <= chi2_limit or rounds >= max_rounds or len(centres) >= max_emitters:
-            break
-        # Look for one more emitter in the residual of the point-source model.
-        extra = matching_pursuit(
-            y - signal,
-            coarse,
-            background=b_pt,
-            orthogonal=True,
-            max_emitters=1,
-            min_photons=min_photons,
-            chi2_sigma=chi2_sigma,
-            min_snr=mp_min_snr,
-            link=link,
-            noise_factor=noise_factor,
+        # the point-source model refits the background (unless it is known): it has one atom
+        # per emitter, so the L1 bias does not apply
+        point = polish(y, fine, em, background)
+        chi2 = pearson_chi2(
+            y, point.signal + point.background, noise_factor, point.signal, fine_error
         )
-        if len(extra.emitters) == 0:
+        return co, em, point, chi2, sub.size
+
+    centres = mp.emitters.as_array()[:, :3]
+    co, em, point, chi2, n_sub = solve_boxes(centres)
+    if background is None:
+        b_fit = point.background
+    rounds = 1
+    while chi2 > chi2_limit and rounds < max_rounds and len(centres) < max_emitters:
+        # The point-source model leaves more than noise. Try one more emitter where the
+        # residual correlates best with an atom, and keep the larger model only if it lowers
+        # chi2 by more than ``add_delta_chi2`` (a likelihood-ratio-like test: 4 more
+        # parameters). No size threshold on the candidate: when two emitters were merged, the
+        # residual of the third is partly negative and its best atom looks small.
+        cand = _best_residual_atom(y - point.signal - point.background, coarse)
+        if cand is None:
             break
-        centres = np.vstack([centres, extra.emitters.as_array()[:1, :3]])
-    co.emitters = emitters
+        trial_centres = np.vstack([point.emitters().as_array()[:, :3], cand])
+        trial = solve_boxes(trial_centres)
+        rounds += 1
+        if chi2 - trial[3] <= add_delta_chi2:
+            break
+        centres = trial_centres
+        co, em, point, chi2, n_sub = trial
+        if background is None:
+            b_fit = point.background
+    for _ in range(recentre):
+        new = (point.emitters() if polish_fine else em).as_array()[:, :3]
+        if len(new) == 0 or _max_shift(new, centres, half) < 0.25:
+            break
+        centres = new
+        co, em, point, chi2, n_sub = solve_boxes(centres)
+    point = prune(
+        point,
+        min_snr=min_snr,
+        min_photons=min_photons,
+        noise_factor=noise_factor,
+        model_error=fine_error,
+    )
+    if polish_fine:
+        emitters = point.emitters()
+        model_image = point.signal + point.background
+        b_out = point.background
+    else:
+        keep = np.sort(point.ids)
+        emitters = Emitters(em.x[keep], em.y[keep], em.z[keep], em.photons[keep])
+        model_image, b_out = co.model_image, co.background
     log.debug(
-        "hybrid: MP %d emitters, %d rounds -> %d fine atoms -> %d emitters (b0 %.2f)",
+        "hybrid: MP %d -> %d rounds -> %d fine atoms -> %d emitters",
         len(mp.emitters),
         rounds,
-        sub.size,
-        len(co.emitters),
-        b0,
+        n_sub,
+        len(emitters),
     )
     details = {
         "mp": mp,
         "box_centres": centres,
         "box_half_width": half,
         "co": co.details,
-        "n_fine_atoms": sub.size,
+        "centres_emitters": em,
+        "n_fine_atoms": n_sub,
         "rounds": rounds,
         "chi2": chi2,
         "chi2_limit": chi2_limit,
     }
-    return WindowSolution(co.emitters, co.background, co.model_image, "hybrid", details)
+    sol = WindowSolution(emitters, b_out, model_image, "hybrid", details)
+    if refine and len(emitters):
+        sol = refine_solution(
+            y,
+            sol,
+            fine.model,
+            pixel_size=fine.pixel_size,
+            origin=fine.origin,
+            count_selection=count_selection,
+            noise=noise,
+            read_variance=read_variance,
+            plane=plane,
+            max_emitters=max_emitters,
+        )
+    return sol
 
 
-def _point_model(
-    y: np.ndarray, fine: Dictionary, emitters: Emitters, background: float | None
-) -> tuple[np.ndarray, float]:
-    """Image of one fine atom per emitter (nearest grid point), photons refitted by NNLS."""
-    from scipy.optimize import nnls
-
-    if len(emitters) == 0:
-        b = float(np.mean(y)) if background is None else float(background)
-        return np.zeros_like(y), b
-    g = fine.grid
-    ix = np.clip(np.rint((emitters.x - g.x[0]) / g.dxy).astype(int), 0, g.x.size - 1)
-    iy = np.clip(np.rint((emitters.y - g.y[0]) / g.dxy).astype(int), 0, g.y.size - 1)
-    iz = np.clip(np.rint((emitters.z - g.z[0]) / g.dz).astype(int), 0, g.z.size - 1)
-    atoms = fine.atoms(np.ravel_multi_index((iz, iy, ix), fine.coef_shape))
-    a = atoms.reshape(len(emitters), -1).T
-    if background is None:
-        x, _ = nnls(np.column_stack([a, np.ones(y.size)]), y.ravel())
-        return (a @ x[:-1]).reshape(y.shape), float(x[-1])
-    x, _ = nnls(a, (y - background).ravel())
-    return (a @ x).reshape(y.shape), float(background)
+def _best_residual_atom(resid: np.ndarray, coarse: Dictionary | DenseDictionary):
+    """Position (x, y, z) of the coarse atom best correlated with a residual (None if none)."""
+    corr = np.asarray(coarse.rmatvec(resid)).ravel()
+    norms = np.asarray(coarse.norms).ravel()
+    ok = norms >= 0.3 * norms.max()
+    score = np.where(ok, corr / np.where(ok, norms, 1.0), -np.inf)
+    k = int(np.argmax(score))
+    if not np.isfinite(score[k]) or score[k] <= 0:
+        return None
+    return coarse.positions([k])[0]
 
 
 def _max_shift(new: np.ndarray, old: np.ndarray, half: tuple[float, float, float]) -> float:

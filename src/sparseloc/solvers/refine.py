@@ -1,0 +1,516 @@
+"""Beyond the grid: multi-emitter maximum-likelihood fit, count selection and uncertainties.
+
+Model: ``mu = sum_k N_k psf(x_k, y_k, z_k) + b`` with a constant background ``b`` or a tilted
+plane ``b0 + bx * u + by * v`` (``u``, ``v``: pixel offsets from the window centre divided by
+half the window size, so the three background parameters share one scale).
+
+Likelihoods (``noise``):
+
+- ``"poisson"``: ``-log L = sum(mu - y log mu)``.
+- ``"emccd"``: EM multiplication doubles the variance; the data are modelled as
+  ``y / 2 ~ Poisson(mu / 2)``, i.e. the Poisson objective divided by 2. The estimate is the
+  same as Poisson's, the Fisher information halves (uncertainties grow by sqrt 2).
+- ``"scmos"``: per-pixel read noise (Huang et al. 2013): ``y + v ~ Poisson(mu + v)`` with
+  ``v`` the read-noise variance in photons^2 (a scalar or a map).
+
+The fit is Levenberg-Marquardt with Fisher scoring: the step solves
+``(F + lam diag F) d = -grad`` with ``F = sum(w dmu dmu' / mu)``; a step is taken only if the
+likelihood improves (then ``lam`` shrinks), else ``lam`` grows. z is kept inside the model's
+range, photons and background positive, x and y within ``xy_margin`` pixels of the window.
+
+Count selection (:func:`fit_with_count_selection`): after fitting K emitters, the model with the
+weakest emitter removed is refitted; it replaces the K-emitter model when the likelihood ratio
+``2 (logL_K - logL_{K-1})`` is below ``threshold``. Otherwise one emitter is added where the
+residual correlates best with the PSF (the two best places are tried, each fitted) and the
+K+1 model is kept when the ratio
+``2 (logL_{K+1} - logL_K)`` exceeds ``threshold``. Each emitter has 4 parameters, so under the
+smaller model the ratio is about chi-square with 4 degrees of freedom: the default threshold
+18.47 is its 0.1 % tail (a 1-in-1000 chance of adding a spurious emitter per test).
+
+Uncertainties: the Cramer-Rao bound at the fitted parameters, ``sqrt(diag(F^-1))`` (x, y, z in
+nm, photons), with the background parameters in ``F``. Goodness of fit: the deviance
+``2 sum(y log(y / mu) - (y - mu))`` per degree of freedom (about 1 for a good fit).
+
+Flags (one string per emitter, ``"ok"`` when fine): ``"z_edge"`` (z within 1 nm of the model's
+range, where the true z may lie outside), ``"outside"`` (x or y outside the window),
+``"not_converged"``, ``"diverged"`` (non-finite or vanishing photons).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..dictionary import check_window
+from ..psf.base import PSFModel
+from .emitters import Emitters, WindowSolution
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "LR_THRESHOLD",
+    "NOISE_MODELS",
+    "FitResult",
+    "fit_emitters",
+    "fit_with_count_selection",
+    "refine_solution",
+]
+
+NOISE_MODELS = ("poisson", "emccd", "scmos")
+#: 0.1 % tail of a chi-square with 4 degrees of freedom (one emitter's x, y, z, photons).
+LR_THRESHOLD = 18.47
+_MIN_PHOTONS = 1.0
+_MIN_BG = 1e-3
+
+
+@dataclass
+class FitResult:
+    """A maximum-likelihood fit of K emitters and a background in one window.
+
+    Attributes
+    ----------
+    emitters : Emitters
+        Fitted positions (nm) and photons.
+    sigma : ndarray, shape (K, 4)
+        CRLB standard errors of x, y, z (nm) and photons at the fit.
+    background : ndarray, shape (1,) or (3,)
+        Background: ``b`` or ``(b0, bx, by)`` (photons/pixel; see the module notes).
+    background_sigma : ndarray
+        Standard errors of the background parameters.
+    model_image : ndarray, shape (rows, cols)
+        Expected photons per pixel at the fit.
+    log_likelihood : float
+        ``log L`` up to a data-only constant (``-sum(w (mu - y log mu))``).
+    deviance_per_dof : float
+        Goodness of fit (about 1 for a good fit).
+    flags : ndarray of str, shape (K,)
+        ``"ok"`` or the reason the emitter is doubtful.
+    converged : bool
+    n_iter : int
+    """
+
+    emitters: Emitters
+    sigma: NDArray[np.float64]
+    background: NDArray[np.float64]
+    background_sigma: NDArray[np.float64]
+    model_image: NDArray[np.float64]
+    log_likelihood: float
+    deviance_per_dof: float
+    flags: NDArray[np.str_]
+    converged: bool
+    n_iter: int
+    history: list[str] = field(default_factory=list)
+
+    @property
+    def n_params(self) -> int:
+        return 4 * len(self.emitters) + self.background.size
+
+
+class _Problem:
+    """The window, the PSF and the noise model: likelihood, gradient and Fisher matrix."""
+
+    def __init__(self, y, model, pixel_size, origin, noise, read_variance, plane, xy_margin):
+        if noise not in NOISE_MODELS:
+            raise ValueError(f"noise must be one of {', '.join(NOISE_MODELS)}; got {noise!r}")
+        self.y = y
+        self.model = model
+        self.px = float(pixel_size)
+        self.origin = (float(origin[0]), float(origin[1]))
+        self.shape = y.shape
+        self.weight = 0.5 if noise == "emccd" else 1.0
+        if noise == "scmos":
+            if read_variance is None:
+                raise ValueError("noise='scmos' needs read_variance (photons^2, scalar or map)")
+            self.v = np.broadcast_to(np.asarray(read_variance, dtype=np.float64), y.shape)
+            if np.any(self.v < 0):
+                raise ValueError("read_variance must be >= 0")
+        else:
+            if read_variance is not None:
+                raise ValueError("read_variance is only used with noise='scmos'")
+            self.v = np.zeros(y.shape)
+        self.yv = y + self.v
+        rows, cols = y.shape
+        self.plane = plane
+        self.n_bg = 3 if plane else 1
+        u = (np.arange(cols) - (cols - 1) / 2) / max(cols / 2, 1)
+        v = (np.arange(rows) - (rows - 1) / 2) / max(rows / 2, 1)
+        self.bg_basis = [np.ones(y.shape)]
+        if plane:
+            self.bg_basis += [
+                np.broadcast_to(u[None, :], y.shape),
+                np.broadcast_to(v[:, None], y.shape),
+            ]
+        self.zlo, self.zhi = model.z_range
+        m = xy_margin * self.px
+        self.xlo = self.origin[0] - m
+        self.xhi = self.origin[0] + cols * self.px + m
+        self.ylo = self.origin[1] - m
+        self.yhi = self.origin[1] + rows * self.px + m
+        # data-only constant so that the deviance is available: sum(y log y - y)
+        yy = self.yv
+        self._sat = float(
+            np.sum(np.where(yy > 0, yy * np.log(np.where(yy > 0, yy, 1.0)), 0.0) - yy)
+        )
+
+    # theta = [x0, y0, z0, N0, x1, ..., b...]
+    def split(self, theta):
+        k = (theta.size - self.n_bg) // 4
+        em = theta[: 4 * k].reshape(k, 4)
+        return em, theta[4 * k :]
+
+    def background(self, b):
+        return sum(bi * basis for bi, basis in zip(b, self.bg_basis, strict=True))
+
+    def mu(self, theta):
+        em, b = self.split(theta)
+        img = self.background(b)
+        if len(em):
+            img = img + self.model.render(
+                em[:, 0], em[:, 1], em[:, 2], em[:, 3], self.shape, self.px, origin=self.origin
+            )
+        return img
+
+    def nll(self, mu):
+        """Negative log-likelihood (without the data-only constant); inf if mu <= 0 anywhere."""
+        muv = mu + self.v
+        if np.any(muv <= 0) or not np.all(np.isfinite(muv)):
+            return np.inf
+        return float(self.weight * np.sum(muv - self.yv * np.log(muv)))
+
+    def jacobian(self, theta):
+        em, _ = self.split(theta)
+        k = len(em)
+        cols = []
+        if k:
+            g = self.model.gradients(
+                em[:, 0], em[:, 1], em[:, 2], em[:, 3], self.shape, self.px, origin=self.origin
+            )
+            cols.append(g.reshape(4 * k, -1))
+        cols.append(np.stack([basis.ravel() for basis in self.bg_basis]))
+        return np.concatenate(cols, axis=0)  # (P, pixels)
+
+    def fisher(self, jac, mu):
+        muv = (mu + self.v).ravel()
+        return self.weight * (jac / muv) @ jac.T
+
+    def clamp(self, theta):
+        em, b = self.split(theta.copy())
+        em[:, 0] = np.clip(em[:, 0], self.xlo, self.xhi)
+        em[:, 1] = np.clip(em[:, 1], self.ylo, self.yhi)
+        em[:, 2] = np.clip(em[:, 2], self.zlo, self.zhi)
+        em[:, 3] = np.maximum(em[:, 3], _MIN_PHOTONS)
+        b = b.copy()
+        b[0] = max(b[0], _MIN_BG)
+        return np.concatenate([em.ravel(), b])
+
+    def deviance(self, mu):
+        muv = mu + self.v
+        return 2.0 * (self._sat - float(np.sum(self.yv * np.log(muv) - muv)))
+
+
+def fit_emitters(
+    window: ArrayLike,
+    model: PSFModel,
+    emitters: Emitters,
+    *,
+    pixel_size: float,
+    origin: tuple[float, float] = (0.0, 0.0),
+    background: float | None = None,
+    plane: bool = False,
+    noise: str = "poisson",
+    read_variance: float | ArrayLike | None = None,
+    max_iter: int = 60,
+    tol: float = 1e-6,
+    xy_margin: float = 1.0,
+) -> FitResult:
+    """Maximum-likelihood fit of K emitters plus a background in one window.
+
+    Parameters
+    ----------
+    window : ndarray, shape (rows, cols)
+        Window in photons.
+    model : PSFModel
+        The continuous PSF model (with gradients).
+    emitters : Emitters
+        Starting positions (nm) and photons, e.g. a sparse solution.
+    pixel_size : float
+        Pixel size (nm).
+    origin : (float, float)
+        Position (nm) of the window's outer corner.
+    background : float, optional
+        Starting background (photons/pixel); estimated from the window when ``None``.
+    plane : bool
+        Fit a tilted-plane background instead of a constant.
+    noise : {"poisson", "emccd", "scmos"}
+        Likelihood (see the module notes).
+    read_variance : float or ndarray, optional
+        sCMOS read-noise variance (photons^2), scalar or (rows, cols).
+    max_iter : int
+        Levenberg-Marquardt iterations.
+    tol : float
+        Stop when the relative decrease of ``-log L`` is below this.
+    xy_margin : float
+        How far (pixels) an emitter may leave the window.
+
+    Returns
+    -------
+    FitResult
+    """
+    y = check_window(window)
+    if y.ndim != 2:
+        raise ValueError("fit_emitters takes one window (rows, cols)")
+    if np.any(y < -1e-9) and noise != "scmos":
+        raise ValueError("the window has negative photon counts; convert ADU to photons first")
+    prob = _Problem(y, model, pixel_size, origin, noise, read_variance, plane, xy_margin)
+    em0 = emitters.as_array()
+    if background is None:
+        resid = y - (
+            prob.mu(np.concatenate([em0.ravel(), np.zeros(prob.n_bg)])) if len(em0) else 0.0
+        )
+        background = float(max(np.median(resid), 1.0))
+    b0 = np.zeros(prob.n_bg)
+    b0[0] = background
+    theta = prob.clamp(np.concatenate([em0.ravel(), b0]))
+    mu = prob.mu(theta)
+    f = prob.nll(mu)
+    lam = 1e-3
+    converged = False
+    n_iter = 0
+    jac = prob.jacobian(theta)
+    for n_iter in range(1, max_iter + 1):  # noqa: B007 - reported
+        muv = (mu + prob.v).ravel()
+        grad = prob.weight * jac @ (1.0 - prob.yv.ravel() / muv)
+        fisher = prob.fisher(jac, mu)
+        diag = np.maximum(np.diag(fisher), 1e-12)
+        improved = False
+        for _ in range(12):
+            try:
+                step = np.linalg.solve(fisher + lam * np.diag(diag), -grad)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            trial = prob.clamp(theta + step)
+            mu_t = prob.mu(trial)
+            f_t = prob.nll(mu_t)
+            if f_t < f:
+                improved = True
+                break
+            lam *= 10
+        if not improved:
+            converged = True  # no step lowers -log L: a (constrained) optimum
+            break
+        rel = (f - f_t) / max(abs(f), 1.0)
+        theta, mu, f = trial, mu_t, f_t
+        lam = max(lam / 10, 1e-7)
+        jac = prob.jacobian(theta)
+        if rel < tol:
+            converged = True
+            break
+    return _result(prob, theta, mu, f, jac, converged, n_iter)
+
+
+def _result(prob: _Problem, theta, mu, f, jac, converged, n_iter) -> FitResult:
+    em, b = prob.split(theta)
+    fisher = prob.fisher(jac, mu)
+    try:
+        cov = np.linalg.inv(fisher)
+        var = np.diag(cov)
+    except np.linalg.LinAlgError:
+        var = np.diag(np.linalg.pinv(fisher))
+    sd = np.sqrt(np.where(var > 0, var, np.nan))
+    k = len(em)
+    flags = np.full(k, "ok", dtype="<U16")
+    if k:
+        at_edge = (em[:, 2] <= prob.zlo + 1.0) | (em[:, 2] >= prob.zhi - 1.0)
+        rows, cols = prob.shape
+        outside = (
+            (em[:, 0] < prob.origin[0])
+            | (em[:, 0] > prob.origin[0] + cols * prob.px)
+            | (em[:, 1] < prob.origin[1])
+            | (em[:, 1] > prob.origin[1] + rows * prob.px)
+        )
+        bad = ~np.all(np.isfinite(em), axis=1) | (em[:, 3] <= _MIN_PHOTONS * 1.01)
+        flags[at_edge] = "z_edge"
+        flags[outside] = "outside"
+        if not converged:
+            flags[flags == "ok"] = "not_converged"
+        flags[bad] = "diverged"
+    dof = max(prob.y.size - theta.size, 1)
+    return FitResult(
+        emitters=Emitters.from_array(em),
+        sigma=sd[: 4 * k].reshape(k, 4),
+        background=b.copy(),
+        background_sigma=sd[4 * k :],
+        model_image=mu,
+        log_likelihood=-f,
+        deviance_per_dof=prob.deviance(mu) / dof,
+        flags=flags,
+        converged=converged,
+        n_iter=n_iter,
+    )
+
+
+def _residual_candidates(y, fit: FitResult, model, pixel_size, origin, n_planes=13, n_best=2):
+    """Up to ``n_best`` (x, y, z, photons) where the fit's residual correlates best with the
+    PSF, at least two pixels apart, best first."""
+    from scipy.signal import correlate
+
+    rows, cols = y.shape
+    resid = y - fit.model_image
+    canvas = (2 * rows - 1, 2 * cols - 1)
+    zs = np.linspace(*model.z_range, n_planes)
+    cx = (cols - 0.5) * pixel_size  # emitter at the centre of canvas pixel (rows-1, cols-1)
+    cy = (rows - 0.5) * pixel_size
+    tmpl = model.images(np.full(n_planes, cx), np.full(n_planes, cy), zs, canvas, pixel_size)
+    ones = np.ones_like(resid)
+    scores, amps = [], []
+    for t in tmpl:
+        corr = correlate(t, resid, mode="valid")  # [a, b]: emitter at pixel (rows-1-a, cols-1-b)
+        nrm2 = correlate(t**2, ones, mode="valid")
+        scores.append(corr / np.sqrt(np.maximum(nrm2, 1e-24)))
+        amps.append(corr / np.maximum(nrm2, 1e-24))
+    scores, amps = np.array(scores), np.array(amps)
+    best_plane = np.argmax(scores, axis=0)
+    best = np.take_along_axis(scores, best_plane[None], 0)[0]
+    out = []
+    for flat in np.argsort(best, axis=None)[::-1]:
+        a, b = np.unravel_index(flat, best.shape)
+        if best[a, b] <= 0 or len(out) == n_best:
+            break
+        r, c = rows - 1 - a, cols - 1 - b
+        if any(abs(r - r2) < 2 and abs(c - c2) < 2 for r2, c2, _ in out):
+            continue
+        iz = best_plane[a, b]
+        out.append(
+            (
+                r,
+                c,
+                (
+                    origin[0] + (c + 0.5) * pixel_size,
+                    origin[1] + (r + 0.5) * pixel_size,
+                    zs[iz],
+                    max(amps[iz, a, b], 50.0),
+                ),
+            )
+        )
+    return [cand for _, _, cand in out]
+
+
+def fit_with_count_selection(
+    window: ArrayLike,
+    model: PSFModel,
+    emitters: Emitters,
+    *,
+    pixel_size: float,
+    origin: tuple[float, float] = (0.0, 0.0),
+    threshold: float = LR_THRESHOLD,
+    max_emitters: int = 10,
+    max_changes: int = 4,
+    **fit_kwargs,
+) -> FitResult:
+    """Fit K emitters, then test K-1 and K+1 by a likelihood ratio (see the module notes).
+
+    Parameters
+    ----------
+    window, model, emitters, pixel_size, origin
+        As in :func:`fit_emitters`.
+    threshold : float
+        Likelihood-ratio threshold ``2 * delta log L`` for one emitter more (default: the
+        0.1 % tail of chi-square with 4 degrees of freedom).
+    max_emitters : int
+        Never more emitters than this.
+    max_changes : int
+        Cap on accepted additions and removals.
+    **fit_kwargs
+        Passed to :func:`fit_emitters` (``noise``, ``plane``, ``background``, ...).
+    """
+    y = check_window(window)
+    kw = dict(pixel_size=pixel_size, origin=origin, **fit_kwargs)
+    best = fit_emitters(y, model, emitters, **kw)
+    best.history.append(f"K={len(best.emitters)} logL={best.log_likelihood:.1f}")
+    w = 0.5 if fit_kwargs.get("noise", "poisson") == "emccd" else 1.0
+    changes = 0
+    while changes < max_changes:
+        changed = False
+        k = len(best.emitters)
+        bg = float(best.background[0])
+        if k >= 1:
+            arr = best.emitters.as_array()
+            weakest = int(np.argmin(arr[:, 3]))
+            fewer = fit_emitters(
+                y,
+                model,
+                Emitters.from_array(np.delete(arr, weakest, axis=0)),
+                **{**kw, "background": bg},
+            )
+            ratio = 2.0 * (best.log_likelihood - fewer.log_likelihood) / w
+            if ratio < threshold:
+                best = fewer
+                best.history.append(f"removed one: K={k - 1}, LR={ratio:.1f}")
+                changes += 1
+                continue
+        if k < max_emitters:
+            more = None
+            for cand in _residual_candidates(y, best, model, pixel_size, origin):
+                arr = np.vstack([best.emitters.as_array().reshape(-1, 4), cand])
+                trial = fit_emitters(y, model, Emitters.from_array(arr), **{**kw, "background": bg})
+                if more is None or trial.log_likelihood > more.log_likelihood:
+                    more = trial
+            if more is not None:
+                ratio = 2.0 * (more.log_likelihood - best.log_likelihood) / w
+                if ratio > threshold and np.all(more.flags != "diverged"):
+                    best = more
+                    best.history.append(f"added one: K={k + 1}, LR={ratio:.1f}")
+                    changes += 1
+                    changed = True
+        if not changed:
+            break
+    return best
+
+
+def refine_solution(
+    window: ArrayLike,
+    solution: WindowSolution,
+    model: PSFModel,
+    *,
+    pixel_size: float,
+    origin: tuple[float, float] = (0.0, 0.0),
+    count_selection: bool = True,
+    max_emitters: int = 10,
+    **fit_kwargs,
+) -> WindowSolution:
+    """Refine any solver's solution by maximum likelihood (optionally with count selection).
+
+    Returns a new :class:`WindowSolution` whose ``details`` hold the solver's own details plus
+    ``fit`` (the :class:`FitResult`) and ``sparse_emitters`` (the emitters before the fit).
+    """
+    fit_kwargs.setdefault("background", solution.background)
+    if count_selection:
+        fit = fit_with_count_selection(
+            window,
+            model,
+            solution.emitters,
+            pixel_size=pixel_size,
+            origin=origin,
+            max_emitters=max_emitters,
+            **fit_kwargs,
+        )
+    else:
+        fit = fit_emitters(
+            window, model, solution.emitters, pixel_size=pixel_size, origin=origin, **fit_kwargs
+        )
+    details = dict(solution.details)
+    details.update(fit=fit, sparse_emitters=solution.emitters)
+    return WindowSolution(
+        emitters=fit.emitters,
+        background=float(fit.background[0]),
+        model_image=fit.model_image,
+        method=solution.method + "+mle",
+        details=details,
+        sigma=fit.sigma,
+        flags=fit.flags,
+        gof=fit.deviance_per_dof,
+    )

@@ -1,0 +1,137 @@
+"""Maximum-likelihood refinement: accuracy, uncertainties, count selection, flags."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sparseloc.crlb import crlb
+from sparseloc.psf import make_psf
+from sparseloc.solvers import Emitters
+from sparseloc.solvers.refine import fit_emitters, fit_with_count_selection
+
+PX, W = 100.0, 17
+
+
+@pytest.fixture(scope="module")
+def analytic():
+    return make_psf("dh-analytic")
+
+
+def window(model, truth, background=10.0, seed=0, plane=None):
+    t = np.atleast_2d(truth)
+    mu = model.render(t[:, 0], t[:, 1], t[:, 2], t[:, 3], (W, W), PX) + background
+    if plane is not None:
+        mu = mu + plane
+    return np.random.default_rng(seed).poisson(mu).astype(float)
+
+
+def test_isolated_fit_is_unbiased_and_reaches_the_crlb(analytic):
+    rng = np.random.default_rng(1)
+    truth = np.array([860.0, 830.0, 250.0, 3000.0])
+    bound = crlb(analytic, *truth, 10.0, (W, W), PX)[0]
+    errs, sds = [], []
+    for seed in range(150):
+        img = window(analytic, truth, seed=seed)
+        start = Emitters.from_array(
+            [truth + np.array([rng.normal(0, 30), rng.normal(0, 30), rng.normal(0, 50), 300.0])]
+        )
+        fit = fit_emitters(img, analytic, start, pixel_size=PX)
+        assert fit.converged and fit.flags[0] == "ok"
+        errs.append(fit.emitters.as_array()[0] - truth)
+        sds.append(fit.sigma[0])
+    errs, sds = np.array(errs), np.array(sds)
+    rmse = np.sqrt(np.mean(errs**2, axis=0))
+    # 150 samples: the RMSE is known to about +-6 %
+    assert np.all(rmse[:3] / bound[:3] > 0.8) and np.all(rmse[:3] / bound[:3] < 1.25)
+    assert np.all(np.abs(errs[:, :3].mean(axis=0)) < 3 * rmse[:3] / np.sqrt(len(errs)) + 0.5)
+    # reported standard errors equal the bound at the fit
+    assert np.allclose(np.median(sds, axis=0)[:3], bound[:3], rtol=0.05)
+    within = np.mean(np.abs(errs[:, :3]) <= sds[:, :3], axis=0)
+    assert np.all((within > 0.55) & (within < 0.8))
+
+
+def test_pupil_model_fit(dh_model):
+    truth = np.array([[820.0, 880.0, -200.0, 2000.0]])
+    img = window(dh_model, truth, seed=3)
+    start = Emitters.from_array(truth + np.array([[40.0, -30.0, 60.0, -300.0]]))
+    fit = fit_emitters(img, dh_model, start, pixel_size=PX)
+    err = fit.emitters.as_array()[0] - truth[0]
+    bound = crlb(dh_model, *truth[0], 10.0, (W, W), PX)[0]
+    assert np.all(np.abs(err[:3]) < 4 * bound[:3])
+    assert 0.7 < fit.deviance_per_dof < 1.4
+
+
+def test_count_selection_adds_a_missing_emitter(analytic):
+    truth = np.array([[700.0, 800.0, -100.0, 2500.0], [1050.0, 950.0, 300.0, 2500.0]])
+    img = window(analytic, truth, seed=4)
+    fit = fit_with_count_selection(img, analytic, Emitters.from_array(truth[:1]), pixel_size=PX)
+    est = fit.emitters.as_array()
+    assert len(est) == 2
+    for t in truth:
+        assert np.linalg.norm(est[:, :3] - t[:3], axis=1).min() < 40.0
+    assert any("added" in h for h in fit.history)
+
+
+def test_count_selection_removes_a_spurious_emitter(analytic):
+    truth = np.array([[850.0, 850.0, 0.0, 3000.0]])
+    img = window(analytic, truth, seed=5)
+    start = Emitters.from_array(np.vstack([truth, [[400.0, 1300.0, 500.0, 300.0]]]))
+    fit = fit_with_count_selection(img, analytic, start, pixel_size=PX)
+    assert len(fit.emitters) == 1
+    assert any("removed" in h for h in fit.history)
+
+
+def test_z_outside_the_range_is_flagged(dh_model):
+    narrow = make_psf("dh", z_range=(-300.0, 300.0))
+    truth = np.array([[850.0, 850.0, 700.0, 3000.0]])
+    img = window(dh_model, truth, seed=6)
+    fit = fit_emitters(
+        img, narrow, Emitters.from_array([[850.0, 850.0, 200.0, 3000.0]]), pixel_size=PX
+    )
+    assert fit.flags[0] == "z_edge"
+    assert fit.emitters.z[0] == pytest.approx(300.0, abs=1.0)
+
+
+def test_emccd_uncertainties_are_sqrt2_larger(analytic):
+    truth = np.array([[850.0, 850.0, 0.0, 3000.0]])
+    img = window(analytic, truth, seed=7)
+    start = Emitters.from_array(truth)
+    a = fit_emitters(img, analytic, start, pixel_size=PX)
+    b = fit_emitters(img, analytic, start, pixel_size=PX, noise="emccd")
+    assert np.allclose(b.emitters.as_array(), a.emitters.as_array(), rtol=1e-4, atol=0.05)
+    assert np.allclose(b.sigma, np.sqrt(2) * a.sigma, rtol=1e-3)
+
+
+def test_scmos_and_plane_background(analytic):
+    _rows, cols = np.mgrid[0:W, 0:W]
+    plane = 0.4 * (cols - W / 2)  # a tilt of +-3.4 photons/pixel across the window
+    truth = np.array([[850.0, 850.0, 100.0, 3000.0]])
+    img = window(analytic, truth, background=12.0, seed=8, plane=plane)
+    start = Emitters.from_array(truth)
+    const = fit_emitters(img, analytic, start, pixel_size=PX)
+    tilted = fit_emitters(img, analytic, start, pixel_size=PX, plane=True)
+    assert tilted.log_likelihood > const.log_likelihood + 10
+    # the tilt in the fit's units (per half window), within 3 reported standard errors
+    assert abs(tilted.background[1] - 0.4 * W / 2) < 3 * tilted.background_sigma[1]
+    sc = fit_emitters(
+        img,
+        analytic,
+        start,
+        pixel_size=PX,
+        plane=True,
+        noise="scmos",
+        read_variance=np.full((W, W), 4.0),
+    )
+    assert np.all(sc.sigma[0, :3] > tilted.sigma[0, :3])
+
+
+def test_bad_arguments(analytic):
+    img = np.full((W, W), 10.0)
+    start = Emitters.from_array([[850.0, 850.0, 0.0, 1000.0]])
+    with pytest.raises(ValueError, match="noise must be one of"):
+        fit_emitters(img, analytic, start, pixel_size=PX, noise="gaussian")
+    with pytest.raises(ValueError, match="read_variance"):
+        fit_emitters(img, analytic, start, pixel_size=PX, noise="scmos")
+    with pytest.raises(ValueError, match="negative photon"):
+        fit_emitters(img - 50, analytic, start, pixel_size=PX)
