@@ -1,0 +1,103 @@
+"""The command line: real runs end to end, and bad input as one sentence with exit code 2."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from sparseloc.cli import app
+
+runner = CliRunner()
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def test_simulate_then_evaluate(tmp_path):
+    out = tmp_path / "movie.tif"
+    res = run(
+        "simulate",
+        "-o",
+        out,
+        "--psf",
+        "dh-analytic",
+        "--frames",
+        "3",
+        "--rows",
+        "32",
+        "--cols",
+        "32",
+        "--density",
+        "1.0",
+        "--seed",
+        "4",
+    )
+    assert res.exit_code == 0, res.output
+    truth = tmp_path / "movie_truth.csv"
+    assert out.is_file() and truth.is_file()
+    df = pd.read_csv(truth)
+    assert list(df.columns[:5]) == ["frame", "x_nm", "y_nm", "z_nm", "photons"]
+    # the truth scored against itself is perfect
+    res = run("evaluate", truth, truth, "--json", tmp_path / "eval.json")
+    assert res.exit_code == 0, res.output
+    assert "100" in res.output
+    assert (tmp_path / "eval.json").is_file()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["simulate", "-o", "{tmp}/m.tif", "--psf", "helix"], "unknown PSF 'helix'"),
+        (["simulate", "-o", "{tmp}/m.tif", "--pixel-size", "-5"], "pixel_size"),
+        (["simulate", "-o", "{tmp}/missing/m.tif"], "does not exist"),
+        (["simulate", "-o", "{tmp}/m.png"], ".tif"),
+        (["evaluate", "{tmp}/nope.csv", "{tmp}/nope.csv"], "does not exist"),
+    ],
+)
+def test_bad_input_is_one_sentence_and_exit_2(tmp_path, args, message):
+    res = run(*[a.replace("{tmp}", str(tmp_path)) for a in args])
+    assert res.exit_code == 2, res.output
+    assert message in res.output
+    assert "Traceback" not in res.output
+    assert not list(tmp_path.glob("*.tif"))  # nothing half-written
+
+
+def test_mask_file_that_is_not_2d(tmp_path):
+    import numpy as np
+
+    mask = tmp_path / "mask.npy"
+    np.save(mask, np.zeros((3, 4, 5)))
+    res = run("simulate", "-o", tmp_path / "m.tif", "--psf", mask)
+    assert res.exit_code == 2
+    assert "must be 2-D" in res.output
+
+
+def test_demo_runs_and_writes_pictures(tmp_path):
+    out = tmp_path / "demo"
+    res = run("demo", "-o", out)
+    assert res.exit_code == 0, res.output
+    for name in (
+        "psf_models.png",
+        "dense_dh_scene.png",
+        "dense_dh_scene.tif",
+        "crlb_dh.png",
+        "hybrid_solve.png",
+    ):
+        assert (out / name).stat().st_size > 1000
+    assert "emitters" in res.output and "CRLB" in res.output
+
+
+def test_entry_point_is_installed():
+    res = subprocess.run(
+        [sys.executable, "-m", "sparseloc.cli", "--help"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert res.returncode == 0
+    assert "simulate" in res.stdout and "evaluate" in res.stdout
