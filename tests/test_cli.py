@@ -101,3 +101,27 @@ def test_entry_point_is_installed():
     )
     assert res.returncode == 0
     assert "simulate" in res.stdout and "evaluate" in res.stdout
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".parquet", ".hdf5"])
+def test_evaluate_reads_every_table_format(tmp_path, suffix):
+    from sparseloc.io.tables import complete_locs, write_table
+
+    truth = pd.DataFrame(
+        {
+            "frame": [0, 0, 1],
+            "x_nm": [500.0, 1500.0, 800.0],
+            "y_nm": [600.0, 700.0, 900.0],
+            "z_nm": [-100.0, 50.0, 200.0],
+            "photons": [1000.0, 2000.0, 1500.0],
+        }
+    )
+    truth_path = tmp_path / "truth.csv"
+    truth.to_csv(truth_path, index=False)
+    locs = complete_locs(truth)
+    locs["x_nm"] += 10.0
+    out = tmp_path / f"locs{suffix}"
+    write_table(locs, out, pixel_size=100.0, shape=(32, 32), n_frames=2, metadata={})
+    res = run("evaluate", out, truth_path)
+    assert res.exit_code == 0, res.output
+    assert "100.0" in res.output  # Jaccard

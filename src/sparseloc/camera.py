@@ -25,7 +25,10 @@ Noise models
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -48,6 +51,55 @@ def _as_map(name: str, value: ArrayLike | None) -> NDArray[np.float64] | None:
         raise ValueError(f"{name} must be finite (no NaN or inf)")
     arr.flags.writeable = False
     return arr
+
+
+_MAP_SUFFIXES = (".tif", ".tiff", ".npy", ".csv")
+
+
+def _check_map_array(name: str, value: ArrayLike, where: str) -> NDArray[np.float64]:
+    """A per-pixel map as a finite float64 (rows, cols) array; leading length-1 axes dropped."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"the {name} map {where} does not hold numbers ({exc})") from exc
+    while arr.ndim > 2 and arr.shape[0] == 1:
+        arr = arr[0]
+    if arr.ndim != 2 or arr.size == 0:
+        raise ValueError(
+            f"the {name} map {where} must be one 2-D (rows, cols) image, got shape {arr.shape}"
+        )
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"the {name} map {where} holds NaN or infinite values")
+    return arr
+
+
+def _load_map_file(name: str, path: Path) -> NDArray[np.float64]:
+    """Read one per-pixel map from a ``.tif``/``.tiff``, ``.npy`` or ``.csv`` file."""
+    where = repr(str(path))
+    suffix = path.suffix.lower()
+    if suffix not in _MAP_SUFFIXES:
+        raise ValueError(
+            f"the {name} map {where} has an unsupported type {path.suffix or '(none)'!r}; "
+            f"use one of {', '.join(_MAP_SUFFIXES)}"
+        )
+    if not path.exists():
+        raise ValueError(f"the {name} map file {where} does not exist")
+    if not path.is_file():
+        raise ValueError(f"the {name} map {where} is not a file")
+    try:
+        if suffix == ".npy":
+            data = np.load(path, allow_pickle=False)
+        elif suffix == ".csv":
+            data = np.loadtxt(path, delimiter=",", dtype=np.float64, ndmin=2)
+        else:
+            import tifffile  # only needed here; keeps the camera model free of I/O otherwise
+
+            data = tifffile.imread(path)
+    except Exception as exc:  # numpy and tifffile raise many types for a bad file
+        raise ValueError(f"the {name} map file {where} could not be read ({exc})") from exc
+    if isinstance(data, np.ndarray) and data.dtype.kind not in "biuf":
+        raise ValueError(f"the {name} map {where} holds {data.dtype} values, not numbers")
+    return _check_map_array(name, data, where)
 
 
 @dataclass(frozen=True, eq=False)
@@ -149,6 +201,95 @@ class Camera:
                 )
         if maps["gain_map"] is not None and np.any(maps["gain_map"] <= 0):
             raise ValueError("gain_map must be > 0 e-/ADU everywhere")
+
+    @classmethod
+    def from_map_files(
+        cls,
+        kind: str = "scmos",
+        offset: str | os.PathLike[str] | float | NDArray[np.floating] | None = None,
+        variance: str | os.PathLike[str] | NDArray[np.floating] | None = None,
+        gain: str | os.PathLike[str] | float | NDArray[np.floating] | None = None,
+        **kw: Any,
+    ) -> Camera:
+        """Camera with sCMOS per-pixel maps read from files.
+
+        Parameters
+        ----------
+        kind : str
+            Noise model; per-pixel maps need ``"scmos"``.
+        offset : str or Path or float or ndarray, optional
+            Offset map, in ADU, shape (rows, cols): a ``.tif``/``.tiff``, ``.npy`` or ``.csv``
+            file (or an array). A number sets the scalar ``offset`` instead.
+        variance : str or Path or ndarray, optional
+            Read-noise **variance** map, in ADU^2 (not the standard deviation), shape
+            (rows, cols): a file as above (or an array).
+        gain : str or Path or float or ndarray, optional
+            Gain map, in e- per ADU, shape (rows, cols): a file as above (or an array). A
+            number sets the scalar ``gain`` instead.
+        **kw
+            Other :class:`Camera` fields (``qe``, ``em_gain``, ...).
+
+        Returns
+        -------
+        Camera
+            With ``offset_map``, ``variance_map`` and ``gain_map`` set from the files given.
+
+        Raises
+        ------
+        ValueError
+            If no map is given; a file is missing, of an unsupported type or unreadable; a map
+            is not a finite 2-D (rows, cols) image; the maps differ in shape; or the camera
+            fields are invalid (see :class:`Camera`).
+
+        Notes
+        -----
+        ``.tif`` maps may hold one image, or a stack of exactly one; ``.npy`` files are read
+        with ``allow_pickle=False``; ``.csv`` files hold numbers only (no header), one row of
+        the map per line, separated by commas.
+        """
+        clash = sorted({"offset_map", "variance_map", "gain_map"} & kw.keys())
+        if clash:
+            raise ValueError(
+                f"give the maps as offset=, variance= and gain=, not {', '.join(clash)}"
+            )
+        maps: dict[str, NDArray[np.float64]] = {}
+        sources: dict[str, str] = {}
+        for name, value in (("offset", offset), ("variance", variance), ("gain", gain)):
+            if value is None:
+                continue
+            if isinstance(value, (str, os.PathLike)):
+                maps[name] = _load_map_file(name, Path(value))
+                sources[name] = f"{name} {str(value)!r}"
+            elif isinstance(value, np.ndarray):
+                arr = _check_map_array(name, value, "array")
+                maps[name] = arr
+                sources[name] = f"{name} array"
+            elif name != "variance" and isinstance(value, (int, float, np.number)):
+                if isinstance(value, (bool, np.bool_)):
+                    raise ValueError(f"{name} must be a number or a map file, got {value!r}")
+                if name in kw:
+                    raise ValueError(f"{name} given twice")
+                kw[name] = float(value)
+            else:
+                what = "a map file or an array"
+                if name != "variance":
+                    what = "a map file, an array or a number"
+                raise ValueError(f"{name} must be {what}, got {type(value).__name__}")
+        if not maps:
+            raise ValueError("give at least one map file (offset=, variance= or gain=)")
+        shapes = {m.shape for m in maps.values()}
+        if len(shapes) > 1:
+            raise ValueError(
+                "the camera maps differ in shape: "
+                + ", ".join(f"{sources[k]} is {m.shape[0]} x {m.shape[1]}" for k, m in maps.items())
+            )
+        return cls(
+            kind=kind,
+            offset_map=maps.get("offset"),
+            variance_map=maps.get("variance"),
+            gain_map=maps.get("gain"),
+            **kw,
+        )
 
     # Frozen dataclasses compare fields as tuples, which fails for arrays: compare explicitly.
     def __eq__(self, other: object) -> bool:

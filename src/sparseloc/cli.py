@@ -165,7 +165,12 @@ def simulate(
 
 @app.command()
 def evaluate(
-    locs: Annotated[Path, typer.Argument(help="Localizations (CSV with frame,x_nm,y_nm,z_nm).")],
+    locs: Annotated[
+        Path,
+        typer.Argument(
+            help="Localizations: Parquet, ThunderSTORM/SMLM/sparseloc CSV or Picasso HDF5."
+        ),
+    ],
     truth: Annotated[Path, typer.Argument(help="Ground truth CSV written by 'simulate'.")],
     lateral_tol: Annotated[float, typer.Option(help="Lateral match tolerance (nm).")] = 250.0,
     axial_tol: Annotated[float, typer.Option(help="Axial match tolerance (nm).")] = 500.0,
@@ -175,12 +180,13 @@ def evaluate(
 ) -> None:
     """Match localizations to the truth and print Jaccard, RMSE, bias and efficiency."""
     from .evaluate import evaluate as run_evaluation
+    from .io.tables import read_table
     from .io.truth import read_truth_csv
 
     for p in (locs, truth):
         if not p.is_file():
             _fail(f"{str(p)!r} does not exist or is not a file")
-    loc_df = _run(read_truth_csv, locs, require_photons=False)
+    loc_df = _run(read_table, locs)
     truth_df = _run(read_truth_csv, truth)
     result = _run(run_evaluation, loc_df, truth_df, lateral_tol=lateral_tol, axial_tol=axial_tol)
     typer.echo(result.summary())

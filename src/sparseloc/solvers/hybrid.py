@@ -329,6 +329,9 @@ def hybrid_solve(
     }
     sol = WindowSolution(emitters, b_out, model_image, "hybrid", details)
     if refine and len(emitters):
+        # other estimates of the same emitters (L1 weighted centres, MP) as extra starting
+        # points: the likelihood of overlapping PSFs has local optima
+        alts = [e for e in (em, mp.emitters) if len(e) == len(emitters)]
         sol = refine_solution(
             y,
             sol,
@@ -340,6 +343,7 @@ def hybrid_solve(
             read_variance=read_variance,
             plane=plane,
             max_emitters=max_emitters,
+            extra_starts=alts,
         )
     return sol
 

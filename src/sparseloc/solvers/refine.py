@@ -480,28 +480,46 @@ def refine_solution(
     origin: tuple[float, float] = (0.0, 0.0),
     count_selection: bool = True,
     max_emitters: int = 10,
+    extra_starts: list[Emitters] | None = None,
     **fit_kwargs,
 ) -> WindowSolution:
     """Refine any solver's solution by maximum likelihood (optionally with count selection).
+
+    Overlapping engineered PSFs make the likelihood multimodal (two double-helix emitters can
+    trade lobes), so the fit starts from ``solution.emitters`` and from each of
+    ``extra_starts`` (other estimates of the same window, e.g. a solver's earlier stages) and
+    keeps the best likelihood before the count selection.
 
     Returns a new :class:`WindowSolution` whose ``details`` hold the solver's own details plus
     ``fit`` (the :class:`FitResult`) and ``sparse_emitters`` (the emitters before the fit).
     """
     fit_kwargs.setdefault("background", solution.background)
+    start = solution.emitters
+    if extra_starts:
+        best = fit_emitters(
+            window, model, start, pixel_size=pixel_size, origin=origin, **fit_kwargs
+        )
+        for alt in extra_starts:
+            if len(alt) == 0:
+                continue
+            trial = fit_emitters(
+                window, model, alt, pixel_size=pixel_size, origin=origin, **fit_kwargs
+            )
+            if trial.log_likelihood > best.log_likelihood:
+                best, start = trial, alt
+        start = best.emitters
     if count_selection:
         fit = fit_with_count_selection(
             window,
             model,
-            solution.emitters,
+            start,
             pixel_size=pixel_size,
             origin=origin,
             max_emitters=max_emitters,
             **fit_kwargs,
         )
     else:
-        fit = fit_emitters(
-            window, model, solution.emitters, pixel_size=pixel_size, origin=origin, **fit_kwargs
-        )
+        fit = fit_emitters(window, model, start, pixel_size=pixel_size, origin=origin, **fit_kwargs)
     details = dict(solution.details)
     details.update(fit=fit, sparse_emitters=solution.emitters)
     return WindowSolution(
