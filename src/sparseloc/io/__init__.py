@@ -1,4 +1,4 @@
-"""Readers and writers: camera movies (lazy TIFF / OME-TIFF series), ground-truth tables (CSV) and localization
+"""Readers and writers: camera movies (lazy TIFF / OME-TIFF series), ground-truth tables
 tables (Parquet, ThunderSTORM CSV, Picasso HDF5 + YAML, SMLM-challenge CSV).
 
 I/O happens only at the ends of the pipeline; every writer is atomic (a temporary file in the
