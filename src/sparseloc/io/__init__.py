@@ -1,5 +1,5 @@
 """Readers and writers: camera movies (lazy TIFF / OME-TIFF series), ground-truth tables
-tables (Parquet, ThunderSTORM CSV, Picasso HDF5 + YAML, SMLM-challenge CSV).
+(CSV) and localization tables (Parquet, ThunderSTORM CSV, Picasso HDF5 + YAML, SMLM-challenge CSV).
 
 I/O happens only at the ends of the pipeline; every writer is atomic (a temporary file in the
 destination folder, then a rename), so a failure never leaves a half-written output.
