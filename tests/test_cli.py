@@ -125,3 +125,61 @@ def test_evaluate_reads_every_table_format(tmp_path, suffix):
     res = run("evaluate", out, truth_path)
     assert res.exit_code == 0, res.output
     assert "100.0" in res.output  # Jaccard
+
+
+def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
+    movie = tmp_path / "m.tif"
+    res = run(
+        "simulate",
+        "-o",
+        movie,
+        "--psf",
+        "dh-analytic",
+        "--frames",
+        "2",
+        "--rows",
+        "32",
+        "--cols",
+        "32",
+        "--pixel-size",
+        "160",
+        "--density",
+        "0.15",
+        "--photons-min",
+        "3000",
+        "--photons-max",
+        "4000",
+        "--z-min",
+        "-300",
+        "--z-max",
+        "300",
+        "--seed",
+        "3",
+    )
+    assert res.exit_code == 0, res.output
+    cfg = tmp_path / "run.toml"
+    cfg.write_text(
+        '[localize]\npsf = "dh-analytic"\npixel_size = 160.0\nz_min = -300.0\nz_max = 300.0\n'
+    )
+    out = tmp_path / "locs.parquet"
+    res = run("localize", movie, "-o", out, "--config", cfg)
+    assert res.exit_code == 0, res.output
+    assert "localizations" in res.output and "frames" in res.output
+    from sparseloc.io.tables import read_parquet
+
+    table, meta = read_parquet(out)
+    assert len(table) >= 8 and meta["params"]["pixel_size"] == 160.0
+    # bad input: wrong pixel size, offset above the data, missing folder, unknown config key
+    for args, msg in [
+        (["--config", cfg, "--pixel-size", "100"], "differs from the movie"),
+        (["--config", cfg, "--offset", "5000"], "offset"),
+    ]:
+        res = run("localize", movie, "-o", tmp_path / "x.csv", *args)
+        assert res.exit_code == 2 and msg in res.output, res.output
+    res = run("localize", movie, "-o", tmp_path / "no" / "x.csv", "--config", cfg)
+    assert res.exit_code == 2 and "does not exist" in res.output
+    bad = tmp_path / "bad.toml"
+    bad.write_text("pixelsize = 160\n")
+    res = run("localize", movie, "-o", tmp_path / "x.csv", "--config", bad)
+    assert res.exit_code == 2 and "unknown keys" in res.output
+    assert not (tmp_path / "x.csv").exists()

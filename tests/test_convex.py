@@ -268,7 +268,7 @@ def test_infeasible(A, caplog):
     y, _ = _window(A, 9)
     r_nnls = _nnls_residual(A, y, BACKGROUND)
     eps = 0.5 * r_nnls
-    with caplog.at_level(logging.WARNING, logger="sparseloc.solvers.convex"):
+    with caplog.at_level(logging.INFO, logger="sparseloc.solvers.convex"):
         res = solve_constrained(A, y, eps, background=BACKGROUND)
     assert not res.feasible
     assert "infeasible" in caplog.text

@@ -10,6 +10,7 @@ from sparseloc.camera import Camera, to_photons
 from sparseloc.io.tiff import write_tiff
 from sparseloc.psf import DoubleHelixMask, PupilPSF
 from sparseloc.simulate import (
+    PATCH_FRACTION,
     SCENES,
     Simulation,
     cluster_scene,
@@ -120,7 +121,7 @@ def test_render_movie_places_patches_exactly(clear_model):
     )
     movie = render_movie(clear_model, truth, 3, shape, PX, background=0.0)
     assert movie.shape == (3, *shape) and movie.dtype == np.float64
-    half = int(np.ceil(clear_model.support_radius(PX) / PX))
+    half = int(np.ceil(clear_model.support_radius(PX, PATCH_FRACTION) / PX))
     for f in range(3):
         expected = np.zeros(shape)
         for r in truth[truth["frame"] == f].itertuples():

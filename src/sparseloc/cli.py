@@ -13,6 +13,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
 import typer
 
 app = typer.Typer(
@@ -161,6 +162,193 @@ def simulate(
         f"({len(sim.truth) / frames:.1f} per frame) in {time.perf_counter() - t0:.1f} s"
     )
     typer.echo(f"wrote {tif} and {truth}")
+
+
+LOCALIZE_DEFAULTS: dict = {
+    "psf": "dh",
+    "pixel_size": None,
+    "offset": 100.0,
+    "gain": 1.0,
+    "em_gain": 1.0,
+    "qe": 1.0,
+    "camera": "ideal",
+    "method": "hybrid",
+    "window": 11,
+    "margin": 3,
+    "z_min": None,
+    "z_max": None,
+    "threshold": 5.0,
+    "refine": True,
+    "frames": None,
+    "format": None,
+}
+
+
+class _PhotonFrames:
+    """Frames of a movie converted to photons on demand (lazy)."""
+
+    def __init__(self, movie, camera) -> None:
+        self.movie, self.camera = movie, camera
+
+    def __len__(self) -> int:
+        return len(self.movie)
+
+    def frames(self, start: int, stop: int):
+        from .camera import to_photons
+
+        return to_photons(self.movie.frames(start, stop), self.camera)
+
+
+def _load_config(path: Path | None) -> dict:
+    if path is None:
+        return {}
+    import tomllib
+
+    if not path.is_file():
+        _fail(f"the config file {str(path)!r} does not exist")
+    try:
+        cfg = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        _fail(f"cannot read the config file {str(path)!r}: {exc}")
+    cfg = {k.replace("-", "_"): v for k, v in cfg.get("localize", cfg).items()}
+    unknown = sorted(set(cfg) - set(LOCALIZE_DEFAULTS))
+    if unknown:
+        _fail(
+            f"unknown keys in {path.name}: {', '.join(unknown)}; allowed: "
+            f"{', '.join(sorted(LOCALIZE_DEFAULTS))}"
+        )
+    return cfg
+
+
+@app.command()
+def localize(
+    movie: Annotated[list[Path], typer.Argument(help="Movie: TIFF/OME-TIFF file(s) in order.")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="LOCS.parquet | .csv | .hdf5")],
+    psf: Annotated[str | None, typer.Option(help="dh, astig, ... or a mask file.")] = None,
+    pixel_size: Annotated[
+        float | None, typer.Option(help="Pixel size in sample space (nm).")
+    ] = None,
+    offset: Annotated[float | None, typer.Option(help="Camera offset (ADU).")] = None,
+    gain: Annotated[float | None, typer.Option(help="Conversion gain (e-/ADU).")] = None,
+    em_gain: Annotated[float | None, typer.Option(help="EM gain.")] = None,
+    qe: Annotated[float | None, typer.Option(help="Quantum efficiency.")] = None,
+    camera: Annotated[str | None, typer.Option(help="ideal, emccd or scmos.")] = None,
+    method: Annotated[str | None, typer.Option(help="hybrid, mp or co.")] = None,
+    window: Annotated[int | None, typer.Option(help="Window size (pixels).")] = None,
+    margin: Annotated[int | None, typer.Option(help="Window margin outside its core (px).")] = None,
+    z_min: Annotated[float | None, typer.Option(help="Lowest z of the dictionaries (nm).")] = None,
+    z_max: Annotated[float | None, typer.Option(help="Highest z of the dictionaries (nm).")] = None,
+    threshold: Annotated[float | None, typer.Option(help="Candidate SNR threshold.")] = None,
+    refine: Annotated[
+        bool | None, typer.Option("--refine/--no-refine", help="Maximum-likelihood stage.")
+    ] = None,
+    frames: Annotated[str | None, typer.Option(help="Frame range START:STOP (0-based).")] = None,
+    fmt: Annotated[
+        str | None, typer.Option("--format", help="parquet, thunderstorm, picasso, smlm.")
+    ] = None,
+    config: Annotated[Path | None, typer.Option(help="TOML file with the same keys.")] = None,
+) -> None:
+    """Localize a movie and write the localization table."""
+    from .camera import Camera
+    from .io.movie import Movie
+    from .io.tables import write_table
+    from .pipeline import LocalizeParams
+    from .pipeline import localize as run_localize
+    from .psf import make_psf
+
+    given = {
+        "psf": psf,
+        "pixel_size": pixel_size,
+        "offset": offset,
+        "gain": gain,
+        "em_gain": em_gain,
+        "qe": qe,
+        "camera": camera,
+        "method": method,
+        "window": window,
+        "margin": margin,
+        "z_min": z_min,
+        "z_max": z_max,
+        "threshold": threshold,
+        "refine": refine,
+        "frames": frames,
+        "format": fmt,
+    }
+    opts = {**LOCALIZE_DEFAULTS, **_load_config(config)}
+    opts.update({k: v for k, v in given.items() if v is not None})
+    out = _output_path(output)
+    if opts["pixel_size"] is None:
+        _fail("give the pixel size in sample space with --pixel-size NM")
+    mov = _run(Movie.open, [str(p) for p in movie] if len(movie) > 1 else str(movie[0]))
+    with mov:
+        if mov.pixel_size and abs(mov.pixel_size - opts["pixel_size"]) > 0.01 * opts["pixel_size"]:
+            _fail(
+                f"--pixel-size {opts['pixel_size']:g} nm differs from the movie's metadata "
+                f"({mov.pixel_size:g} nm)"
+            )
+        cam = _run(
+            Camera,
+            kind=opts["camera"],
+            offset=opts["offset"],
+            gain=opts["gain"],
+            em_gain=opts["em_gain"],
+            qe=opts["qe"],
+        )
+        first = mov.frames(0, 1)
+        if opts["offset"] >= float(np.median(first)):
+            _fail(
+                f"the offset ({opts['offset']:g} ADU) is not below the median pixel value "
+                f"({float(np.median(first)):g} ADU) of the first frame; check --offset"
+            )
+        model = _run(make_psf, opts["psf"])
+        lo, hi = model.z_range
+        zr = (
+            lo if opts["z_min"] is None else opts["z_min"],
+            hi if opts["z_max"] is None else opts["z_max"],
+        )
+        start, stop = 0, len(mov)
+        if opts["frames"]:
+            try:
+                a, b = str(opts["frames"]).split(":")
+                start, stop = int(a or 0), int(b) if b else len(mov)
+            except ValueError:
+                _fail(f"--frames must look like START:STOP, got {opts['frames']!r}")
+        params = _run(
+            LocalizeParams,
+            pixel_size=opts["pixel_size"],
+            method=opts["method"],
+            refine=opts["refine"],
+            window=opts["window"],
+            margin=opts["margin"],
+            z_range=zr,
+            threshold=opts["threshold"],
+            noise="emccd" if opts["camera"] == "emccd" else "poisson",
+        )
+        from tqdm import tqdm
+
+        with tqdm(total=stop - start, unit="frame", disable=not sys.stderr.isatty()) as bar:
+            res = _run(
+                run_localize,
+                _PhotonFrames(mov, cam),
+                model,
+                params,
+                start=start,
+                stop=stop,
+                progress=bar.update,
+            )
+        meta = {**res.metadata, "movie": [str(p) for p in mov.paths], "camera": cam.to_dict()}
+        _run(
+            write_table,
+            res.table,
+            out,
+            format=opts["format"],
+            pixel_size=opts["pixel_size"],
+            shape=mov.shape,
+            n_frames=len(mov),
+            metadata=meta,
+        )
+    typer.echo(res.summary())
+    typer.echo(f"wrote {out}")
 
 
 @app.command()

@@ -861,7 +861,9 @@ def _infeasible(
     )
     if on_infeasible == "raise":
         raise ValueError(msg)
-    log.warning("%s; returning that fit", msg)
+    # info, not warning: restricted dictionaries (the hybrid's boxes) are often infeasible by
+    # design, and the result says so (feasible=False)
+    log.info("%s; returning that fit", msg)
     x, b = prob.split(z)
     return ConvexResult(
         coef=x,

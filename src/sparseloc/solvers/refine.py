@@ -409,6 +409,7 @@ def fit_with_count_selection(
     threshold: float = LR_THRESHOLD,
     max_emitters: int = 10,
     max_changes: int = 4,
+    min_photons: float = 200.0,
     **fit_kwargs,
 ) -> FitResult:
     """Fit K emitters, then test K-1 and K+1 by a likelihood ratio (see the module notes).
@@ -424,6 +425,9 @@ def fit_with_count_selection(
         Never more emitters than this.
     max_changes : int
         Cap on accepted additions and removals.
+    min_photons : float
+        Emitters fitted with fewer photons are removed whatever the likelihood ratio (they
+        explain noise or model mismatch, not molecules), and are never added.
     **fit_kwargs
         Passed to :func:`fit_emitters` (``noise``, ``plane``, ``background``, ...).
     """
@@ -433,7 +437,9 @@ def fit_with_count_selection(
     best.history.append(f"K={len(best.emitters)} logL={best.log_likelihood:.1f}")
     w = 0.5 if fit_kwargs.get("noise", "poisson") == "emccd" else 1.0
     changes = 0
-    while changes < max_changes:
+    while changes < max_changes or (
+        len(best.emitters) and best.emitters.photons.min() < min_photons
+    ):
         changed = False
         k = len(best.emitters)
         bg = float(best.background[0])
@@ -447,7 +453,7 @@ def fit_with_count_selection(
                 **{**kw, "background": bg},
             )
             ratio = 2.0 * (best.log_likelihood - fewer.log_likelihood) / w
-            if ratio < threshold:
+            if ratio < threshold or arr[weakest, 3] < min_photons:
                 best = fewer
                 best.history.append(f"removed one: K={k - 1}, LR={ratio:.1f}")
                 changes += 1
@@ -461,7 +467,11 @@ def fit_with_count_selection(
                     more = trial
             if more is not None:
                 ratio = 2.0 * (more.log_likelihood - best.log_likelihood) / w
-                if ratio > threshold and np.all(more.flags != "diverged"):
+                if (
+                    ratio > threshold
+                    and np.all(more.flags != "diverged")
+                    and more.emitters.photons.min() >= min_photons
+                ):
                     best = more
                     best.history.append(f"added one: K={k + 1}, LR={ratio:.1f}")
                     changes += 1

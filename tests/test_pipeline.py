@@ -1,0 +1,98 @@
+"""Frames to a table: tiling, ownership, detection and an end-to-end run on a fast model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from sparseloc.detect import detect_candidates, temporal_background, tiles, z_averaged_psf
+from sparseloc.evaluate import evaluate
+from sparseloc.io.tables import LOCS_COLUMNS
+from sparseloc.pipeline import LocalizeParams, localize
+from sparseloc.psf import make_psf
+
+PX = 160.0
+
+
+@pytest.mark.parametrize(
+    ("shape", "window", "margin"), [((32, 45), 11, 3), ((11, 11), 11, 2), ((50, 23), 9, 1)]
+)
+def test_cores_partition_the_frame(shape, window, margin):
+    owners = np.zeros(shape, dtype=int)
+    for t in tiles(shape, window, margin):
+        owners[t.core_rows[0] : t.core_rows[1], t.core_cols[0] : t.core_cols[1]] += 1
+        # the window lies in the frame and covers its core
+        assert 0 <= t.row0 <= shape[0] - window and 0 <= t.col0 <= shape[1] - window
+        assert t.row0 <= t.core_rows[0] and t.core_rows[1] <= t.row0 + window
+        assert t.col0 <= t.core_cols[0] and t.core_cols[1] <= t.col0 + window
+    assert np.all(owners == 1)
+
+
+def test_ownership_of_a_point_on_a_core_border():
+    ts = tiles((40, 40), 11, 3)
+    x = np.array([5 * PX, 5 * PX - 1e-6, 0.0, 40 * PX - 1e-6])  # on / just before a border
+    y = np.array([7 * PX, 7 * PX, 0.0, 40 * PX - 1e-6])
+    counts = sum(t.owns(x, y, PX).astype(int) for t in ts)
+    assert np.all(counts == 1)
+
+
+def test_frames_smaller_than_a_window_are_refused():
+    with pytest.raises(ValueError, match="smaller than one window"):
+        tiles((8, 40), 11, 3)
+
+
+def test_background_and_detection_find_a_double_helix_once():
+    model = make_psf("dh-analytic")
+    rng = np.random.default_rng(0)
+    truth = np.array([[1500.0, 2000.0, 300.0], [3500.0, 3200.0, -400.0]])
+    frames = []
+    for _ in range(9):
+        mu = model.render(truth[:, 0], truth[:, 1], truth[:, 2], [3000.0, 3000.0], (40, 40), PX)
+        blink = rng.random() < 0.3  # molecules blink: the percentile ignores them
+        frames.append(rng.poisson(12.0 + mu * (blink or _ == 4)))
+    frames = np.array(frames, dtype=float)
+    bg = temporal_background(frames)
+    assert abs(np.median(bg) - 12.0) < 1.0
+    tmpl = z_averaged_psf(model, PX, model.z_range, 21)
+    cand = detect_candidates(frames[4], bg, tmpl, threshold=5.0)
+    assert len(cand) == 2  # one candidate per two-lobed image, not one per lobe
+    found = cand[:, ::-1] * PX + PX / 2  # (x, y) nm of the pixel centres
+    for p in truth[:, :2]:
+        assert np.min(np.linalg.norm(found - p, axis=1)) < 2 * PX
+
+
+def test_end_to_end_on_a_small_movie():
+    from sparseloc.simulate import simulate
+
+    model = make_psf("dh-analytic")
+    sim = simulate(
+        model,
+        scene="uniform",
+        n_frames=2,
+        shape=(32, 32),
+        pixel_size=PX,
+        density=0.15,
+        photons=(3000.0, 4000.0),
+        background=10.0,
+        seed=3,
+        z_range=(-300.0, 300.0),
+    )
+    frames = sim.movie.astype(float) - sim.camera.offset
+    params = LocalizeParams(
+        pixel_size=PX, z_range=(-300.0, 300.0), window=11, margin=3, fine=(20.0, 30.0)
+    )
+    done = []
+    res = localize(frames, model, params, progress=done.append)
+    assert sum(done) == 2
+    assert list(res.table.columns) == list(LOCS_COLUMNS)
+    ev = evaluate(res.table, sim.truth)
+    assert ev.recall >= 0.8 and ev.jaccard >= 60.0
+    assert ev.rmse_lateral < 40.0
+    # no emitter reported twice: no two localizations of one frame within 50 nm
+    for _, df in res.table.groupby("frame"):
+        xy = df[["x_nm", "y_nm"]].to_numpy()
+        d = np.linalg.norm(xy[:, None] - xy[None], axis=2) + np.eye(len(xy)) * 1e9
+        assert d.min() > 50.0
+    assert res.metadata["psf_hash"] and res.metadata["params"]["pixel_size"] == PX
+    assert isinstance(res.table, pd.DataFrame)
