@@ -145,7 +145,7 @@ def run_demo(
 
 
 def _demo_solve(model, out: Path, seed: int, files: list) -> str:
-    """The paper's Figure 2 case: three overlapping emitters in one 11x11 window, MP+CO."""
+    """The paper's Figure 2 case: three overlapping emitters in one 11x11 window, MP+CO+MLE."""
     from scipy.optimize import linear_sum_assignment
 
     from .dictionary import Dictionary
@@ -169,7 +169,7 @@ def _demo_solve(model, out: Path, seed: int, files: list) -> str:
             out / "hybrid_solve.png",
             pixel_size=px,
             truth=np.column_stack([truth, photons]),
-            title="MP+CO on three overlapping double-helix emitters",
+            title="MP+CO+MLE on three overlapping double-helix emitters",
         )
     )
     est = sol.emitters.as_array()
@@ -180,6 +180,6 @@ def _demo_solve(model, out: Path, seed: int, files: list) -> str:
     else:
         err = "nothing found"
     return (
-        f"  MP+CO on one 11x11 window with 3 overlapping emitters ({fine.size:,}-atom fine "
+        f"  MP+CO+MLE on one 11x11 window with 3 overlapping emitters ({fine.size:,}-atom fine "
         f"dictionary): found {len(est)}, {err}"
     )
