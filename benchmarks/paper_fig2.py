@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         f"(built in {build:.1f} s)\n"
     )
     hdr = (
-        f"{'method':<8}{'right count':>12}{'mean 3D err':>13}{'err, right count':>18}"
+        f"{'method':<15}{'right count':>12}{'mean 3D err':>13}{'err, right count':>18}"
         f"{'median time':>13}   {'paper error':>12}  paper time"
     )
     print(hdr)
@@ -186,14 +186,14 @@ def main(argv: list[str] | None = None) -> int:
         }
         s = summary[m]
         print(
-            f"{m:<8}{100 * s['right_count']:>11.1f}%{s['mean_error_nm']:>10.1f} nm"
+            f"{m:<15}{100 * s['right_count']:>11.1f}%{s['mean_error_nm']:>10.1f} nm"
             f"{s['mean_error_right_count_nm'] or float('nan'):>15.1f} nm"
             f"{1e3 * s['median_time_s']:>10.1f} ms   {PAPER[m]['error_nm']:>9} nm  "
             f"{PAPER[m]['time']}"
         )
     print("\nright count / mean 3D error by the closest pair's 3D separation:")
     print(
-        f"{'method':<8}"
+        f"{'method':<15}"
         + "".join(
             f"{f'{lo:.0f}-{hi:.0f} nm' if np.isfinite(hi) else f'>= {lo:.0f} nm':>24}"
             for lo, hi in pairwise(SEPARATION_BINS)
