@@ -68,10 +68,10 @@ def test_tiff_errors(tmp_path):
     with pytest.raises(ValueError, match="pixel_size"):
         write_tiff(tmp_path / "f.tif", movie, pixel_size=-1.0)
     assert list(tmp_path.iterdir()) == []  # nothing half-written
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(ValueError, match="does not exist"):
         read_tiff(tmp_path / "nope.tif")
     (tmp_path / "bad.tif").write_bytes(b"not a tiff at all")
-    with pytest.raises(ValueError, match="not a readable TIFF"):
+    with pytest.raises(ValueError, match="not a TIFF file"):
         read_tiff(tmp_path / "bad.tif")
 
 

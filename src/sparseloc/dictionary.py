@@ -409,6 +409,24 @@ class Dictionary:
         """(x, y, z) in nm of flat atom indices, shape (n, 3)."""
         return self.grid.positions(index)
 
+    def nearest_index(self, x: ArrayLike, y: ArrayLike, z: ArrayLike) -> NDArray[np.int64]:
+        """Flat index of the grid atom nearest to each position (nm), clipped to the grid."""
+        g = self.grid
+        ix = np.clip(np.rint((np.asarray(x) - g.x[0]) / g.dxy).astype(int), 0, g.x.size - 1)
+        iy = np.clip(np.rint((np.asarray(y) - g.y[0]) / g.dxy).astype(int), 0, g.y.size - 1)
+        iz = np.clip(np.rint((np.asarray(z) - g.z[0]) / g.dz).astype(int), 0, g.z.size - 1)
+        return np.ravel_multi_index((iz, iy, ix), self.coef_shape)
+
+    def neighbourhood(self, k: int, reach: tuple[int, int]) -> NDArray[np.int64]:
+        """Flat indices of the atoms within ``reach`` (lateral, axial) grid steps of atom k."""
+        iz, iy, ix = np.unravel_index(k, self.coef_shape)
+        nz, ny, nx = self.coef_shape
+        rz = np.arange(max(iz - reach[1], 0), min(iz + reach[1] + 1, nz))
+        ry = np.arange(max(iy - reach[0], 0), min(iy + reach[0] + 1, ny))
+        rx = np.arange(max(ix - reach[0], 0), min(ix + reach[0] + 1, nx))
+        zz, yy, xx = np.meshgrid(rz, ry, rx, indexing="ij")
+        return np.ravel_multi_index((zz.ravel(), yy.ravel(), xx.ravel()), self.coef_shape)
+
     @property
     def quantization_error(self) -> float:
         """Relative error of the grid: the median of ``||image - a * best_atom|| / ||image||``
@@ -430,16 +448,10 @@ class Dictionary:
             imgs = self.model.images(x, y, z, self.shape, px, origin=self.origin)
             # The best atom for an emitter is one of its grid neighbours: search the 3x3x3
             # grid points around it instead of correlating with the whole dictionary.
-            ix = np.clip(np.floor((x - g.x[0]) / g.dxy).astype(int), 0, g.x.size - 2)
-            iy = np.clip(np.floor((y - g.y[0]) / g.dxy).astype(int), 0, g.y.size - 2)
-            iz = np.clip(np.floor((z - g.z[0]) / g.dz).astype(int), 0, max(g.z.size - 2, 0))
-            off = np.array(np.meshgrid([-1, 0, 1, 2], [-1, 0, 1, 2], [-1, 0, 1, 2])).reshape(3, -1)
+            nearest = self.nearest_index(x, y, z)
             rel = np.empty(n)
             for j in range(n):
-                cz = np.clip(iz[j] + off[0], 0, g.z.size - 1)
-                cy = np.clip(iy[j] + off[1], 0, g.y.size - 1)
-                cx = np.clip(ix[j] + off[2], 0, g.x.size - 1)
-                cand = np.unique(np.ravel_multi_index((cz, cy, cx), self.coef_shape))
+                cand = self.neighbourhood(int(nearest[j]), (1, 1))
                 atoms = self.atoms(cand).reshape(cand.size, -1)
                 img = imgs[j].ravel()
                 amp = atoms @ img / np.einsum("ij,ij->i", atoms, atoms)

@@ -122,59 +122,29 @@ def write_tiff(
     return Path(path)
 
 
-def _open_error(path: Path) -> Exception | None:
-    if not path.exists():
-        return FileNotFoundError(f"the file {str(path)!r} does not exist")
-    if path.is_dir():
-        return IsADirectoryError(f"{str(path)!r} is a folder, not a TIFF file")
-    return None
-
-
 def read_tiff(path: str | Path) -> NDArray[np.generic]:
-    """Read a whole TIFF stack into memory.
+    """Read a whole TIFF stack into memory (a thin wrapper over :class:`~.movie.Movie`).
 
     Parameters
     ----------
     path : str or Path
-        TIFF file.
+        TIFF or OME-TIFF file.
 
     Returns
     -------
     movie : ndarray, shape (frames, rows, cols)
-        The first image series in its stored dtype; a single 2-D image becomes one frame.
+        In its stored dtype; a single 2-D image becomes one frame.
 
     Raises
     ------
-    FileNotFoundError
-        If the file does not exist.
     ValueError
-        If it is not a readable TIFF or holds more than one value per pixel (e.g. RGB or
-        several channels).
+        If the file does not exist, is not a readable TIFF, is truncated, or holds more than one
+        value per pixel (e.g. RGB).
     """
-    p = Path(path)
-    err = _open_error(p)
-    if err is not None:
-        raise err
-    try:
-        with tifffile.TiffFile(p) as tif:
-            series = tif.series[0]
-            data = series.asarray()
-            axes = series.axes
-    except (tifffile.TiffFileError, ValueError, OSError) as exc:
-        raise ValueError(f"{str(p)!r} is not a readable TIFF file ({exc})") from exc
-    if data.ndim == 2:
-        data = data[None]
-    elif data.ndim > 3:
-        extra = [a for a, n in zip(axes[:-2], data.shape[:-2], strict=False) if n > 1]
-        if len(extra) > 1 or "S" in axes[-3:]:
-            raise ValueError(
-                f"{str(p)!r} holds an image of shape {data.shape} (axes {axes}); "
-                "expected a (frames, rows, cols) stack"
-            )
-        data = data.reshape(-1, *data.shape[-2:])
-    if data.ndim != 3:
-        raise ValueError(f"{str(p)!r} holds an image of shape {data.shape}, not a stack")
-    return data
+    from .movie import Movie
+
+    with Movie.open(path, allow_float=True) as movie:
+        return movie.frames(0, len(movie))
 
 
 def read_tiff_metadata(path: str | Path) -> dict[str, Any]:
@@ -183,36 +153,19 @@ def read_tiff_metadata(path: str | Path) -> dict[str, Any]:
     Returns
     -------
     dict
-        ``shape`` (frames, rows, cols), ``dtype``, ``pixel_size`` (nm, or None when unknown) and
-        any other ``key: value`` pairs of the ImageJ description.
+        ``shape`` (frames, rows, cols), ``dtype``, ``pixel_size`` (nm, or None when unknown, as
+        :class:`~.movie.Movie` reads it) and any other ``key: value`` pairs of the ImageJ
+        description.
     """
-    p = Path(path)
-    err = _open_error(p)
-    if err is not None:
-        raise err
-    try:
-        with tifffile.TiffFile(p) as tif:
-            series = tif.series[0]
-            shape = tuple(series.shape)
-            dtype = str(series.dtype)
-            ij = dict(tif.imagej_metadata or {})
-            page = tif.pages[0]
-            xres = page.tags.get("XResolution")
-            xres_value = xres.value if xres is not None else None
-    except (tifffile.TiffFileError, ValueError, OSError) as exc:
-        raise ValueError(f"{str(p)!r} is not a readable TIFF file ({exc})") from exc
-    if len(shape) == 2:
-        shape = (1, *shape)
-    pixel_size = ij.get("pixel_size_nm")
-    if pixel_size is None and ij.get("unit") in ("nm", "nanometer") and xres_value:
-        num, den = xres_value
-        pixel_size = den / num if num else None
-    out = {k: v for k, v in ij.items() if k not in ("ImageJ", "pixel_size_nm")}
-    out.update(
-        {
-            "shape": shape,
-            "dtype": dtype,
-            "pixel_size": None if pixel_size is None else float(pixel_size),
+    from .movie import Movie
+
+    with Movie.open(path, allow_float=True) as movie:
+        out = {
+            "shape": (len(movie), *movie.shape),
+            "dtype": str(movie.dtype),
+            "pixel_size": movie.pixel_size,
         }
-    )
-    return out
+    with tifffile.TiffFile(path) as tif:
+        ij = dict(tif.imagej_metadata or {})
+    extras = {k: v for k, v in ij.items() if k not in ("ImageJ", "pixel_size_nm")}
+    return {**extras, **out}

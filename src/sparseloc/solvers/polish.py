@@ -96,22 +96,7 @@ class PointModel:
 
 def nearest_atoms(dictionary: Dictionary, emitters: Emitters) -> NDArray:
     """Flat index of the grid atom nearest to each emitter."""
-    g = dictionary.grid
-    ix = np.clip(np.rint((emitters.x - g.x[0]) / g.dxy).astype(int), 0, g.x.size - 1)
-    iy = np.clip(np.rint((emitters.y - g.y[0]) / g.dxy).astype(int), 0, g.y.size - 1)
-    iz = np.clip(np.rint((emitters.z - g.z[0]) / g.dz).astype(int), 0, g.z.size - 1)
-    return np.ravel_multi_index((iz, iy, ix), dictionary.coef_shape)
-
-
-def _neighbourhood(dictionary: Dictionary, k: int, reach: tuple[int, int]) -> NDArray:
-    """Flat indices of the atoms within ``reach`` (lateral, axial) grid steps of atom k."""
-    iz, iy, ix = np.unravel_index(k, dictionary.coef_shape)
-    nz, ny, nx = dictionary.coef_shape
-    rz = np.arange(max(iz - reach[1], 0), min(iz + reach[1] + 1, nz))
-    ry = np.arange(max(iy - reach[0], 0), min(iy + reach[0] + 1, ny))
-    rx = np.arange(max(ix - reach[0], 0), min(ix + reach[0] + 1, nx))
-    zz, yy, xx = np.meshgrid(rz, ry, rx, indexing="ij")
-    return np.ravel_multi_index((zz.ravel(), yy.ravel(), xx.ravel()), dictionary.coef_shape)
+    return dictionary.nearest_index(emitters.x, emitters.y, emitters.z)
 
 
 def polish(
@@ -152,7 +137,7 @@ def polish(
                 - model.background
                 - np.tensordot(model.photons[others], model.atoms[others], axes=(0, 0))
             )
-            cand = _neighbourhood(dictionary, int(model.index[j]), reach)
+            cand = dictionary.neighbourhood(int(model.index[j]), reach)
             cand = cand[~np.isin(cand, model.index[others])]
             atoms = dictionary.atoms(cand).reshape(cand.size, -1)
             rv = r.ravel()
