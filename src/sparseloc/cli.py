@@ -224,7 +224,9 @@ def _load_config(path: Path | None) -> dict:
 def localize(
     movie: Annotated[list[Path], typer.Argument(help="Movie: TIFF/OME-TIFF file(s) in order.")],
     output: Annotated[Path, typer.Option("--output", "-o", help="LOCS.parquet | .csv | .hdf5")],
-    psf: Annotated[str | None, typer.Option(help="dh, astig, ... or a mask file.")] = None,
+    psf: Annotated[
+        str | None, typer.Option(help="PSF.h5 from 'calibrate', dh, astig, ... or a mask file.")
+    ] = None,
     pixel_size: Annotated[
         float | None, typer.Option(help="Pixel size in sample space (nm).")
     ] = None,
@@ -277,8 +279,18 @@ def localize(
     opts = {**LOCALIZE_DEFAULTS, **_load_config(config)}
     opts.update({k: v for k, v in given.items() if v is not None})
     out = _output_path(output)
+    model = _run(make_psf, opts["psf"])
+    cal_px = getattr(model, "pixel_size", None)
+    if opts["pixel_size"] is None and cal_px is not None:
+        opts["pixel_size"] = float(cal_px)
     if opts["pixel_size"] is None:
         _fail("give the pixel size in sample space with --pixel-size NM")
+    if cal_px is not None and abs(float(cal_px) - opts["pixel_size"]) > 1e-3 * float(cal_px):
+        _fail(
+            f"the PSF calibration {opts['psf']} was made at {float(cal_px):g} nm pixels but "
+            f"--pixel-size is {opts['pixel_size']:g} nm; pass the matching pixel size or "
+            "recalibrate"
+        )
     mov = _run(Movie.open, [str(p) for p in movie] if len(movie) > 1 else str(movie[0]))
     with mov:
         if mov.pixel_size and abs(mov.pixel_size - opts["pixel_size"]) > 0.01 * opts["pixel_size"]:
@@ -300,7 +312,6 @@ def localize(
                 f"the offset ({opts['offset']:g} ADU) is not below the median pixel value "
                 f"({float(np.median(first)):g} ADU) of the first frame; check --offset"
             )
-        model = _run(make_psf, opts["psf"])
         lo, hi = model.z_range
         zr = (
             lo if opts["z_min"] is None else opts["z_min"],
@@ -352,6 +363,114 @@ def localize(
 
 
 @app.command()
+def calibrate(
+    beads: Annotated[Path, typer.Argument(help="Bead z-scan: a multi-frame TIFF.")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Calibration file (.h5).")],
+    pixel_size: Annotated[float, typer.Option(help="Pixel size in sample space (nm).")],
+    z_step: Annotated[float | None, typer.Option(help="Stage step between frames (nm).")] = None,
+    z_file: Annotated[
+        Path | None,
+        typer.Option(help="CSV of each frame's z (z_um or z_nm column, optional valid)."),
+    ] = None,
+    z0_slice: Annotated[
+        float | None, typer.Option(help="Slice at z = 0 (default: the middle one).")
+    ] = None,
+    offset: Annotated[float, typer.Option(help="Camera offset (ADU).")] = 0.0,
+    gain: Annotated[float, typer.Option(help="Conversion gain (photons per ADU).")] = 1.0,
+    roi_size: Annotated[
+        int | None, typer.Option(help="ROI side (px); default from the PSF's extent.")
+    ] = None,
+    threshold: Annotated[
+        float, typer.Option(help="Bead detection threshold (fraction of the brightest).")
+    ] = 0.2,
+    saturation: Annotated[
+        float | None, typer.Option(help="Saturation level (ADU); default the type's maximum.")
+    ] = None,
+    fit_pupil: Annotated[
+        bool, typer.Option("--fit-pupil/--no-fit-pupil", help="Also fit the pupil phase.")
+    ] = False,
+    na: Annotated[float, typer.Option(help="Numerical aperture (pupil fit).")] = 1.45,
+    wavelength: Annotated[float, typer.Option(help="Emission wavelength (nm, pupil fit).")] = 670.0,
+    n_immersion: Annotated[float, typer.Option(help="Immersion index (pupil fit).")] = 1.518,
+    mask: Annotated[
+        str | None,
+        typer.Option(help="Base mask for the pupil fit: dh or a mask file (default none)."),
+    ] = None,
+    model: Annotated[
+        str, typer.Option(help="Model the file serves by default: spline or pupil.")
+    ] = "spline",
+    figure: Annotated[
+        Path | None, typer.Option(help="Diagnostic PNG (default: beside the output).")
+    ] = None,
+) -> None:
+    """Build a PSF model from a bead z-stack and write it to an HDF5 calibration file."""
+    from .calibrate import calibrate_file
+    from .io.calibration import save_calibration
+    from .plotting import plot_calibration
+
+    out = _output_path(output)
+    if out.suffix.lower() not in (".h5", ".hdf5"):
+        _fail(f"the calibration file must end in .h5 or .hdf5, got {out.name!r}")
+    if z_step is None and z_file is None:
+        _fail("give the stage step with --z-step NM, or each frame's z with --z-file")
+    if model not in ("spline", "pupil"):
+        _fail(f"--model must be spline or pupil, got {model!r}")
+    if model == "pupil" and not fit_pupil:
+        _fail("--model pupil needs --fit-pupil")
+    fig_path = _output_path(figure) if figure else out.with_suffix(".png")
+    pupil_options = None
+    if fit_pupil:
+        base = None
+        if mask:
+            from .psf import make_psf
+
+            base = _run(make_psf, mask, na=na, wavelength=wavelength, n_immersion=n_immersion)
+            base = getattr(base, "mask", None)
+        pupil_options = {
+            "na": na,
+            "wavelength": wavelength,
+            "n_immersion": n_immersion,
+            "base_mask": base,
+        }
+    t0 = time.perf_counter()
+    cal = _run(
+        calibrate_file,
+        beads,
+        pixel_size,
+        z_step,
+        z_file=z_file,
+        z0_slice=z0_slice,
+        offset=offset,
+        gain=gain,
+        roi_size=roi_size,
+        threshold=threshold,
+        saturation=saturation,
+        fit_pupil=fit_pupil,
+        pupil_options=pupil_options,
+    )
+    _run(save_calibration, cal, out, model=model)
+    _run(plot_calibration, cal, fig_path)
+    nz, nr, nc = cal.average.shape
+    typer.echo(
+        f"{cal.n_used} of {len(cal.beads)} beads used; {nz} planes z "
+        f"{cal.z[0]:.0f}..{cal.z[-1]:.0f} nm, ROI {nr} x {nc} px; hash {cal.content_hash}; "
+        f"{time.perf_counter() - t0:.1f} s"
+    )
+    rejected = cal.beads[~cal.beads["used"]]
+    for reason, n in rejected["reason"].value_counts().items():
+        typer.echo(f"  rejected {n}: {reason}")
+    if cal.pupil is not None:
+        terms = ", ".join(
+            f"Z({n},{m}) {a:+.3f}"
+            for (n, m), a in sorted(cal.pupil.coefficients.items())
+            if abs(a) >= 0.01
+        )
+        terms = terms or "no term above 0.01 waves"
+        typer.echo(f"  pupil fit: residual {cal.pupil.residual_rms:.3f}; {terms}")
+    typer.echo(f"wrote {out} and {fig_path}")
+
+
+@app.command()
 def evaluate(
     locs: Annotated[
         Path,
@@ -359,7 +478,13 @@ def evaluate(
             help="Localizations: Parquet, ThunderSTORM/SMLM/sparseloc CSV or Picasso HDF5."
         ),
     ],
-    truth: Annotated[Path, typer.Argument(help="Ground truth CSV written by 'simulate'.")],
+    truth: Annotated[
+        Path,
+        typer.Argument(help="Ground truth CSV ('simulate', or storm-analysis x_px/y_px/z_um)."),
+    ],
+    pixel_size: Annotated[
+        float | None, typer.Option(help="Pixel size (nm) for truth given in pixels.")
+    ] = None,
     lateral_tol: Annotated[float, typer.Option(help="Lateral match tolerance (nm).")] = 250.0,
     axial_tol: Annotated[float, typer.Option(help="Axial match tolerance (nm).")] = 500.0,
     json_out: Annotated[
@@ -375,7 +500,7 @@ def evaluate(
         if not p.is_file():
             _fail(f"{str(p)!r} does not exist or is not a file")
     loc_df = _run(read_table, locs)
-    truth_df = _run(read_truth_csv, truth)
+    truth_df = _run(read_truth_csv, truth, pixel_size=pixel_size)
     result = _run(run_evaluation, loc_df, truth_df, lateral_tol=lateral_tol, axial_tol=axial_tol)
     typer.echo(result.summary())
     if json_out is not None:

@@ -24,7 +24,14 @@ from scipy.special import ndtri
 
 from .psf.base import PSFModel
 
-__all__ = ["Tile", "detect_candidates", "temporal_background", "tiles", "z_averaged_psf"]
+__all__ = [
+    "Tile",
+    "detect_candidates",
+    "spatial_background",
+    "temporal_background",
+    "tiles",
+    "z_averaged_psf",
+]
 
 
 def temporal_background(
@@ -55,6 +62,54 @@ def temporal_background(
     # (normal approximation, z the standard normal quantile), lam = (sqrt(z^2/4 + q) - z/2)^2.
     z = float(ndtri(percentile / 100.0))
     bg = (np.sqrt(z * z / 4 + np.maximum(q, 0.0)) - z / 2) ** 2
+    return ndi.gaussian_filter(bg, smooth) if smooth > 0 else bg
+
+
+def spatial_background(
+    frame: NDArray, *, percentile: float = 20.0, block: int = 16, smooth: float = 2.0
+) -> NDArray[np.float64]:
+    """Background of one frame from its darker pixels: for movies too short for time.
+
+    A per-block percentile (blocks of ``block`` pixels), corrected for the Poisson spread as in
+    :func:`temporal_background`, interpolated back to full size and smoothed. It follows
+    changes on scales of a few blocks; molecules brighten only part of each block.
+
+    Parameters
+    ----------
+    frame : ndarray, shape (rows, cols)
+        One frame in photons.
+    percentile : float
+        Percentile of each block.
+    block : int
+        Block side (pixels).
+    smooth : float
+        Gaussian smoothing (pixels) of the result.
+
+    Returns
+    -------
+    ndarray, shape (rows, cols)
+    """
+    arr = np.asarray(frame, dtype=np.float64)
+    if arr.ndim != 2:
+        raise ValueError(f"frame must be 2-D, got shape {arr.shape}")
+    rows, cols = arr.shape
+    nr, nc = max(1, round(rows / block)), max(1, round(cols / block))
+    redges = np.linspace(0, rows, nr + 1).round().astype(int)
+    cedges = np.linspace(0, cols, nc + 1).round().astype(int)
+    q = np.empty((nr, nc))
+    for i in range(nr):
+        for j in range(nc):
+            q[i, j] = np.percentile(
+                arr[redges[i] : redges[i + 1], cedges[j] : cedges[j + 1]], percentile
+            )
+    z = float(ndtri(percentile / 100.0))
+    lam = (np.sqrt(z * z / 4 + np.maximum(q, 0.0)) - z / 2) ** 2
+    # Block centres -> every pixel (bilinear, constant beyond the outer centres).
+    rc = 0.5 * (redges[:-1] + redges[1:]) - 0.5
+    cc = 0.5 * (cedges[:-1] + cedges[1:]) - 0.5
+    ri = np.interp(np.arange(rows), rc, np.arange(nr))
+    ci = np.interp(np.arange(cols), cc, np.arange(nc))
+    bg = ndi.map_coordinates(lam, np.meshgrid(ri, ci, indexing="ij"), order=1, mode="nearest")
     return ndi.gaussian_filter(bg, smooth) if smooth > 0 else bg
 
 

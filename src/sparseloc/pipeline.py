@@ -21,7 +21,14 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from . import __version__
-from .detect import Tile, detect_candidates, temporal_background, tiles, z_averaged_psf
+from .detect import (
+    Tile,
+    detect_candidates,
+    spatial_background,
+    temporal_background,
+    tiles,
+    z_averaged_psf,
+)
 from .dictionary import Dictionary
 from .io.tables import LOCS_COLUMNS, empty_locs
 from .psf.base import PSFModel
@@ -53,13 +60,18 @@ class LocalizeParams:
     z_range : (float, float), optional
         Axial range of the dictionaries (nm); default the model's.
     coarse, fine : (dxy, dz)
-        Grid steps (nm) of the coarse and fine dictionaries.
+        Grid steps (nm) of the coarse and fine dictionaries. The lateral step must divide
+        the pixel; by default the largest such step up to 80 nm (coarse) and 10 nm (fine),
+        with axial steps 120 and 15 nm (the paper's grids at 160 nm pixels).
     threshold : float
         Candidate signal-to-noise threshold.
     background_frames : int
         Frames in the sliding block of the temporal background.
     background_percentile : float
         Percentile of that block.
+    min_temporal_frames : int
+        Movies with fewer frames get a spatial background per frame instead (single
+        snapshots, short test movies).
     noise : {"poisson", "emccd", "scmos"}
         Likelihood of the maximum-likelihood stage.
     max_emitters : int
@@ -72,11 +84,12 @@ class LocalizeParams:
     window: int = 11
     margin: int = 3
     z_range: tuple[float, float] | None = None
-    coarse: tuple[float, float] = (80.0, 120.0)
-    fine: tuple[float, float] = (10.0, 15.0)
+    coarse: tuple[float, float] | None = None
+    fine: tuple[float, float] | None = None
     threshold: float = 5.0
     background_frames: int = 21
     background_percentile: float = 30.0
+    min_temporal_frames: int = 9
     noise: str = "poisson"
     max_emitters: int = 10
 
@@ -89,6 +102,11 @@ class LocalizeParams:
             raise ValueError(f"window {self.window} px and margin {self.margin} px leave no core")
         if self.background_frames < 1:
             raise ValueError("background_frames must be >= 1")
+        px = float(self.pixel_size)
+        if self.coarse is None:
+            object.__setattr__(self, "coarse", (px / np.ceil(px / 80.0 - 1e-9), 120.0))
+        if self.fine is None:
+            object.__setattr__(self, "fine", (px / np.ceil(px / 10.0 - 1e-9), 15.0))
 
 
 @dataclass
@@ -222,6 +240,12 @@ def localize(
     -------
     LocalizeResult
     """
+    cal_px = getattr(model, "pixel_size", None)
+    if cal_px is not None and abs(float(cal_px) - params.pixel_size) > 1e-3 * float(cal_px):
+        raise ValueError(
+            f"the PSF calibration was made at {float(cal_px):g} nm pixels but the pixel size is "
+            f"{params.pixel_size:g} nm; pass the matching --pixel-size or recalibrate"
+        )
     n = len(frames)
     stop = n if stop is None else min(stop, n)
     if not 0 <= start < stop:
@@ -248,7 +272,10 @@ def localize(
         for f in range(b0, b1):
             i = f - lo
             j0, j1 = max(i - half, 0), min(i + half + 1, chunk.shape[0])
-            bg = temporal_background(chunk[j0:j1], percentile=p.background_percentile)
+            if n >= p.min_temporal_frames:
+                bg = temporal_background(chunk[j0:j1], percentile=p.background_percentile)
+            else:
+                bg = spatial_background(chunk[i])
             frame = chunk[i]
             cand = detect_candidates(frame, bg, template, threshold=p.threshold)
             for tile in _tiles_to_solve(tiling, cand, p.margin):

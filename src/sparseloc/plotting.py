@@ -16,7 +16,14 @@ from .psf.base import PSFModel
 if TYPE_CHECKING:
     from .solvers.emitters import Emitters, WindowSolution
 
-__all__ = ["plot_crlb", "plot_psf_montage", "plot_scene", "plot_solve", "save_figure"]
+__all__ = [
+    "plot_calibration",
+    "plot_crlb",
+    "plot_psf_montage",
+    "plot_scene",
+    "plot_solve",
+    "save_figure",
+]
 
 
 def save_figure(fig, path: str | Path, dpi: int = 120) -> Path:
@@ -399,4 +406,99 @@ def plot_solve(
 
     count = f"{len(final)} emitter" + ("" if len(final) == 1 else "s")
     fig.suptitle(title or f"{method}: {count} in a {rows}x{cols} window ({px:g} nm pixels)")
+    return save_figure(fig, path)
+
+
+def plot_calibration(cal, path: str | Path, *, n_planes: int = 7) -> Path:
+    """Diagnostic figure of a bead calibration (PNG).
+
+    Top: the z-averaged bead field with the beads used (green) and rejected (red, with the
+    reason). Then, at ``n_planes`` planes over z: the registered average of the beads, the
+    model (the fitted pupil when there is one, else the spline half a step off the nodes),
+    and their difference on the same colour scale. Bottom: each bead's normalised
+    cross-correlation with the average over z.
+
+    Parameters
+    ----------
+    cal : Calibration
+        From :func:`sparseloc.calibrate.calibrate_beads`.
+    path : path
+        Output PNG.
+    n_planes : int
+        Planes shown.
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
+
+    psf = cal.psf
+    z = cal.z
+    idx = np.linspace(0, len(z) - 1, n_planes).round().astype(int)
+    avg = cal.average[idx]
+    nr, nc = avg.shape[1:]
+    p = cal.pixel_size
+    if cal.pupil is not None:
+        model_name = "pupil fit"
+        x0 = (psf.centre[1] + 0.5) * p
+        y0 = (psf.centre[0] + 0.5) * p
+        mod = cal.pupil.psf.images(
+            np.full(idx.size, x0), np.full(idx.size, y0), z[idx], (nr, nc), p
+        )
+        mod = mod / mod.sum(axis=(1, 2), keepdims=True)
+        zs_mod = z[idx]
+    else:
+        model_name = "spline (half step)"
+        zs_mod = np.clip(z[idx] + psf.z_step / 2, *psf.z_range)
+        x0 = (psf.centre[1] + 0.5) * p
+        y0 = (psf.centre[0] + 0.5) * p
+        mod = psf.images(np.full(idx.size, x0), np.full(idx.size, y0), zs_mod, (nr, nc), p)
+    fig = Figure(figsize=(2.0 * n_planes, 12.5))
+    grid = fig.add_gridspec(5, n_planes, height_ratios=[2.6, 1, 1, 1, 1.4])
+    ax = fig.add_subplot(grid[0, :])
+    proj = cal.projection
+    ax.imshow(proj, cmap="gray", origin="upper", vmin=0, vmax=np.percentile(proj, 99.9))
+    for _, b in cal.beads.iterrows():
+        col, row = b["x_nm"] / p - 0.5, b["y_nm"] / p - 0.5
+        colour = "lime" if b["used"] else "red"
+        half = nr / 2
+        ax.add_patch(
+            Rectangle((col - half, row - half), nr, nr, fill=False, edgecolor=colour, lw=0.8)
+        )
+        if not b["used"]:
+            ax.text(col, row - half - 1, str(b["reason"]), color="red", fontsize=7, ha="center")
+    ax.set_title(
+        f"{cal.n_used} of {len(cal.beads)} beads used; ROI {nr} px of {p:g} nm; "
+        f"z {z[0]:.0f}..{z[-1]:.0f} nm in {psf.z_step:g} nm steps"
+    )
+    ax.set_axis_off()
+    vmax = float(max(avg.max(), mod.max()))
+    res_lim = float(np.abs(avg - mod).max()) or 1.0
+    for j in range(idx.size):
+        for i, (img, label, kw) in enumerate(
+            (
+                (avg[j], f"average z={z[idx[j]]:.0f}", {"vmin": 0, "vmax": vmax, "cmap": "magma"}),
+                (
+                    mod[j],
+                    f"{model_name}\nz={zs_mod[j]:.0f}",
+                    {"vmin": 0, "vmax": vmax, "cmap": "magma"},
+                ),
+                (
+                    avg[j] - mod[j],
+                    "residual",
+                    {"vmin": -res_lim, "vmax": res_lim, "cmap": "RdBu_r"},
+                ),
+            )
+        ):
+            a = fig.add_subplot(grid[1 + i, j])
+            a.imshow(img, origin="upper", **kw)
+            a.set_title(label, fontsize=8)
+            a.set_axis_off()
+    a = fig.add_subplot(grid[4, :])
+    if cal.bead_ncc is not None and len(cal.bead_ncc):
+        for row in cal.bead_ncc:
+            a.plot(z, row, lw=0.8, alpha=0.7)
+        a.set_ylim(max(0.0, float(np.nanmin(cal.bead_ncc)) - 0.02), 1.0)
+    a.set_xlabel("z (nm)")
+    a.set_ylabel("bead vs average NCC")
+    a.set_title(f"residual scale: +-{res_lim:.2g} of a unit-photon plane", fontsize=9)
+    fig.tight_layout()
     return save_figure(fig, path)

@@ -31,6 +31,7 @@ __all__ = [
     "SCENES",
     "TRUTH_COLUMNS",
     "Simulation",
+    "bead_scan_truth",
     "cluster_scene",
     "filament_scene",
     "render_movie",
@@ -420,6 +421,48 @@ def filament_scene(
 
 
 # -- rendering -------------------------------------------------------------------------------
+def bead_scan_truth(
+    positions_nm: ArrayLike,
+    z_planes: ArrayLike,
+    photons: float = 20000.0,
+    z_offsets: ArrayLike | None = None,
+) -> pd.DataFrame:
+    """Truth table of a bead z-scan: every bead in every frame, at z = plane + its offset.
+
+    Parameters
+    ----------
+    positions_nm : array_like, shape (B, 2)
+        Bead positions (x, y) in nm, native coordinates.
+    z_planes : array_like, shape (Nz,)
+        Focus position of each frame (nm): the emitter's z in frame k is ``z_planes[k]``
+        plus the bead's offset.
+    photons : float
+        Photons per bead per frame.
+    z_offsets : array_like, shape (B,), optional
+        Each bead's height (nm) relative to the others (beads on a tilted coverslip).
+
+    Returns
+    -------
+    DataFrame
+        Columns ``frame, x_nm, y_nm, z_nm, photons`` (use with ``simulate(scene=...)``).
+    """
+    pos = np.asarray(positions_nm, dtype=np.float64).reshape(-1, 2)
+    zp = np.asarray(z_planes, dtype=np.float64).ravel()
+    dz = np.zeros(len(pos)) if z_offsets is None else np.asarray(z_offsets, float).ravel()
+    if dz.size != len(pos):
+        raise ValueError(f"z_offsets has {dz.size} values for {len(pos)} beads")
+    nz, nb = zp.size, len(pos)
+    return pd.DataFrame(
+        {
+            "frame": np.repeat(np.arange(nz), nb),
+            "x_nm": np.tile(pos[:, 0], nz),
+            "y_nm": np.tile(pos[:, 1], nz),
+            "z_nm": (zp[:, None] + dz[None, :]).ravel(),
+            "photons": np.full(nz * nb, float(photons)),
+        }
+    )
+
+
 def _background_array(
     background: float | ArrayLike, n_frames: int, shape: tuple[int, int]
 ) -> NDArray[np.float64]:

@@ -105,8 +105,14 @@ def write_truth_csv(path: str | Path, df: pd.DataFrame) -> Path:
     return Path(path)
 
 
-def read_truth_csv(path: str | Path, *, require_photons: bool = True) -> pd.DataFrame:
+def read_truth_csv(
+    path: str | Path, *, require_photons: bool = True, pixel_size: float | None = None
+) -> pd.DataFrame:
     """Read and validate a truth table written by :func:`write_truth_csv`.
+
+    Also reads storm-analysis style truth (``frame_0based, x_px, y_px, z_um[, photons_sum]``,
+    pixel positions with 0.0 at the centre of the first pixel) when ``pixel_size`` (nm) is
+    given: ``x_nm = (x_px + 0.5) * pixel_size``.
 
     Parameters
     ----------
@@ -138,4 +144,23 @@ def read_truth_csv(path: str | Path, *, require_photons: bool = True) -> pd.Data
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
         raise ValueError(f"{str(p)!r} is not a readable CSV table ({exc})") from exc
     df.columns = [str(c).strip() for c in df.columns]
+    if {"x_px", "y_px"} <= set(df.columns) and "x_nm" not in df.columns:
+        if pixel_size is None:
+            raise ValueError(
+                f"{p.name} gives positions in pixels (x_px, y_px); pass the pixel size "
+                "(--pixel-size) to convert them to nm"
+            )
+        conv = pd.DataFrame(
+            {
+                "frame": df["frame_0based" if "frame_0based" in df else "frame"],
+                "x_nm": (df["x_px"] + 0.5) * float(pixel_size),
+                "y_nm": (df["y_px"] + 0.5) * float(pixel_size),
+                "z_nm": df["z_um"] * 1000.0 if "z_um" in df else df.get("z_nm", 0.0),
+            }
+        )
+        for key in ("photons", "photons_sum"):
+            if key in df:
+                conv["photons"] = df[key]
+                break
+        df = conv
     return check_truth_table(df, require_photons=require_photons, what=f"{p.name}")

@@ -16,6 +16,7 @@ PSF_NAMES: dict[str, str] = {
     "dh": "double-helix pupil model (Laguerre-Gauss mask, NA 1.45, 670 nm, z -1000..1000 nm)",
     "astig": "astigmatic pupil model (0.2 waves Z(2,2), NA 1.45, 670 nm, z -600..600 nm)",
     "clear": "standard widefield pupil model (no mask, z -1000..1000 nm)",
+    "PSF.h5": "a calibration written by 'sparseloc calibrate' (measured spline or fitted pupil)",
     "dh-analytic": "two Gaussian lobes rotating with z (cheap, for tests)",
     "astig-gauss": "elliptical Gaussian with Huang 2008 width curves (cheap, for tests)",
 }
@@ -66,12 +67,16 @@ def make_psf(spec: str | Path | PSFModel, **kwargs: Any) -> PSFModel:
 
         return GaussianAstigPSF(**kwargs)
     path = Path(name)
+    if path.suffix.lower() in (".h5", ".hdf5"):
+        from ..io.calibration import load_calibration
+
+        return load_calibration(path, model=kwargs.pop("model", None))
     if path.suffix.lower() in _MASK_SUFFIXES:
         mask_kw = {k: kwargs.pop(k) for k in ("key", "centre", "radius", "flip") if k in kwargs}
         mask = load_mask(path, **mask_kw)
         return PupilPSF(mask, name=path.stem, **kwargs)
     allowed = ", ".join(PSF_NAMES)
     raise ValueError(
-        f"unknown PSF {name!r}: use one of {allowed}, or a phase-mask file "
-        f"({', '.join(_MASK_SUFFIXES)})"
+        f"unknown PSF {name!r}: use one of {allowed}, a calibration file (.h5) from "
+        f"'sparseloc calibrate', or a phase-mask file ({', '.join(_MASK_SUFFIXES)})"
     )

@@ -1,0 +1,692 @@
+"""PSF calibration from bead z-stacks: find beads, register, average, build a spline model.
+
+The steps (each a function over NumPy arrays; file reading only in :func:`calibrate_file`):
+
+1. ADU to photons; per-frame background (median of the frame: beads cover a small fraction
+   of the field).
+2. Find beads on the z-averaged frame, smoothed at the scale of the PSF. An engineered PSF
+   (double helix, tetrapod) may show several maxima per bead; maxima closer than half an ROI
+   are merged and the bead's centre is the centroid of its z-averaged image (the midpoint of
+   a double helix's lobes).
+3. ROI size from the PSF's extent (the radius beyond which every plane stays below 3 % of
+   its peak), unless given.
+4. Reject beads too close to the edge or to another bead, saturated beads, and, after
+   registration, beads whose registered stack differs from the others' average far more than
+   the rest (outliers: dirt, aggregates, a bead stuck to another one).
+5. Register beads to each other in x, y, z with sub-pixel accuracy by fitting each bead with
+   the spline model of the current average (Gauss-Newton on shift and scale), resample, and
+   average weighted by brightness; repeat.
+6. Subtract what is left of the background (the median of the ROI's border per plane),
+   normalise each plane to one photon, and build a :class:`~sparseloc.psf.spline.SplinePSF`.
+
+Optionally the pupil phase is fitted to the averaged stack (:mod:`sparseloc.psf.retrieval`).
+
+Coordinates (design.md): ``z = (slice - z0_slice) * z_step`` with ``z0_slice`` the middle slice
+by default, or the z of each frame from a file. The lateral origin of the model is the centroid
+of the z-averaged bead image.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import ArrayLike, NDArray
+
+from .psf.spline import SplinePSF
+
+__all__ = [
+    "Calibration",
+    "calibrate_beads",
+    "calibrate_file",
+    "find_beads",
+    "read_z_file",
+]
+
+log = logging.getLogger(__name__)
+
+BEAD_COLUMNS = [
+    "x_nm",
+    "y_nm",
+    "used",
+    "reason",
+    "photons",
+    "shift_x_nm",
+    "shift_y_nm",
+    "shift_z_nm",
+    "residual",
+]
+
+
+@dataclass
+class Calibration:
+    """The result of a bead calibration.
+
+    Attributes
+    ----------
+    psf : SplinePSF
+        The measured model (unit photons per plane, at ``pixel_size``).
+    average : ndarray, shape (Nz, R, R)
+        Registered, averaged, background-subtracted bead stack, each plane summing to one.
+    z : ndarray, shape (Nz,)
+        Plane positions (nm).
+    pixel_size : float
+        Pixel size (nm).
+    beads : DataFrame
+        One row per bead found: position (nm, native coordinates), ``used``, the rejection
+        ``reason`` (empty when used), photons per plane, fitted shifts (nm) and the relative
+        residual against the average of the others.
+    projection : ndarray, shape (H, W)
+        The z-averaged background-subtracted frame, for the diagnostic figure.
+    bead_ncc : ndarray, shape (n_used, Nz)
+        Normalised cross-correlation of each registered bead with the average, per plane.
+    pupil : RetrievalResult or None
+        Pupil phase fitted to ``average`` when asked for.
+    params : dict
+        The parameters the calibration ran with.
+    """
+
+    psf: SplinePSF
+    average: NDArray[np.float64]
+    z: NDArray[np.float64]
+    pixel_size: float
+    beads: pd.DataFrame
+    projection: NDArray[np.float64]
+    pupil: Any = None
+    params: dict[str, Any] = field(default_factory=dict)
+    bead_ncc: NDArray[np.float64] | None = None
+
+    @property
+    def content_hash(self) -> str:
+        """Hash of the spline model's data (see :attr:`SplinePSF.content_hash`)."""
+        return self.psf.content_hash
+
+    @property
+    def n_used(self) -> int:
+        return int(self.beads["used"].sum())
+
+
+def read_z_file(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Read per-frame z positions from a CSV (storm-analysis style or one column).
+
+    Accepted columns: ``z_um`` or ``z_nm`` (or a single unnamed column in nm), optional
+    ``valid`` (0/1) and ``frame_0based``/``frame``. Returns z in nm and the valid flags, in
+    frame order.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"z file {str(p)!r} does not exist")
+    try:
+        df = pd.read_csv(p)
+    except (ValueError, OSError, pd.errors.ParserError) as exc:
+        raise ValueError(f"cannot read z file {p.name}: {exc}") from exc
+    cols = {c.strip().lower(): c for c in df.columns}
+    if "z_um" in cols:
+        z = df[cols["z_um"]].to_numpy(dtype=float) * 1000.0
+    elif "z_nm" in cols:
+        z = df[cols["z_nm"]].to_numpy(dtype=float)
+    elif "z" in cols:
+        z = df[cols["z"]].to_numpy(dtype=float)
+    else:
+        try:
+            z = np.loadtxt(p, delimiter=",", ndmin=1).astype(float)
+        except ValueError as exc:
+            raise ValueError(
+                f"z file {p.name} needs a z_um or z_nm column (or one column of nm)"
+            ) from exc
+        return z, np.ones(z.size, bool)
+    valid = df[cols["valid"]].to_numpy() != 0 if "valid" in cols else np.ones(z.size, dtype=bool)
+    for key in ("frame_0based", "frame"):
+        if key in cols:
+            order = np.argsort(df[cols[key]].to_numpy(), kind="stable")
+            z, valid = z[order], valid[order]
+            break
+    if not np.all(np.isfinite(z[valid])):
+        raise ValueError(f"z file {p.name} holds non-numeric or missing z values")
+    return z, valid
+
+
+def _frame_background(photons: NDArray[np.float64]) -> NDArray[np.float64]:
+    return np.median(photons.reshape(photons.shape[0], -1), axis=1)
+
+
+def _centroid(img: NDArray[np.float64], r: float, c: float, radius: float) -> tuple[float, float]:
+    """Centroid of the positive part of ``img`` in a disc; iterated so it settles."""
+    rows, cols = np.indices(img.shape)
+    for _ in range(5):
+        m = (rows - r) ** 2 + (cols - c) ** 2 <= radius**2
+        w = np.clip(img, 0, None) * m
+        s = w.sum()
+        if s <= 0:
+            break
+        r_new, c_new = (w * rows).sum() / s, (w * cols).sum() / s
+        if abs(r_new - r) < 1e-3 and abs(c_new - c) < 1e-3:
+            r, c = r_new, c_new
+            break
+        r, c = r_new, c_new
+    return float(r), float(c)
+
+
+def find_beads(
+    projection: NDArray[np.float64],
+    *,
+    sigma: float = 3.0,
+    threshold: float = 0.2,
+    merge_radius: float = 6.0,
+) -> NDArray[np.float64]:
+    """Bead centres (row, col in pixels) on a z-averaged, background-subtracted frame.
+
+    Parameters
+    ----------
+    projection : ndarray, shape (H, W)
+        z-averaged frame in photons, background subtracted.
+    sigma : float
+        Gaussian smoothing (px) before looking for maxima: at the scale of the PSF, so a
+        double helix's ring of lobe positions becomes one hill.
+    threshold : float
+        Keep maxima above this fraction of the brightest one, and above 6 robust standard
+        deviations of the smoothed frame's noise.
+    merge_radius : float
+        Maxima closer than this (px) are one bead.
+
+    Returns
+    -------
+    ndarray, shape (n, 2)
+        Centroids (row, col), brightest first.
+    """
+    from scipy.ndimage import gaussian_filter, maximum_filter
+
+    sm = gaussian_filter(projection, sigma)
+    med = np.median(sm)
+    # Pixel noise from the high-pass part of the frame (robust to the beads' light), scaled
+    # by the Gaussian's noise gain 1 / (2 sqrt(pi) sigma).
+    hp = projection - gaussian_filter(projection, 1.0)
+    noise = 1.4826 * np.median(np.abs(hp - np.median(hp))) / (2 * np.sqrt(np.pi) * sigma) + 1e-12
+    peaks = (sm == maximum_filter(sm, size=int(2 * np.ceil(sigma) + 1))) & (sm > med + 6 * noise)
+    rr, cc = np.nonzero(peaks)
+    if rr.size == 0:
+        return np.zeros((0, 2))
+    vals = sm[rr, cc]
+    keep = vals >= threshold * vals.max()
+    rr, cc, vals = rr[keep], cc[keep], vals[keep]
+    order = np.argsort(-vals)
+    centres: list[tuple[float, float]] = []
+    for r, c in zip(rr[order], cc[order], strict=True):
+        if all((r - r0) ** 2 + (c - c0) ** 2 > merge_radius**2 for r0, c0 in centres):
+            centres.append((float(r), float(c)))
+    out = [_centroid(projection, r, c, merge_radius) for r, c in centres]
+    # Centroids of merged maxima may land on one another: merge again.
+    merged: list[tuple[float, float]] = []
+    for r, c in out:
+        if all((r - r0) ** 2 + (c - c0) ** 2 > (merge_radius / 2) ** 2 for r0, c0 in merged):
+            merged.append((r, c))
+    return np.array(merged, dtype=np.float64).reshape(-1, 2)
+
+
+def _extent(stack: NDArray[np.float64], centre: tuple[float, float], max_radius: int) -> float:
+    """Radius (px) beyond which every plane's azimuthal median stays under 3 % of the peak.
+
+    The median over each ring ignores neighbouring beads, which fill only part of a ring;
+    averaging 5 neighbouring planes first takes the integer steps out of camera counts.
+    """
+    from scipy.ndimage import uniform_filter1d
+
+    stack = uniform_filter1d(stack, min(5, stack.shape[0]), axis=0)
+    nz, h, w = stack.shape
+    rows, cols = np.indices((h, w))
+    rb = np.round(np.hypot(rows - centre[0], cols - centre[1])).astype(int).ravel()
+    rings = [np.nonzero(rb == k)[0] for k in range(max_radius + 1)]
+    flat = stack.reshape(nz, -1)
+    prof = np.stack([np.median(flat[:, idx], axis=1) for idx in rings], axis=1)  # (nz, radii)
+    above = np.nonzero((prof >= 0.03 * prof.max()).any(axis=0))[0]
+    return float(above.max()) if above.size else 0.0
+
+
+def _roi(stack: NDArray[np.float64], r: int, c: int, half: int) -> NDArray[np.float64]:
+    return stack[:, r - half : r + half + 1, c - half : c + half + 1]
+
+
+def _fit_shift(
+    model: SplinePSF, data: NDArray[np.float64], z: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], float]:
+    """Fit ``data ~ a * model(x0 + dx, y0 + dy, z + dz) + b``; return (dx, dy, dz) nm and a.
+
+    Gauss-Newton on the shift with the scale and offset solved linearly at each step.
+    """
+    _, h, w = data.shape
+    p = model.pixel_size
+    x0, y0 = w * p / 2, h * p / 2
+    shift = np.zeros(3)
+    zlo, zhi = model.z_range
+    a = 1.0
+    for _ in range(20):
+        zz = z + shift[2]
+        ok = (zz >= zlo) & (zz <= zhi)
+        if ok.sum() < 4:
+            break
+        img, der = model.images(
+            np.full(ok.sum(), x0 + shift[0]),
+            np.full(ok.sum(), y0 + shift[1]),
+            zz[ok],
+            (h, w),
+            p,
+            derivatives=True,
+        )
+        d = data[ok].ravel()
+        m = img.ravel()
+        design = np.stack([m, np.ones_like(m)], axis=1)
+        (a, b), *_ = np.linalg.lstsq(design, d, rcond=None)
+        res = d - a * m - b
+        jac = np.stack([a * der[:, i].ravel() for i in range(3)], axis=1)
+        # Project out the linear parameters' directions (variable projection, first order).
+        q, _ = np.linalg.qr(design)
+        jac = jac - q @ (q.T @ jac)
+        step, *_ = np.linalg.lstsq(jac, res, rcond=None)
+        step = np.clip(step, -0.5 * p, 0.5 * p)
+        shift += step
+        if np.all(np.abs(step) < 0.01):
+            break
+    return shift, float(a)
+
+
+def _shift_stack(
+    stack: NDArray[np.float64], shift_nm: NDArray[np.float64], pixel_size: float, z_step: float
+) -> NDArray[np.float64]:
+    """Resample a bead stack so that its bead moves by ``-shift`` (x, y, z in nm)."""
+    from scipy.ndimage import shift as nd_shift
+
+    # data[k, r, c] ~ model(x0 + dx, y0 + dy, z_k + dz): an image displaced by +dx and seen
+    # dz further along z. Aligned[k, r, c] = data[k - dz/step, r + dy/p, c + dx/p].
+    s = (-shift_nm[2] / z_step, shift_nm[1] / pixel_size, shift_nm[0] / pixel_size)
+    return nd_shift(stack, [-v for v in s], order=3, mode="nearest")
+
+
+def calibrate_beads(
+    stack: ArrayLike,
+    pixel_size: float,
+    z_step: float | None = None,
+    *,
+    z: ArrayLike | None = None,
+    valid: ArrayLike | None = None,
+    z0_slice: float | None = None,
+    offset: float = 0.0,
+    gain: float = 1.0,
+    roi_size: int | None = None,
+    saturation: float | None = None,
+    threshold: float = 0.2,
+    detect_sigma: float = 3.0,
+    min_beads: int = 2,
+    iterations: int = 3,
+    name: str = "spline",
+    fit_pupil: bool = False,
+    pupil_options: dict[str, Any] | None = None,
+) -> Calibration:
+    """Build a measured PSF model from a bead z-stack.
+
+    Parameters
+    ----------
+    stack : array_like, shape (Nz, H, W)
+        Camera frames (ADU) of a field of beads scanned through focus, one frame per z.
+    pixel_size : float
+        Pixel size in sample space (nm).
+    z_step : float, optional
+        Stage step between frames (nm); needed unless ``z`` is given.
+    z : array_like, shape (Nz,), optional
+        The z (nm) of each frame, for uneven scans (resampled to an even grid of step
+        ``z_step`` or the median step).
+    valid : array_like of bool, shape (Nz,), optional
+        Frames to use (with ``z``).
+    z0_slice : float, optional
+        Slice index of z = 0 (default the middle slice); ignored when ``z`` is given.
+    offset, gain : float
+        Camera offset (ADU) and conversion gain (photons per ADU).
+    roi_size : int, optional
+        ROI side (px, odd); default from the PSF's measured extent.
+    saturation : float, optional
+        ADU at which the camera saturates; default the integer type's maximum.
+    threshold : float
+        Bead detection threshold, a fraction of the brightest bead.
+    detect_sigma : float
+        Smoothing (px) for bead detection.
+    min_beads : int
+        Fewest usable beads to accept.
+    iterations : int
+        Rounds of registration.
+    name : str
+        Name of the model.
+    fit_pupil : bool
+        Also fit the pupil phase to the average (``pupil_options`` go to
+        :func:`sparseloc.psf.retrieval.fit_pupil`: ``na``, ``wavelength``, ...).
+
+    Returns
+    -------
+    Calibration
+
+    Raises
+    ------
+    ValueError
+        For a stack that is not 3-D or has one frame, a bad z step, no usable beads, fewer
+        than ``min_beads``, all beads saturated, NaNs; each message says what to try.
+    """
+    raw = np.asarray(stack)
+    if raw.ndim != 3:
+        raise ValueError(
+            f"a bead z-stack must be 3-D (frames, rows, cols), got shape {raw.shape}; "
+            "save the scan as a multi-frame TIFF"
+        )
+    if raw.shape[0] < 2:
+        raise ValueError(
+            "the bead stack has only one frame; a calibration needs a z-scan through focus "
+            "(typically 50-200 frames)"
+        )
+    if not np.all(np.isfinite(raw)):
+        raise ValueError("the bead stack contains NaN or inf values")
+    p = float(pixel_size)
+    if not np.isfinite(p) or p <= 0:
+        raise ValueError(f"--pixel-size must be a positive number of nm, got {pixel_size}")
+    if gain <= 0:
+        raise ValueError(f"gain must be > 0 photons per ADU, got {gain}")
+    if saturation is None and raw.dtype.kind in "ui":
+        saturation = float(np.iinfo(raw.dtype).max)
+    n = raw.shape[0]
+
+    # -- z positions ---------------------------------------------------------------------
+    if z is not None:
+        zf = np.asarray(z, dtype=np.float64).ravel()
+        vf = np.ones(zf.size, bool) if valid is None else np.asarray(valid, bool).ravel()
+        if zf.size != n or vf.size != n:
+            raise ValueError(f"the z file lists {zf.size} frames but the stack has {n}")
+        keep = np.nonzero(vf)[0]
+        if keep.size < 4:
+            raise ValueError("fewer than 4 frames are marked valid in the z file")
+        zk = zf[keep]
+        order = np.argsort(zk, kind="stable")
+        keep, zk = keep[order], zk[order]
+        steps = np.diff(zk)
+        if np.any(steps <= 0):
+            raise ValueError("the z file repeats a z value; each frame needs its own z")
+        step = float(z_step) if z_step else float(np.median(steps))
+        if step <= 0:
+            raise ValueError(f"z step must be > 0 nm, got {step}")
+        photons = (raw[keep].astype(np.float64) - offset) * gain
+        sat_frames = raw[keep]
+        if np.ptp(steps) > 1e-3 * step or z_step:
+            grid = np.arange(zk[0], zk[-1] + 1e-6 * step, step)
+            from scipy.interpolate import interp1d
+
+            photons = interp1d(zk, photons, axis=0, assume_sorted=True)(grid)
+            log.info(
+                "resampled %d uneven planes onto %d planes %.1f nm apart", zk.size, grid.size, step
+            )
+            zk = grid
+        zplanes = zk
+    else:
+        if z_step is None or not np.isfinite(z_step) or z_step <= 0:
+            raise ValueError(
+                f"the z step must be a positive number of nm, got {z_step}; "
+                "pass --z-step or a z file"
+            )
+        step = float(z_step)
+        z0 = (n - 1) / 2.0 if z0_slice is None else float(z0_slice)
+        if not 0 <= z0 <= n - 1:
+            raise ValueError(f"--z0-slice {z0_slice} is outside the stack's 0..{n - 1} slices")
+        zplanes = (np.arange(n) - z0) * step
+        photons = (raw.astype(np.float64) - offset) * gain
+        sat_frames = raw
+    if photons.shape[0] < 4:
+        raise ValueError(f"a calibration needs at least 4 z planes, got {photons.shape[0]}")
+
+    bg = _frame_background(photons)
+    if np.median(bg) < 0 and offset > 0:
+        raise ValueError(f"the offset {offset:g} ADU is above most pixel values; check --offset")
+    data = photons - bg[:, None, None]
+    projection = data.mean(axis=0)
+    h, w = projection.shape
+
+    # -- detection -----------------------------------------------------------------------
+    merge = max(3.0 * detect_sigma, (roi_size or 0) / 2.0)
+    centres = find_beads(projection, sigma=detect_sigma, threshold=threshold, merge_radius=merge)
+    if centres.shape[0] == 0:
+        raise ValueError(
+            "no beads found in the stack; check the offset, use a lower --threshold, or "
+            "check that the file is a bead z-scan"
+        )
+    # -- ROI size --------------------------------------------------------------------------
+    if roi_size is None:
+        max_r = int(min(40, max(6, min(h, w) // 2 - 1)))
+        extents = []
+        for r, c in centres[:5]:
+            ri, ci = int(np.round(r)), int(np.round(c))
+            if max_r <= ri < h - max_r and max_r <= ci < w - max_r:
+                sub = _roi(data, ri, ci, max_r)
+                extents.append(_extent(sub, (r - ri + max_r, c - ci + max_r), max_r))
+        ext = float(np.median(extents)) if extents else 6.0
+        half = int(np.clip(np.ceil(ext) + 2, 5, 40))
+        roi = 2 * half + 1
+        log.info("PSF extent %.1f px: ROI %d x %d px", ext, roi, roi)
+    else:
+        roi = int(roi_size)
+        if roi < 7:
+            raise ValueError(f"--roi-size must be at least 7 px, got {roi_size}")
+        roi += 1 - roi % 2
+        half = roi // 2
+
+    # -- rejection -------------------------------------------------------------------------
+    nb = centres.shape[0]
+    reason = [""] * nb
+    for i, (r, c) in enumerate(centres):
+        ri, ci = int(np.round(r)), int(np.round(c))
+        if ri - half < 0 or ci - half < 0 or ri + half >= h or ci + half >= w:
+            reason[i] = "edge"
+            continue
+        d = np.hypot(*(centres - centres[i]).T)
+        d[i] = np.inf
+        if np.any(d < roi):
+            reason[i] = "too close to another bead"
+            continue
+        if saturation is not None:
+            sub = sat_frames[:, ri - half : ri + half + 1, ci - half : ci + half + 1]
+            if np.any(sub >= saturation):
+                reason[i] = "saturated"
+    used = [i for i in range(nb) if not reason[i]]
+    if not used:
+        counts = {r: reason.count(r) for r in set(reason)}
+        detail = ", ".join(f"{v} {k}" for k, v in counts.items())
+        hint = (
+            "lower the laser power or exposure"
+            if "saturated" in counts
+            else "image a sparser bead sample or pass a smaller --roi-size"
+        )
+        raise ValueError(f"found {nb} bead(s) but none is usable ({detail}); {hint}")
+
+    # -- registration and averaging ------------------------------------------------------
+    from scipy.ndimage import gaussian_filter
+
+    rois = {}
+    shifts = {}
+    for i in used:
+        r, c = centres[i]
+        ri, ci = int(np.round(r)), int(np.round(c))
+        rois[i] = _roi(data, ri, ci, half).copy()
+        shifts[i] = np.array([(c - ci) * p, (r - ri) * p, 0.0])
+    photons_per_plane = {i: float(rois[i].sum() / rois[i].shape[0]) for i in used}
+    residual = dict.fromkeys(range(nb), np.nan)
+
+    def average(ids: list[int]) -> NDArray[np.float64]:
+        acc = sum(_shift_stack(rois[i], shifts[i], p, step) for i in ids)
+        return acc / len(ids)
+
+    # First reference: the brightest bead alone. An average of unregistered beads is blurred
+    # in z, and registering to a blurred reference shrinks the shifts (slow convergence).
+    first = max(used, key=lambda i: photons_per_plane[i])
+    avg = _shift_stack(rois[first], shifts[first], p, step)
+    for it in range(max(1, iterations)):
+        # A noisy reference has noisy derivatives, and a least-squares fit against it shrinks
+        # the shifts (regression dilution); a light symmetric smoothing removes most of that
+        # noise without moving the reference's centre.
+        smooth = gaussian_filter(avg, (1.0, 0.5, 0.5), mode="nearest")
+        ref = SplinePSF(_clean_average(smooth), p, zplanes, normalise=False, name=name)
+        for i in used:
+            shifts[i], _ = _fit_shift(ref, rois[i], zplanes)
+        # Keep the scan's z frame and the beads' mean position as the origin.
+        mean = np.mean([shifts[i] for i in used], axis=0)
+        for i in used:
+            shifts[i] = shifts[i] - np.array([0.0, 0.0, mean[2]])
+        avg = average(used)
+        if it == max(1, iterations) - 1 and len(used) >= 3:
+            # Outliers: compare each bead with the average of the others.
+            aligned = {i: _shift_stack(rois[i], shifts[i], p, step) for i in used}
+            total = sum(aligned.values())
+            for i in used:
+                others = (total - aligned[i]) / (len(used) - 1)
+                bi = aligned[i] * (others.sum() / max(aligned[i].sum(), 1e-12))
+                residual[i] = float(np.linalg.norm(bi - others) / np.linalg.norm(others))
+            res = np.array([residual[i] for i in used])
+            med = np.median(res)
+            mad = 1.4826 * np.median(np.abs(res - med))
+            bad = [i for i in used if residual[i] > max(med + 5 * mad, 1.5 * med)]
+            if bad and len(used) - len(bad) >= max(min_beads, 1):
+                for i in bad:
+                    reason[i] = "outlier"
+                used = [i for i in used if i not in bad]
+                avg = average(used)
+    if len(used) < min_beads:
+        raise ValueError(
+            f"only {len(used)} usable bead(s) (of {nb} found); a calibration needs at least "
+            f"{min_beads} to average and cross-check: image more beads in the field"
+        )
+    # Trim planes that some bead's z shift pushed beyond its data.
+    max_dz = max(abs(shifts[i][2]) for i in used)
+    trim = int(np.ceil(max_dz / step - 1e-6))
+    if avg.shape[0] - 2 * trim < 4:
+        trim = 0
+    if trim:
+        avg = avg[trim:-trim]
+        zplanes = zplanes[trim:-trim]
+    clean = _clean_average(avg)
+    sl = slice(trim, trim + clean.shape[0])
+    bead_ncc = np.array(
+        [_ncc_planes(_shift_stack(rois[i], shifts[i], p, step)[sl], clean) for i in used]
+    )
+    # Lateral origin: the centroid of the z-averaged image (the lobes' midpoint for a DH).
+    proj = clean.mean(axis=0)
+    cr, cc = _centroid(proj, half, half, half)
+    psf = SplinePSF(clean, p, zplanes, centre=(cr, cc), name=name)
+
+    # Bead positions: the fitted shift from the ROI's centre pixel, in the model's frame.
+    bx = (np.round(centres[:, 1]) + 0.5) * p + (cc - half) * p
+    by = (np.round(centres[:, 0]) + 0.5) * p + (cr - half) * p
+    for i in used:
+        bx[i] += shifts[i][0]
+        by[i] += shifts[i][1]
+    unreg = [i for i in range(nb) if i not in used]
+    bx[unreg] = (centres[unreg, 1] + 0.5) * p
+    by[unreg] = (centres[unreg, 0] + 0.5) * p
+    beads = pd.DataFrame(
+        {
+            "x_nm": bx,
+            "y_nm": by,
+            "used": [i in used for i in range(nb)],
+            "reason": reason,
+            "photons": [photons_per_plane.get(i, np.nan) for i in range(nb)],
+            "shift_x_nm": [shifts[i][0] if i in shifts else np.nan for i in range(nb)],
+            "shift_y_nm": [shifts[i][1] if i in shifts else np.nan for i in range(nb)],
+            "shift_z_nm": [shifts[i][2] if i in shifts else np.nan for i in range(nb)],
+            "residual": [residual[i] for i in range(nb)],
+        },
+        columns=BEAD_COLUMNS,
+    )
+    params = {
+        "pixel_size_nm": p,
+        "z_step_nm": step,
+        "roi_size_px": roi,
+        "offset_adu": float(offset),
+        "gain": float(gain),
+        "threshold": float(threshold),
+        "detect_sigma_px": float(detect_sigma),
+        "iterations": int(iterations),
+        "n_beads_found": nb,
+        "n_beads_used": len(used),
+    }
+    cal = Calibration(
+        psf=psf,
+        average=psf.stack,
+        z=zplanes,
+        pixel_size=p,
+        beads=beads,
+        projection=projection,
+        params=params,
+        bead_ncc=bead_ncc,
+    )
+    if fit_pupil:
+        from .psf.retrieval import fit_pupil as _fit_pupil
+
+        opts = dict(pupil_options or {})
+        cal.pupil = _fit_pupil(psf.stack, zplanes, p, **opts)
+    log.info("calibrated from %d of %d beads, %d planes", len(used), nb, zplanes.size)
+    return cal
+
+
+def _ncc_planes(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Normalised cross-correlation of two stacks, plane by plane."""
+    a = a.reshape(a.shape[0], -1)
+    b = b.reshape(b.shape[0], -1)
+    a = a - a.mean(axis=1, keepdims=True)
+    b = b - b.mean(axis=1, keepdims=True)
+    den = np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1)
+    return (a * b).sum(axis=1) / np.maximum(den, 1e-300)
+
+
+def _clean_average(avg: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Subtract each plane's residual background (median of the ROI border) and normalise."""
+    border = np.concatenate(
+        [avg[:, 0, :], avg[:, -1, :], avg[:, 1:-1, 0], avg[:, 1:-1, -1]], axis=1
+    )
+    out = avg - np.median(border, axis=1)[:, None, None]
+    sums = out.sum(axis=(1, 2), keepdims=True)
+    if np.any(sums <= 0):
+        raise ValueError(
+            "a plane of the averaged bead stack holds no signal; the beads are too dim or the "
+            "z range runs far beyond where they can be seen"
+        )
+    return out / sums
+
+
+def calibrate_file(
+    path: str | Path,
+    pixel_size: float,
+    z_step: float | None = None,
+    *,
+    z_file: str | Path | None = None,
+    **kwargs: Any,
+) -> Calibration:
+    """:func:`calibrate_beads` on a TIFF bead stack, with the file's pixel size checked.
+
+    ``z_file`` is a CSV of per-frame z (see :func:`read_z_file`). Other keyword arguments go
+    to :func:`calibrate_beads`.
+    """
+    from .io.movie import Movie
+
+    with Movie.open(path) as movie:
+        meta_px = movie.pixel_size
+        if meta_px is not None and abs(meta_px - pixel_size) > 0.01 * pixel_size:
+            raise ValueError(
+                f"--pixel-size {pixel_size:g} nm disagrees with the {meta_px:g} nm in "
+                f"{Path(path).name}'s metadata; check the objective and camera"
+            )
+        stack = movie.frames()
+    if stack.ndim == 2:
+        stack = stack[None]
+    if z_file is not None:
+        z, valid = read_z_file(z_file)
+        kwargs.update(z=z, valid=valid)
+    kwargs.setdefault("name", Path(path).stem)
+    cal = calibrate_beads(stack, pixel_size, z_step, **kwargs)
+    cal.params["source"] = Path(path).name
+    if z_file is not None:
+        cal.params["z_file"] = Path(z_file).name
+    return cal

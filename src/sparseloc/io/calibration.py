@@ -1,0 +1,218 @@
+"""PSF calibration files (HDF5): write a :class:`~sparseloc.calibrate.Calibration`, read a model.
+
+Layout (all lengths in nm; read with h5py, never pickle)::
+
+    /                 attrs: format="sparseloc-psf", format_version, model ("spline" | "pupil"),
+                      name, pixel_size_nm, z_step_nm, z_min_nm, z_max_nm, content_hash,
+                      sparseloc_version, created, params (JSON)
+    /spline/stack     (Nz, R, C) float64, each plane sums to one photon
+    /spline/z         (Nz,) plane positions
+                      attrs: centre_row, centre_col (px, pixel-centre coordinates)
+    /beads/<column>   one dataset per column of the bead table (reason as UTF-8 strings)
+    /pupil            (only when a pupil was fitted) attrs: na, wavelength_nm, n_immersion,
+                      z_min_nm, z_max_nm, residual_rms; datasets phase (N, N) radians of the
+                      whole pupil phase sampled over the unit disc (centre (N-1)/2, radius
+                      (N-1)/2 samples), zernike (M, 3) rows (n, m, waves RMS)
+
+``content_hash`` identifies the model: the spline's data (see
+:attr:`sparseloc.psf.spline.SplinePSF.content_hash`) or, for a pupil model, its phase and optics.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .atomic import atomic_path
+
+__all__ = ["FORMAT", "load_calibration", "read_calibration_info", "save_calibration"]
+
+FORMAT = "sparseloc-psf"
+FORMAT_VERSION = 1
+_PHASE_SAMPLES = 129
+
+
+def _pupil_phase(psf: Any, n: int = _PHASE_SAMPLES) -> np.ndarray:
+    c = (n - 1) / 2.0
+    yy, xx = np.mgrid[0:n, 0:n]
+    kx, ky = (xx - c) / c, (yy - c) / c
+    rho = np.hypot(kx, ky)
+    phi = np.arctan2(ky, kx)
+    inside = rho <= 1.0
+    phase = np.zeros((n, n))
+    if psf.mask is not None:
+        phase[inside] = np.asarray(psf.mask(rho[inside], phi[inside]), dtype=np.float64)
+    return phase
+
+
+def _pupil_hash(phase: np.ndarray, optics: dict[str, float]) -> str:
+    h = hashlib.sha256(np.ascontiguousarray(phase, "<f8").tobytes())
+    h.update(json.dumps(optics, sort_keys=True).encode())
+    return h.hexdigest()[:16]
+
+
+def save_calibration(cal: Any, path: str | Path, *, model: str = "spline") -> Path:
+    """Write a calibration to HDF5 atomically.
+
+    Parameters
+    ----------
+    cal : Calibration
+        From :func:`sparseloc.calibrate.calibrate_beads`.
+    path : str or Path
+        Output ``.h5`` file; its folder must exist.
+    model : {"spline", "pupil"}
+        Which model :func:`load_calibration` returns by default (``"pupil"`` needs a fitted
+        pupil).
+    """
+    import h5py
+
+    from .. import __version__
+
+    if model not in ("spline", "pupil"):
+        raise ValueError(f"model must be 'spline' or 'pupil', got {model!r}")
+    if model == "pupil" and cal.pupil is None:
+        raise ValueError("no pupil was fitted; calibrate with the pupil fit to save a pupil model")
+    psf = cal.psf
+    dest = Path(path)
+    with atomic_path(dest) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["format"] = FORMAT
+        f.attrs["format_version"] = FORMAT_VERSION
+        f.attrs["model"] = model
+        f.attrs["name"] = psf.name
+        f.attrs["pixel_size_nm"] = float(psf.pixel_size)
+        f.attrs["z_step_nm"] = float(psf.z_step)
+        f.attrs["z_min_nm"] = float(psf.z_range[0])
+        f.attrs["z_max_nm"] = float(psf.z_range[1])
+        f.attrs["sparseloc_version"] = __version__
+        f.attrs["created"] = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+        f.attrs["params"] = json.dumps(cal.params, default=str)
+        g = f.create_group("spline")
+        g.create_dataset("stack", data=psf.stack, compression="gzip")
+        g.create_dataset("z", data=psf.z)
+        g.attrs["centre_row"], g.attrs["centre_col"] = psf.centre
+        b = f.create_group("beads")
+        for col in cal.beads.columns:
+            values = cal.beads[col].to_numpy()
+            if values.dtype == object:
+                b.create_dataset(col, data=[str(v) for v in values], dtype=h5py.string_dtype())
+            else:
+                b.create_dataset(col, data=values)
+        content_hash = psf.content_hash
+        if cal.pupil is not None:
+            pp = cal.pupil.psf
+            phase = _pupil_phase(pp)
+            optics = {
+                "na": float(pp.na),
+                "wavelength_nm": float(pp.wavelength),
+                "n_immersion": float(pp.n_immersion),
+            }
+            g = f.create_group("pupil")
+            for k, v in optics.items():
+                g.attrs[k] = v
+            g.attrs["z_min_nm"], g.attrs["z_max_nm"] = (float(v) for v in pp.z_range)
+            g.attrs["residual_rms"] = float(getattr(cal.pupil, "residual_rms", np.nan))
+            g.create_dataset("phase", data=phase, compression="gzip")
+            coefs = getattr(cal.pupil, "coefficients", {}) or {}
+            g.create_dataset(
+                "zernike",
+                data=np.array([[n, m, a] for (n, m), a in sorted(coefs.items())], float).reshape(
+                    -1, 3
+                ),
+            )
+            if model == "pupil":
+                content_hash = _pupil_hash(phase, optics)
+        f.attrs["content_hash"] = content_hash
+    return dest
+
+
+def _open(path: str | Path):
+    import h5py
+
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"calibration file {str(p)!r} does not exist")
+    try:
+        f = h5py.File(p, "r")
+    except OSError as exc:
+        raise ValueError(f"{p.name} is not a readable HDF5 file ({exc})") from exc
+    if f.attrs.get("format") != FORMAT:
+        f.close()
+        raise ValueError(f"{p.name} is not a sparseloc PSF calibration (no format={FORMAT!r})")
+    return f
+
+
+def read_calibration_info(path: str | Path) -> dict[str, Any]:
+    """The file's attributes (pixel size, z range, hash, parameters, ...) as a dict."""
+    with _open(path) as f:
+        info = {k: (v.item() if hasattr(v, "item") else v) for k, v in f.attrs.items()}
+        info["params"] = json.loads(info.get("params", "{}"))
+        info["has_pupil"] = "pupil" in f
+        if "beads" in f:
+            info["n_beads_used"] = int(np.sum(f["beads/used"][()])) if "used" in f["beads"] else 0
+    return info
+
+
+def load_calibration(path: str | Path, model: str | None = None):
+    """Read the PSF model from a calibration file.
+
+    Parameters
+    ----------
+    path : str or Path
+        A file written by :func:`save_calibration` (``sparseloc calibrate``).
+    model : {"spline", "pupil"}, optional
+        Which model to build; default the one the file names.
+
+    Returns
+    -------
+    SplinePSF or PupilPSF
+        With attributes ``pixel_size`` (nm) and ``content_hash``.
+    """
+    from ..psf.masks import ArrayMask
+    from ..psf.pupil import PupilPSF
+    from ..psf.spline import SplinePSF
+
+    p = Path(path)
+    with _open(p) as f:
+        version = int(f.attrs.get("format_version", 0))
+        if version > FORMAT_VERSION:
+            raise ValueError(
+                f"{p.name} was written by a newer sparseloc (format {version}); upgrade sparseloc"
+            )
+        kind = model or str(f.attrs.get("model", "spline"))
+        name = str(f.attrs.get("name", p.stem))
+        px = float(f.attrs["pixel_size_nm"])
+        if kind == "spline":
+            g = f["spline"]
+            out = SplinePSF(
+                g["stack"][()],
+                px,
+                g["z"][()],
+                centre=(float(g.attrs["centre_row"]), float(g.attrs["centre_col"])),
+                name=name,
+                normalise=False,
+            )
+            return out
+        if kind == "pupil":
+            if "pupil" not in f:
+                raise ValueError(f"{p.name} holds no fitted pupil; use the spline model")
+            g = f["pupil"]
+            phase = g["phase"][()]
+            c = (phase.shape[0] - 1) / 2.0
+            mask = ArrayMask(phase, centre=(c, c), radius=c)
+            out = PupilPSF(
+                mask,
+                na=float(g.attrs["na"]),
+                wavelength=float(g.attrs["wavelength_nm"]),
+                n_immersion=float(g.attrs["n_immersion"]),
+                z_range=(float(g.attrs["z_min_nm"]), float(g.attrs["z_max_nm"])),
+                name=name,
+            )
+            out.pixel_size = px
+            out.content_hash = str(f.attrs["content_hash"])
+            return out
+        raise ValueError(f"model must be 'spline' or 'pupil', got {kind!r}")
