@@ -239,9 +239,12 @@ def _extent(stack: NDArray[np.float64], centre: tuple[float, float], max_radius:
     nz, h, w = stack.shape
     rows, cols = np.indices((h, w))
     rb = np.round(np.hypot(rows - centre[0], cols - centre[1])).astype(int).ravel()
-    rings = [np.nonzero(rb == k)[0] for k in range(max_radius + 1)]
     flat = stack.reshape(nz, -1)
-    prof = np.stack([np.median(flat[:, idx], axis=1) for idx in rings], axis=1)  # (nz, radii)
+    prof = np.zeros((nz, max_radius + 1))  # (nz, radii); an empty ring (r = 0) stays 0
+    for k in range(max_radius + 1):
+        idx = np.nonzero(rb == k)[0]
+        if idx.size:
+            prof[:, k] = np.median(flat[:, idx], axis=1)
     above = np.nonzero((prof >= 0.03 * prof.max()).any(axis=0))[0]
     return float(above.max()) if above.size else 0.0
 
@@ -520,40 +523,54 @@ def calibrate_beads(
         acc = sum(_shift_stack(rois[i], shifts[i], p, step) for i in ids)
         return acc / len(ids)
 
-    # First reference: the brightest bead alone. An average of unregistered beads is blurred
-    # in z, and registering to a blurred reference shrinks the shifts (slow convergence).
-    first = max(used, key=lambda i: photons_per_plane[i])
-    avg = _shift_stack(rois[first], shifts[first], p, step)
-    for it in range(max(1, iterations)):
-        # A noisy reference has noisy derivatives, and a least-squares fit against it shrinks
-        # the shifts (regression dilution); a light symmetric smoothing removes most of that
-        # noise without moving the reference's centre.
-        smooth = gaussian_filter(avg, (1.0, 0.5, 0.5), mode="nearest")
-        ref = SplinePSF(_clean_average(smooth), p, zplanes, normalise=False, name=name)
+    def register(ids: list[int]) -> NDArray[np.float64]:
+        # First reference: one bead alone, of median brightness (the brightest may be two
+        # beads seen as one). An average of unregistered beads is blurred in z, and
+        # registering to a blurred reference shrinks the shifts (slow convergence).
+        ranked = sorted(ids, key=lambda i: photons_per_plane[i])
+        first = ranked[len(ranked) // 2]
+        shifts[first] = init_shift[first].copy()
+        avg = _shift_stack(rois[first], shifts[first], p, step)
+        for _ in range(max(1, iterations)):
+            # A noisy reference has noisy derivatives, and a least-squares fit against it
+            # shrinks the shifts (regression dilution); a light symmetric smoothing removes
+            # most of that noise without moving the reference's centre.
+            smooth = gaussian_filter(avg, (1.0, 0.5, 0.5), mode="nearest")
+            ref = SplinePSF(_clean_average(smooth), p, zplanes, normalise=False, name=name)
+            for i in ids:
+                shifts[i], _ = _fit_shift(ref, rois[i], zplanes)
+            # Keep the scan's z frame: the beads' mean z is z = 0.
+            mean_z = np.mean([shifts[i][2] for i in ids])
+            for i in ids:
+                shifts[i] = shifts[i] - np.array([0.0, 0.0, mean_z])
+            avg = average(ids)
+        return avg
+
+    init_shift = {i: v.copy() for i, v in shifts.items()}
+    avg = register(used)
+    # Outliers (dirt, aggregates, two beads seen as one): compare each bead with the average
+    # of the others; drop clear outliers and register the rest again from scratch, so that
+    # nothing fitted against a bad bead remains.
+    for _ in range(3):
+        if len(used) < 3:
+            break
+        aligned = {i: _shift_stack(rois[i], shifts[i], p, step) for i in used}
+        total = sum(aligned.values())
         for i in used:
-            shifts[i], _ = _fit_shift(ref, rois[i], zplanes)
-        # Keep the scan's z frame and the beads' mean position as the origin.
-        mean = np.mean([shifts[i] for i in used], axis=0)
-        for i in used:
-            shifts[i] = shifts[i] - np.array([0.0, 0.0, mean[2]])
-        avg = average(used)
-        if it == max(1, iterations) - 1 and len(used) >= 3:
-            # Outliers: compare each bead with the average of the others.
-            aligned = {i: _shift_stack(rois[i], shifts[i], p, step) for i in used}
-            total = sum(aligned.values())
-            for i in used:
-                others = (total - aligned[i]) / (len(used) - 1)
-                bi = aligned[i] * (others.sum() / max(aligned[i].sum(), 1e-12))
-                residual[i] = float(np.linalg.norm(bi - others) / np.linalg.norm(others))
-            res = np.array([residual[i] for i in used])
-            med = np.median(res)
-            mad = 1.4826 * np.median(np.abs(res - med))
-            bad = [i for i in used if residual[i] > max(med + 5 * mad, 1.5 * med)]
-            if bad and len(used) - len(bad) >= max(min_beads, 1):
-                for i in bad:
-                    reason[i] = "outlier"
-                used = [i for i in used if i not in bad]
-                avg = average(used)
+            others = (total - aligned[i]) / (len(used) - 1)
+            bi = aligned[i] * (others.sum() / max(aligned[i].sum(), 1e-12))
+            residual[i] = float(np.linalg.norm(bi - others) / np.linalg.norm(others))
+        res = np.array([residual[i] for i in used])
+        med = np.median(res)
+        mad = 1.4826 * np.median(np.abs(res - med))
+        bad = [i for i in used if residual[i] > max(med + 5 * mad, 1.5 * med)]
+        if not bad or len(used) - len(bad) < max(min_beads, 1):
+            break
+        for i in bad:
+            reason[i] = "outlier"
+            shifts.pop(i, None)
+        used = [i for i in used if i not in bad]
+        avg = register(used)
     if len(used) < min_beads:
         raise ValueError(
             f"only {len(used)} usable bead(s) (of {nb} found); a calibration needs at least "
