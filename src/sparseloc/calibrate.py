@@ -464,9 +464,11 @@ def calibrate_beads(
         extents = []
         for r, c in centres[:5]:
             ri, ci = int(np.round(r)), int(np.round(c))
-            if max_r <= ri < h - max_r and max_r <= ci < w - max_r:
-                sub = _roi(data, ri, ci, max_r)
-                extents.append(_extent(sub, (r - ri + max_r, c - ci + max_r), max_r))
+            # Search as far as the frame allows around this bead (at most max_r).
+            rad = min(max_r, ri, ci, h - 1 - ri, w - 1 - ci)
+            if rad >= 6:
+                sub = _roi(data, ri, ci, rad)
+                extents.append(_extent(sub, (r - ri + rad, c - ci + rad), rad))
         ext = float(np.median(extents)) if extents else 6.0
         half = int(np.clip(np.ceil(ext) + 2, 5, 40))
         roi = 2 * half + 1
