@@ -493,3 +493,53 @@ def test_spatial_background_of_a_flat_frame_with_spots():
     assert np.mean(rel < 0.05) > 0.9
     assert rel.max() < 0.15
     assert np.median(bg) == pytest.approx(20.0, rel=0.02)
+
+
+def test_shifted_psf_moves_the_model():
+    from sparseloc.psf.base import ShiftedPSF
+
+    base = make_psf("dh-analytic")
+    moved = ShiftedPSF(base, 30.0, -20.0, 50.0)
+    lo, hi = base.z_range
+    assert moved.z_range == (lo - 50.0, hi - 50.0)
+    a, da = moved.images(700.0, 800.0, 0.0, (15, 15), PX, derivatives=True)
+    b, db = base.images(730.0, 780.0, 50.0, (15, 15), PX, derivatives=True)
+    np.testing.assert_allclose(a, b)
+    np.testing.assert_allclose(da, db)
+
+
+def test_pupil_fit_saved_in_the_calibration_frame(tmp_path):
+    from sparseloc.psf import AstigmatismMask, PupilPSF
+
+    truth = PupilPSF(
+        AstigmatismMask(0.15), na=1.4, wavelength=600.0, n_immersion=1.5, z_range=(-700.0, 700.0)
+    )
+    planes = np.arange(-500.0, 500.0 + 1e-6, 50.0)
+    pos = np.array([(2500.0, 2500.0), (6500.0, 2500.0), (2500.0, 6500.0)]) + 33.0
+    sim = simulate(
+        truth,
+        scene=bead_scan_truth(pos, planes, 20000.0),
+        n_frames=planes.size,
+        shape=(90, 90),
+        pixel_size=PX,
+        background=10.0,
+        seed=2,
+    )
+    cal = calibrate_beads(
+        sim.movie,
+        PX,
+        50.0,
+        offset=100.0,
+        fit_pupil=True,
+        pupil_options={"na": 1.4, "wavelength": 600.0, "n_immersion": 1.5, "max_order": 4},
+    )
+    assert abs(cal.pupil.coefficients[(2, 2)] - 0.15 / np.sqrt(6)) < 0.02
+    path = save_calibration(cal, tmp_path / "cal.h5", model="pupil")
+    pupil = load_calibration(path)
+    spline = load_calibration(path, model="spline")
+    c = (spline.centre[1] + 0.5) * PX, (spline.centre[0] + 0.5) * PX
+    nr = spline.stack.shape[1]
+    for z in (-300.0, 0.0, 300.0):
+        a = pupil.images(*c, z, (nr, nr), PX)[0]
+        b = spline.images(*c, z, (nr, nr), PX)[0]
+        assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.97

@@ -642,10 +642,19 @@ def calibrate_beads(
         bead_ncc=bead_ncc,
     )
     if fit_pupil:
+        from .psf.base import ShiftedPSF
         from .psf.retrieval import fit_pupil as _fit_pupil
 
         opts = dict(pupil_options or {})
-        cal.pupil = _fit_pupil(psf.stack, zplanes, p, **opts)
+        opts.setdefault("z_range", (float(zplanes[0]) - 500.0, float(zplanes[-1]) + 500.0))
+        res = _fit_pupil(psf.stack, zplanes, p, **opts)
+        # The same frame as the spline: an emitter at (x, y, z) renders its image where the
+        # spline puts it (lateral origin at the spline's centre, z = 0 at the scan's zero).
+        xc, yc = (psf.centre[1] + 0.5) * p, (psf.centre[0] + 0.5) * p
+        res.frame_model = ShiftedPSF(
+            res.psf, res.x0 - xc, res.y0 - yc, res.z0, z_range=(zplanes[0], zplanes[-1])
+        )
+        cal.pupil = res
     log.info("calibrated from %d of %d beads, %d planes", len(used), nb, zplanes.size)
     return cal
 

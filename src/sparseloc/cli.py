@@ -178,6 +178,7 @@ LOCALIZE_DEFAULTS: dict = {
     "z_min": None,
     "z_max": None,
     "threshold": 5.0,
+    "background": "auto",
     "refine": True,
     "frames": None,
     "format": None,
@@ -244,6 +245,12 @@ def localize(
     refine: Annotated[
         bool | None, typer.Option("--refine/--no-refine", help="Maximum-likelihood stage.")
     ] = None,
+    background: Annotated[
+        str | None,
+        typer.Option(
+            help="auto, temporal (blinking movies) or spatial (snapshots, emitters always on)."
+        ),
+    ] = None,
     frames: Annotated[str | None, typer.Option(help="Frame range START:STOP (0-based).")] = None,
     fmt: Annotated[
         str | None, typer.Option("--format", help="parquet, thunderstorm, picasso, smlm.")
@@ -273,6 +280,7 @@ def localize(
         "z_max": z_max,
         "threshold": threshold,
         "refine": refine,
+        "background": background,
         "frames": frames,
         "format": fmt,
     }
@@ -333,6 +341,7 @@ def localize(
             margin=opts["margin"],
             z_range=zr,
             threshold=opts["threshold"],
+            background=opts["background"],
             noise="emccd" if opts["camera"] == "emccd" else "poisson",
         )
         from tqdm import tqdm

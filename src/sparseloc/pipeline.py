@@ -70,9 +70,13 @@ class LocalizeParams:
         Frames in the sliding block of the temporal background.
     background_percentile : float
         Percentile of that block.
+    background : {"auto", "temporal", "spatial"}
+        Temporal: a per-pixel percentile over a sliding block of frames (blinking
+        molecules). Spatial: a per-frame estimate from each frame's darker pixels (snapshots,
+        short movies, molecules that stay on). Auto: temporal for movies of at least
+        ``min_temporal_frames`` frames.
     min_temporal_frames : int
-        Movies with fewer frames get a spatial background per frame instead (single
-        snapshots, short test movies).
+        See ``background``.
     noise : {"poisson", "emccd", "scmos"}
         Likelihood of the maximum-likelihood stage.
     max_emitters : int
@@ -90,7 +94,8 @@ class LocalizeParams:
     threshold: float = 5.0
     background_frames: int = 21
     background_percentile: float = 30.0
-    min_temporal_frames: int = 9
+    background: str = "auto"
+    min_temporal_frames: int = 50
     noise: str = "poisson"
     max_emitters: int = 10
 
@@ -103,6 +108,10 @@ class LocalizeParams:
             raise ValueError(f"window {self.window} px and margin {self.margin} px leave no core")
         if self.background_frames < 1:
             raise ValueError("background_frames must be >= 1")
+        if self.background not in ("auto", "temporal", "spatial"):
+            raise ValueError(
+                f"background must be auto, temporal or spatial; got {self.background!r}"
+            )
         px = float(self.pixel_size)
         if self.coarse is None:
             object.__setattr__(self, "coarse", (px / np.ceil(px / 80.0 - 1e-9), 120.0))
@@ -277,7 +286,9 @@ def localize(
         for f in range(b0, b1):
             i = f - lo
             j0, j1 = max(i - half, 0), min(i + half + 1, chunk.shape[0])
-            if n >= p.min_temporal_frames:
+            if p.background == "temporal" or (
+                p.background == "auto" and n >= p.min_temporal_frames
+            ):
                 bg = temporal_background(chunk[j0:j1], percentile=p.background_percentile)
             else:
                 bg = spatial_background(chunk[i])

@@ -440,7 +440,7 @@ def plot_calibration(cal, path: str | Path, *, n_planes: int = 7) -> Path:
         model_name = "pupil fit"
         x0 = (psf.centre[1] + 0.5) * p
         y0 = (psf.centre[0] + 0.5) * p
-        mod = cal.pupil.psf.images(
+        mod = cal.pupil.frame_model.images(
             np.full(idx.size, x0), np.full(idx.size, y0), z[idx], (nr, nc), p
         )
         mod = mod / mod.sum(axis=(1, 2), keepdims=True)

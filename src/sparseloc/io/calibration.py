@@ -10,9 +10,11 @@ Layout (all lengths in nm; read with h5py, never pickle)::
                       attrs: centre_row, centre_col (px, pixel-centre coordinates)
     /beads/<column>   one dataset per column of the bead table (reason as UTF-8 strings)
     /pupil            (only when a pupil was fitted) attrs: na, wavelength_nm, n_immersion,
-                      z_min_nm, z_max_nm, residual_rms; datasets phase (N, N) radians of the
-                      whole pupil phase sampled over the unit disc (centre (N-1)/2, radius
-                      (N-1)/2 samples), zernike (M, 3) rows (n, m, waves RMS)
+                      z_min_nm, z_max_nm (the calibration's frame), offset_{x,y,z}_nm (the
+                      pupil model is read as ``ShiftedPSF(pupil, dx, dy, dz)``: the same
+                      coordinate frame as the spline), residual_rms; datasets phase (N, N)
+                      radians of the whole pupil phase sampled over the unit disc (centre
+                      (N-1)/2, radius (N-1)/2 samples), zernike (M, 3) rows (n, m, waves RMS)
 
 ``content_hash`` identifies the model: the spline's data (see
 :attr:`sparseloc.psf.spline.SplinePSF.content_hash`) or, for a pupil model, its phase and optics.
@@ -114,7 +116,11 @@ def save_calibration(cal: Any, path: str | Path, *, model: str = "spline") -> Pa
             g = f.create_group("pupil")
             for k, v in optics.items():
                 g.attrs[k] = v
-            g.attrs["z_min_nm"], g.attrs["z_max_nm"] = (float(v) for v in pp.z_range)
+            fm = getattr(cal.pupil, "frame_model", None)
+            off = fm.offset if fm is not None else (0.0, 0.0, 0.0)
+            zr = fm.z_range if fm is not None else pp.z_range
+            g.attrs["offset_x_nm"], g.attrs["offset_y_nm"], g.attrs["offset_z_nm"] = off
+            g.attrs["z_min_nm"], g.attrs["z_max_nm"] = (float(v) for v in zr)
             g.attrs["residual_rms"] = float(getattr(cal.pupil, "residual_rms", np.nan))
             g.create_dataset("phase", data=phase, compression="gzip")
             coefs = getattr(cal.pupil, "coefficients", {}) or {}
@@ -169,9 +175,10 @@ def load_calibration(path: str | Path, model: str | None = None):
 
     Returns
     -------
-    SplinePSF or PupilPSF
+    SplinePSF or ShiftedPSF (a PupilPSF in the calibration's frame)
         With attributes ``pixel_size`` (nm) and ``content_hash``.
     """
+    from ..psf.base import ShiftedPSF
     from ..psf.masks import ArrayMask
     from ..psf.pupil import PupilPSF
     from ..psf.spline import SplinePSF
@@ -204,14 +211,17 @@ def load_calibration(path: str | Path, model: str | None = None):
             phase = g["phase"][()]
             c = (phase.shape[0] - 1) / 2.0
             mask = ArrayMask(phase, centre=(c, c), radius=c)
-            out = PupilPSF(
+            dx, dy, dz = (float(g.attrs.get(f"offset_{k}_nm", 0.0)) for k in "xyz")
+            zr = (float(g.attrs["z_min_nm"]), float(g.attrs["z_max_nm"]))
+            pupil = PupilPSF(
                 mask,
                 na=float(g.attrs["na"]),
                 wavelength=float(g.attrs["wavelength_nm"]),
                 n_immersion=float(g.attrs["n_immersion"]),
-                z_range=(float(g.attrs["z_min_nm"]), float(g.attrs["z_max_nm"])),
+                z_range=(zr[0] + dz, zr[1] + dz),
                 name=name,
             )
+            out = ShiftedPSF(pupil, dx, dy, dz, z_range=zr)
             out.pixel_size = px
             out.content_hash = str(f.attrs["content_hash"])
             return out

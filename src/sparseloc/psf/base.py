@@ -16,6 +16,7 @@ from numpy.typing import ArrayLike, NDArray
 __all__ = [
     "PSFBase",
     "PSFModel",
+    "ShiftedPSF",
     "as_emitters",
     "check_pixel_size",
     "check_shape",
@@ -305,3 +306,48 @@ class PSFBase:
                 radius = max(radius, float(r[order[min(idx, len(r) - 1)]]))
             cache[key] = radius + px
         return cache[key]
+
+
+class ShiftedPSF(PSFBase):
+    """A model moved in x, y, z: ``shifted(x, y, z) = base(x + dx, y + dy, z + dz)``.
+
+    Puts a model in another coordinate frame, e.g. a pupil fitted to a bead stack into the
+    frame of the calibration (lateral origin at the spline's centre, z = 0 at the scan's
+    reference slice). Derivatives are the base model's.
+
+    Parameters
+    ----------
+    base : PSFBase
+        The model to move.
+    dx, dy, dz : float
+        Offsets (nm).
+    z_range : (float, float), optional
+        Valid range in the new frame; default the base's range moved by ``-dz``.
+    """
+
+    def __init__(
+        self,
+        base: PSFBase,
+        dx: float = 0.0,
+        dy: float = 0.0,
+        dz: float = 0.0,
+        *,
+        z_range: tuple[float, float] | None = None,
+    ) -> None:
+        super().__init__()
+        self.base = base
+        self.offset = (float(dx), float(dy), float(dz))
+        lo, hi = base.z_range
+        zr = (lo - self.offset[2], hi - self.offset[2]) if z_range is None else z_range
+        zr = (max(float(zr[0]), lo - self.offset[2]), min(float(zr[1]), hi - self.offset[2]))
+        if not zr[0] < zr[1]:
+            raise ValueError(f"z_range {z_range} does not overlap the base model's range")
+        self._z_range = zr
+        self.name = getattr(base, "name", "psf")
+
+    def __repr__(self) -> str:
+        return f"ShiftedPSF({self.base!r}, offset={self.offset}, z_range={self.z_range})"
+
+    def _images(self, x, y, z, shape, pixel_size, origin, derivatives):
+        dx, dy, dz = self.offset
+        return self.base._images(x + dx, y + dy, z + dz, shape, pixel_size, origin, derivatives)
