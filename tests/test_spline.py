@@ -262,3 +262,34 @@ def test_spline_of_the_pupil_model(dh_model):
     err = rel_err(sp.images(x, y, zz, window, PX), pupil.images(x, y, zz, window, PX))
     # Measured up to 1.6 % of the peak (a ~1 px wide lobe sampled at 100 nm); tolerance 3 %.
     assert err.max() < 0.03, err.max()
+
+
+@pytest.mark.parametrize(("oversample", "tol"), [(1, 0.05), (2, 0.004), (3, 0.001)])
+def test_table_of_a_model_matches_it(oversample, tol):
+    """SplinePSF.from_model: interpolation error shrinks with lateral oversampling (measured
+    at 160 nm pixels for the analytic double helix: 3.4 %, 0.12 %, 0.02 % of the peak)."""
+    model = make_psf("dh-analytic")
+    px, w = 160.0, 11
+    table = SplinePSF.from_model(
+        model, px, roi=2 * w + 3, z_step=10.0, z_range=(-500.0, 500.0), oversample=oversample
+    )
+    rng = np.random.default_rng(4)
+    x, y = rng.uniform(600, 1100, 25), rng.uniform(600, 1100, 25)
+    z = rng.uniform(-490, 490, 25)
+    a, da = model.images(x, y, z, (w, w), px, derivatives=True)
+    b, db = table.images(x, y, z, (w, w), px, derivatives=True)
+    assert np.abs(a - b).max() <= tol * a.max()
+    if oversample > 1:
+        for i in range(3):
+            assert np.abs(da[:, i] - db[:, i]).max() <= 10 * tol * np.abs(da[:, i]).max()
+    # photon scale is the model's (no per-plane normalisation)
+    np.testing.assert_allclose(b.sum(axis=(1, 2)), a.sum(axis=(1, 2)), rtol=0.01)
+    assert abs(table.support_radius(px) - model.support_radius(px)) <= px
+
+
+def test_oversampled_stack_normalises_to_one_photon():
+    model = make_psf("dh-analytic")
+    table = SplinePSF.from_model(model, 100.0, roi=31, z_step=20.0, oversample=2)
+    again = SplinePSF(table.stack, 100.0, table.z, centre=table.centre, oversample=2)
+    img = again.images(1550.0, 1550.0, 0.0, (31, 31), 100.0)
+    assert abs(img.sum() - 1.0) < 1e-3

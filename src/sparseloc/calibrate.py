@@ -327,6 +327,7 @@ def calibrate_beads(
     name: str = "spline",
     fit_pupil: bool = False,
     pupil_options: dict[str, Any] | None = None,
+    z_smooth: bool = True,
 ) -> Calibration:
     """Build a measured PSF model from a bead z-stack.
 
@@ -361,6 +362,9 @@ def calibrate_beads(
         Rounds of registration.
     name : str
         Name of the model.
+    z_smooth : bool
+        Smooth the average along z (cubic Savitzky-Golay over ~80 nm) when the steps are
+        finer than 30 nm, so the model's z-derivative does not follow photon noise.
     fit_pupil : bool
         Also fit the pupil phase to the average (``pupil_options`` go to
         :func:`sparseloc.psf.retrieval.fit_pupil`: ``na``, ``wavelength``, ...).
@@ -588,6 +592,15 @@ def calibrate_beads(
         zplanes = zplanes[trim:-trim]
     clean = _clean_average(avg)
     sl = slice(trim, trim + clean.shape[0])
+    zwin = _z_smoothing_window(step, clean.shape[0]) if z_smooth else 0
+    if zwin:
+        # Fine z steps make the spline's z-derivative follow the photon noise of each plane,
+        # and that noise costs axial precision (1.7x the CRLB on storm-analysis's astigmatic
+        # grid without it). A cubic Savitzky-Golay filter over ~80 nm removes the noise and
+        # keeps every feature that spans more than a few planes (as SMAP's smoothing spline).
+        from scipy.signal import savgol_filter
+
+        clean = _clean_average(savgol_filter(clean, zwin, 3, axis=0, mode="interp"))
     bead_ncc = np.array(
         [_ncc_planes(_shift_stack(rois[i], shifts[i], p, step)[sl], clean) for i in used]
     )
@@ -628,6 +641,7 @@ def calibrate_beads(
         "threshold": float(threshold),
         "detect_sigma_px": float(detect_sigma),
         "iterations": int(iterations),
+        "z_smooth_planes": int(zwin),
         "n_beads_found": nb,
         "n_beads_used": len(used),
     }
@@ -657,6 +671,14 @@ def calibrate_beads(
         cal.pupil = res
     log.info("calibrated from %d of %d beads, %d planes", len(used), nb, zplanes.size)
     return cal
+
+
+def _z_smoothing_window(step: float, n_planes: int) -> int:
+    """Odd Savitzky-Golay window (planes) spanning about 80 nm; 0 for steps of 30 nm or more."""
+    if step >= 30.0:
+        return 0
+    win = round(80.0 / step) | 1
+    return win if 5 <= win <= n_planes else 0
 
 
 def _ncc_planes(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:

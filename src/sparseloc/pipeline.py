@@ -32,6 +32,7 @@ from .detect import (
 from .dictionary import Dictionary
 from .io.tables import LOCS_COLUMNS, empty_locs
 from .psf.base import PSFModel
+from .psf.spline import SplinePSF
 from .solvers import WindowSolution, convex_solve, hybrid_solve, matching_pursuit
 from .solvers.refine import refine_solution
 
@@ -70,6 +71,9 @@ class LocalizeParams:
         Frames in the sliding block of the temporal background.
     background_percentile : float
         Percentile of that block.
+    tabulate : bool
+        Work with a spline table of the model (:meth:`SplinePSF.from_model`, 10 nm planes)
+        instead of the model itself: much faster for pupil models, same precision.
     background : {"auto", "temporal", "spatial"}
         Temporal: a per-pixel percentile over a sliding block of frames (blinking
         molecules). Spatial: a per-frame estimate from each frame's darker pixels (snapshots,
@@ -95,6 +99,7 @@ class LocalizeParams:
     background_frames: int = 21
     background_percentile: float = 30.0
     background: str = "auto"
+    tabulate: bool = True
     min_temporal_frames: int = 50
     noise: str = "poisson"
     max_emitters: int = 10
@@ -270,10 +275,16 @@ def localize(
     p = params
     tiling = tiles(shape, p.window, p.margin)
     t0 = time.perf_counter()
-    solver = _Solver(model, p)
+    work_model = model
+    if p.tabulate and not isinstance(model, SplinePSF):
+        # Every window renders the model thousands of times; a spline table of it renders
+        # ~50x faster than a pupil model at the same precision (RMSE / CRLB 0.94-0.99, bias
+        # < 1 nm on isolated double-helix emitters; see SplinePSF.from_model).
+        work_model = SplinePSF.from_model(model, p.pixel_size, roi=2 * p.window + 3, z_step=10.0)
+    solver = _Solver(work_model, p)
     zr = p.z_range or model.z_range
     tsize = min(2 * p.window + 1, 2 * (min(shape) // 2) - 1)
-    template = z_averaged_psf(model, p.pixel_size, zr, tsize)
+    template = z_averaged_psf(work_model, p.pixel_size, zr, tsize)
     parts: list[dict] = []
     n_windows = 0
     half = p.background_frames // 2

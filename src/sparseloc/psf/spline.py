@@ -82,7 +82,12 @@ class SplinePSF(PSFBase):
     name : str
         Label for plots and files.
     normalise : bool
-        Scale every plane to a sum of one.
+        Scale every plane to a sum of one photon.
+    oversample : int
+        Lateral samples per pixel of the stack: ``stack[:, i, j]`` is the pixel value at an
+        offset of ``(j - centre_col) / oversample`` pixels between pixel centre and emitter.
+        A bead stack has 1; a table of a theoretical model may use 2-3 to cut the
+        interpolation error (cubic: about 2^4 less per doubling).
     """
 
     def __init__(
@@ -95,6 +100,7 @@ class SplinePSF(PSFBase):
         centre: tuple[float, float] | None = None,
         name: str = "spline",
         normalise: bool = True,
+        oversample: int = 1,
     ) -> None:
         super().__init__()
         from scipy.ndimage import spline_filter
@@ -119,8 +125,12 @@ class SplinePSF(PSFBase):
         if np.ptp(dz) > 1e-3 * dz.mean():
             raise ValueError("the z positions of the stack must be evenly spaced; resample first")
         self.pixel_size = check_pixel_size(pixel_size)
+        self.oversample = int(oversample)
+        if self.oversample < 1:
+            raise ValueError(f"oversample must be a positive integer, got {oversample}")
         if normalise:
-            sums = s.sum(axis=(1, 2), keepdims=True)
+            # Each pixel of an image is sampled oversample^2 times (once per phase).
+            sums = s.sum(axis=(1, 2), keepdims=True) / self.oversample**2
             if np.any(sums <= 0):
                 raise ValueError("every plane of the PSF stack must hold a positive total")
             s = s / sums
@@ -159,6 +169,68 @@ class SplinePSF(PSFBase):
             f"pixel_size={self.pixel_size}, z_range={self.z_range})"
         )
 
+    @classmethod
+    def from_model(
+        cls,
+        model,
+        pixel_size: float,
+        *,
+        roi: int,
+        z_step: float = 10.0,
+        z_range: tuple[float, float] | None = None,
+        oversample: int = 2,
+    ) -> SplinePSF:
+        """Tabulate any model (e.g. a pupil model) as a spline: the same images, much faster.
+
+        The model is rendered once, at its ROI centre, on planes ``z_step`` apart; the spline
+        then interpolates between planes and pixel shifts (errors of ~1 % of the peak at
+        100 nm pixels for a double helix). Photon scale is the model's (no per-plane
+        normalisation), so photon counts keep their meaning.
+
+        Parameters
+        ----------
+        model : PSFModel
+            The model to tabulate.
+        pixel_size : float
+            Pixel size (nm); the table only renders at this size.
+        roi : int
+            Side (px) of the tabulated image; emitters more than ``roi / 2`` pixels from a
+            pixel contribute nothing to it. Use at least twice the window size.
+        z_step : float
+            Plane spacing (nm).
+        z_range : (float, float), optional
+            Default the model's.
+        oversample : int
+            Lateral samples per pixel (2: errors ~0.3 % of the peak for a double helix at
+            160 nm pixels, against ~5 % with 1).
+        """
+        px = check_pixel_size(pixel_size)
+        lo, hi = model.z_range if z_range is None else z_range
+        n = max(4, int(np.ceil((hi - lo) / z_step)) + 1)
+        zs = np.linspace(lo, hi, n)
+        roi = int(roi) | 1
+        s = int(oversample)
+        c = roi * px / 2.0  # the centre of pixel roi // 2
+        stack = np.empty((n, roi * s, roi * s))
+        for a in range(s):  # x phase: the emitter moves left by a/s px, offsets grow by a/s
+            for b in range(s):
+                img = model.images(
+                    np.full(n, c - a * px / s), np.full(n, c - b * px / s), zs, (roi, roi), px
+                )
+                stack[:, b::s, a::s] = img
+        centre = (float(s * (roi // 2)), float(s * (roi // 2)))
+        out = cls(
+            stack,
+            px,
+            zs,
+            centre=centre,
+            name=f"{getattr(model, 'name', 'psf')}",
+            normalise=False,
+            oversample=s,
+        )
+        out.source = model
+        return out
+
     @property
     def content_hash(self) -> str:
         """SHA-256 (16 hex digits) of the stack, z and pixel size: identifies a calibration."""
@@ -175,11 +247,18 @@ class SplinePSF(PSFBase):
                 f"{pixel_size:g} nm was asked for; calibrate at the data's pixel size"
             )
 
-    def _axis(self, t: NDArray[np.float64], n: int, length: int, nodes: int):
-        """Indices (K, n, 4) into an axis of ``nodes`` coefficients (+1 zero) and weights."""
+    def _axis(self, t: NDArray[np.float64], n: int, length: int, nodes: int, stride: int = 1):
+        """Indices (K, n, 4) into an axis of ``nodes`` coefficients (+1 zero) and weights.
+
+        Pixel ``j`` sits at knot ``t + stride * j``: the same fraction for every pixel.
+        """
         i0 = np.floor(t)
         w, dw = bspline_weights(t - i0)
-        idx = i0.astype(np.int64)[:, None, None] + np.arange(n)[None, :, None] + np.arange(-1, 3)
+        idx = (
+            i0.astype(np.int64)[:, None, None]
+            + stride * np.arange(n)[None, :, None]
+            + np.arange(-1, 3)
+        )
         idx = np.where((idx >= 0) & (idx < nodes), idx, length - 1)
         return idx, w, dw
 
@@ -193,10 +272,11 @@ class SplinePSF(PSFBase):
         iz = np.floor(tz).astype(np.int64)
         wz, dwz = bspline_weights(tz - iz)
         # Position of pixel (0, 0)'s centre in padded-stack coordinates, per emitter.
-        tx = self.centre[1] + _PAD + (pixel_centres(1, p, origin[0])[0] - x) / p
-        ty = self.centre[0] + _PAD + (pixel_centres(1, p, origin[1])[0] - y) / p
-        ix, wx, dwx = self._axis(tx, cols, self._nx + 1, self._nx)
-        iy, wy, dwy = self._axis(ty, rows, self._ny + 1, self._ny)
+        os_ = self.oversample
+        tx = self.centre[1] + _PAD + (pixel_centres(1, p, origin[0])[0] - x) * os_ / p
+        ty = self.centre[0] + _PAD + (pixel_centres(1, p, origin[1])[0] - y) * os_ / p
+        ix, wx, dwx = self._axis(tx, cols, self._nx + 1, self._nx, os_)
+        iy, wy, dwy = self._axis(ty, rows, self._ny + 1, self._ny, os_)
         out = np.empty((k, rows, cols))
         der = np.empty((k, 3, rows, cols)) if derivatives else None
         chunk = max(1, int(4e7 // (self._coef[0].size * 8 * 4)))
@@ -212,8 +292,10 @@ class SplinePSF(PSFBase):
             out[sl] = np.einsum("krmc,km->krc", gy, wy[sl])
             if derivatives:
                 ax = np.einsum("kcmy,km->kyc", gx, dwx[sl])
-                der[sl, 0] = -np.einsum("krmc,km->krc", ax[kk[:, None, None], iy[sl]], wy[sl]) / p
-                der[sl, 1] = -np.einsum("krmc,km->krc", gy, dwy[sl]) / p
+                der[sl, 0] = (
+                    -np.einsum("krmc,km->krc", ax[kk[:, None, None], iy[sl]], wy[sl]) * os_ / p
+                )
+                der[sl, 1] = -np.einsum("krmc,km->krc", gy, dwy[sl]) * os_ / p
                 dpz = np.einsum("km,kmyx->kyx", dwz[sl], planes)
                 az = np.einsum("kcmy,km->kyc", dpz[kk[:, None, None], :, ix[sl]], wx[sl])
                 der[sl, 2] = (
@@ -245,7 +327,7 @@ class SplinePSF(PSFBase):
         nr, nc = self.stack.shape[1:]
         rr = (np.arange(nr) - self.centre[0])[:, None]
         cc = (np.arange(nc) - self.centre[1])[None, :]
-        r = np.hypot(rr, cc).ravel() * px
+        r = np.hypot(rr, cc).ravel() * px / self.oversample
         order = np.argsort(r)
         radius = 0.0
         for img in planes:
