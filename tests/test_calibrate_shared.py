@@ -17,7 +17,6 @@ def _ncc(a: np.ndarray, b: np.ndarray) -> float:
     return float(a @ b / np.sqrt((a @ a) * (b @ b)))
 
 
-@pytest.mark.slow
 def test_calibration_reproduces_retrieved_dh_mask(shared_data):
     """A bead scan simulated through the real retrieved mask calibrates back to its PSF."""
     model = make_psf(
@@ -94,3 +93,54 @@ def test_storm_analysis_bead_scans_calibrate(shared_data, kind):
     per_bead = cal.bead_ncc.mean(axis=1)
     assert per_bead.min() > np.median(per_bead) - 0.03
     assert cal.bead_ncc.min() > 0.75
+
+
+@pytest.fixture(scope="module")
+def dh_calibration(shared_data):
+    folder = shared_data / "storm_analysis_sim" / "dh"
+    return calibrate_file(
+        folder / "beads_zscan.tif", 100.0, z_file=folder / "beads_zscan_z.csv", offset=100.0
+    ).psf
+
+
+def _localize_crop(shared_data, name, model, window, margin, rows=100, cols=150):
+    import tifffile
+
+    from sparseloc.evaluate import evaluate
+    from sparseloc.io.truth import read_truth_csv
+    from sparseloc.pipeline import LocalizeParams, localize
+
+    folder = shared_data / "storm_analysis_sim" / "dh"
+    frame = tifffile.imread(folder / f"{name}.tif").astype(float) - 100.0
+    frame = frame.reshape(-1, *frame.shape[-2:])[:, :rows, :cols]
+    truth = read_truth_csv(folder / f"{name}_groundtruth.csv", pixel_size=100.0)
+    inside = (truth["x_nm"] < cols * 100.0) & (truth["y_nm"] < rows * 100.0)
+    res = localize(frame, model, LocalizeParams(pixel_size=100.0, window=window, margin=margin))
+    return evaluate(res.table, truth[inside])
+
+
+def test_storm_analysis_dh_grid_frame(shared_data, dh_calibration):
+    """Calibrate from storm-analysis's DH bead scan, localize a third of its grid frame.
+
+    storm-analysis's own FISTA + spline fit on the whole frame: recall 1.00, RMSE x/y/z
+    3.4/3.7/5.5 nm. sparseloc measured on this crop: recall 1.00, 3.1/3.7/5.8 nm (whole frame
+    3.4/3.7/5.6 nm). Thresholds leave room for noise in 28 emitters, not for a regression to
+    the grid-limited precision (10 nm steps would give ~3-5 nm more).
+    """
+    ev = _localize_crop(shared_data, "dh_fista_diag_test01", dh_calibration, 17, 4)
+    assert ev.recall >= 0.95
+    assert ev.jaccard >= 85.0
+    assert ev.rmse_x < 6.0 and ev.rmse_y < 6.0 and ev.rmse_z < 9.0
+
+
+@pytest.mark.slow
+def test_storm_analysis_dh_random_density(shared_data, dh_calibration):
+    """0.5 emitter/um^2 of heavily overlapping double helices (a third of the frame).
+
+    Measured on this crop with 21-px windows: recall 0.87, Jaccard 76 %, RMSE lateral 12.6 nm,
+    axial 19 nm. The thresholds guard against losing the overlapping emitters.
+    """
+    ev = _localize_crop(shared_data, "dh_random_density0.005px2", dh_calibration, 21, 6)
+    assert ev.recall >= 0.75
+    assert ev.jaccard >= 65.0
+    assert ev.rmse_lateral < 30.0 and ev.rmse_axial < 45.0
