@@ -47,7 +47,7 @@ a better ``initial``.
 
 from __future__ import annotations
 
-import contextlib
+import functools
 import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -405,6 +405,20 @@ def _validate(stack: ArrayLike, z: ArrayLike, pixel_size: float):
     return data, zs, px
 
 
+def _single_threaded_blas(func):
+    """Run ``func`` with BLAS limited to one thread (threadpoolctl)."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(limits=1, user_api="blas"):
+            return func(*args, **kwargs)
+
+    return wrapper
+
+
+@_single_threaded_blas
 def fit_pupil(
     stack: ArrayLike,
     z: ArrayLike,
@@ -476,7 +490,7 @@ def fit_pupil(
     returns the mirrored pupil). The weights are scale-free, so a normalised stack gives the
     same fit as the same stack in photons.
 
-    While it runs, BLAS is limited to one thread when ``threadpoolctl`` is installed: the fit's
+    While it runs, BLAS is limited to one thread (threadpoolctl): the fit's
     matrix products are many and mid-sized, and multithreaded OpenBLAS on a busy machine made
     it up to ten times slower (FFTs still use all cores).
 
@@ -485,50 +499,6 @@ def fit_pupil(
     >>> res = fit_pupil(stack, z, 100.0, na=1.45, wavelength=670.0)  # doctest: +SKIP
     >>> res.coefficients[(2, 2)], res.z0, res.residual_rms  # doctest: +SKIP
     """
-    with _single_threaded_blas():
-        return _fit_pupil(
-            stack,
-            z,
-            pixel_size,
-            na=na,
-            wavelength=wavelength,
-            n_immersion=n_immersion,
-            base_mask=base_mask,
-            max_order=max_order,
-            initial=initial,
-            z_range=z_range,
-            weights=weights,
-            max_iter=max_iter,
-            pupil_samples=pupil_samples,
-        )
-
-
-def _single_threaded_blas() -> contextlib.AbstractContextManager:
-    """``threadpoolctl.threadpool_limits(1, "blas")`` where available, else a no-op."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # optional: only a speed-up
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
-
-
-def _fit_pupil(
-    stack: ArrayLike,
-    z: ArrayLike,
-    pixel_size: float,
-    *,
-    na: float,
-    wavelength: float,
-    n_immersion: float = 1.518,
-    base_mask: Mask | None = None,
-    max_order: int = 6,
-    initial: Mapping[tuple[int, int], float] | None = None,
-    z_range: tuple[float, float] | None = None,
-    weights: Literal["poisson", "uniform"] = "poisson",
-    max_iter: int = 50,
-    pupil_samples: int = 64,
-) -> RetrievalResult:
-    """Body of :func:`fit_pupil`."""
     data, zs, px = _validate(stack, z, pixel_size)
     nz, rows, cols = data.shape
     if int(max_order) != max_order or max_order < 2:
