@@ -543,3 +543,22 @@ def test_pupil_fit_saved_in_the_calibration_frame(tmp_path):
         a = pupil.images(*c, z, (nr, nr), PX)[0]
         b = spline.images(*c, z, (nr, nr), PX)[0]
         assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.97
+
+
+def test_cli_calibrate_refuses_a_pixel_size_that_contradicts_the_file(tmp_path, scan):
+    tif = write_tiff(tmp_path / "beads.tif", scan["movie"][:6], pixel_size=PX)
+    out = tmp_path / "cal.h5"
+    res = invoke("calibrate", tif, "--pixel-size", 2 * PX, "--z-step", 20, "-o", out)
+    assert res.exit_code == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "metadata" in lines[0], res.stderr
+    assert f"{2 * PX:g}" in lines[0] and f"{PX:g}" in lines[0]
+    assert not out.exists()
+
+
+def test_all_beads_saturated_says_what_to_do():
+    rng = np.random.default_rng(0)
+    movie = rng.poisson(20.0, (8, 60, 60)).astype(np.uint16) + 100
+    movie[:, 28:33, 28:33] = 65535
+    with pytest.raises(ValueError, match=r"saturated.*lower the laser power"):
+        calibrate_beads(movie, PX, Z_STEP, offset=OFFSET, roi_size=15)
