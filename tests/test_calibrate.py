@@ -562,3 +562,14 @@ def test_all_beads_saturated_says_what_to_do():
     movie[:, 28:33, 28:33] = 65535
     with pytest.raises(ValueError, match=r"saturated.*lower the laser power"):
         calibrate_beads(movie, PX, Z_STEP, offset=OFFSET, roi_size=15)
+
+
+def test_localize_windows_follow_a_calibrated_psf(cal):
+    from sparseloc.cli import _window_for
+
+    px = cal.psf.pixel_size
+    window, margin = _window_for(cal.psf, px, None, None)
+    assert margin * px >= cal.psf.support_radius(px, 0.9)
+    assert window == max(11, 2 * margin + 9)
+    assert _window_for(cal.psf, px, 15, 4) == (15, 4)  # the user's choice wins
+    assert _window_for(make_psf("dh-analytic"), px, None, None) == (11, 3)
