@@ -573,3 +573,37 @@ def test_localize_windows_follow_a_calibrated_psf(cal):
     assert window == max(11, 2 * margin + 9)
     assert _window_for(cal.psf, px, 15, 4) == (15, 4)  # the user's choice wins
     assert _window_for(make_psf("dh-analytic"), px, None, None) == (11, 3)
+
+
+def test_saved_table_keeps_oversampling_and_z_range(tmp_path, cal):
+    import dataclasses
+
+    table = SplinePSF.from_model(
+        make_psf("astig-gauss"), PX, roi=15, z_step=20.0, oversample=2, z_range=(-300.0, 300.0)
+    )
+    table = SplinePSF(
+        table.stack,
+        PX,
+        table.z,
+        centre=table.centre,
+        z_range=(-200.0, 200.0),
+        normalise=False,
+        oversample=2,
+    )
+    path = save_calibration(dataclasses.replace(cal, psf=table), tmp_path / "t.h5")
+    back = load_calibration(path)
+    assert back.oversample == 2 and back.z_range == (-200.0, 200.0)
+    args = (700.0, 760.0, 50.0, (15, 15), PX)
+    np.testing.assert_array_equal(back.images(*args), table.images(*args))
+    assert back.content_hash == table.content_hash
+
+
+def test_non_finite_z_for_a_valid_frame_is_refused(tmp_path, scan):
+    z = np.arange(scan["movie"].shape[0], dtype=float) * Z_STEP
+    z[3] = np.nan
+    with pytest.raises(ValueError, match="non-finite z"):
+        calibrate_beads(scan["movie"], PX, z=z, offset=OFFSET)
+    path = tmp_path / "z.csv"
+    path.write_text("\n".join(["1,0.0", "1,0.02", "1,0.04"]))
+    with pytest.raises(ValueError, match="no header"):
+        read_z_file(path)

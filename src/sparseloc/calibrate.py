@@ -138,8 +138,19 @@ def read_z_file(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.bool_
             raise ValueError(
                 f"z file {p.name} needs a z_um or z_nm column (or one column of nm)"
             ) from exc
+        if z.ndim != 1:
+            raise ValueError(
+                f"z file {p.name} has {z.shape[1]} columns but no header; name them "
+                "(z_um or z_nm, and valid)"
+            )
+        if not np.all(np.isfinite(z)):
+            raise ValueError(f"z file {p.name} holds non-numeric or missing z values")
         return z, np.ones(z.size, bool)
-    valid = df[cols["valid"]].to_numpy() != 0 if "valid" in cols else np.ones(z.size, dtype=bool)
+    if "valid" in cols:
+        flags = pd.to_numeric(df[cols["valid"]], errors="coerce").to_numpy(dtype=float)
+        valid = np.nan_to_num(flags, nan=0.0) != 0  # missing or unreadable: not valid
+    else:
+        valid = np.ones(z.size, dtype=bool)
     for key in ("frame_0based", "frame"):
         if key in cols:
             order = np.argsort(df[cols[key]].to_numpy(), kind="stable")
@@ -408,6 +419,8 @@ def calibrate_beads(
         if zf.size != n or vf.size != n:
             raise ValueError(f"the z file lists {zf.size} frames but the stack has {n}")
         keep = np.nonzero(vf)[0]
+        if not np.all(np.isfinite(zf[keep])):
+            raise ValueError("the z file holds missing or non-finite z for frames marked valid")
         if keep.size < 4:
             raise ValueError("fewer than 4 frames are marked valid in the z file")
         zk = zf[keep]

@@ -216,6 +216,8 @@ def _window_for(model, pixel_size: float, window: int | None, margin: int | None
             margin = int(np.ceil(model.support_radius(pixel_size, 0.9) / pixel_size))
         else:
             margin = 3
+        if window is not None:  # a window the user chose keeps a core of at least 1 px
+            margin = min(margin, (int(window) - 1) // 2)
     if window is None:
         window = max(11, 2 * margin + 9) if isinstance(model, SplinePSF) else 11
     return int(window), int(margin)
@@ -345,9 +347,6 @@ def localize(
                 f"the offset ({opts['offset']:g} ADU) is not below the median pixel value "
                 f"({float(np.median(first)):g} ADU) of the first frame; check --offset"
             )
-        window_px, margin_px = _window_for(
-            model, opts["pixel_size"], opts["window"], opts["margin"]
-        )
         window_px, margin_px = _window_for(
             model, opts["pixel_size"], opts["window"], opts["margin"]
         )
@@ -489,7 +488,11 @@ def calibrate(
         pupil_options=pupil_options,
     )
     _run(save_calibration, cal, out, model=model)
-    _run(plot_calibration, cal, fig_path)
+    try:
+        _run(plot_calibration, cal, fig_path)
+    except BaseException:
+        out.unlink(missing_ok=True)  # no calibration without its figure
+        raise
     nz, nr, nc = cal.average.shape
     typer.echo(
         f"{cal.n_used} of {len(cal.beads)} beads used; {nz} planes z "

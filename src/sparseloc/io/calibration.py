@@ -97,6 +97,7 @@ def save_calibration(cal: Any, path: str | Path, *, model: str = "spline") -> Pa
         g.create_dataset("stack", data=psf.stack, compression="gzip")
         g.create_dataset("z", data=psf.z)
         g.attrs["centre_row"], g.attrs["centre_col"] = psf.centre
+        g.attrs["oversample"] = int(getattr(psf, "oversample", 1))
         b = f.create_group("beads")
         for col in cal.beads.columns:
             values = cal.beads[col].to_numpy()
@@ -178,12 +179,20 @@ def load_calibration(path: str | Path, model: str | None = None):
     SplinePSF or ShiftedPSF (a PupilPSF in the calibration's frame)
         With attributes ``pixel_size`` (nm) and ``content_hash``.
     """
+
+    p = Path(path)
+    try:
+        return _load(p, model)
+    except KeyError as exc:
+        raise ValueError(f"{p.name} is an incomplete calibration file (missing {exc})") from exc
+
+
+def _load(p: Path, model: str | None):
     from ..psf.base import ShiftedPSF
     from ..psf.masks import ArrayMask
     from ..psf.pupil import PupilPSF
     from ..psf.spline import SplinePSF
 
-    p = Path(path)
     with _open(p) as f:
         version = int(f.attrs.get("format_version", 0))
         if version > FORMAT_VERSION:
@@ -200,8 +209,10 @@ def load_calibration(path: str | Path, model: str | None = None):
                 px,
                 g["z"][()],
                 centre=(float(g.attrs["centre_row"]), float(g.attrs["centre_col"])),
+                z_range=(float(f.attrs["z_min_nm"]), float(f.attrs["z_max_nm"])),
                 name=name,
                 normalise=False,
+                oversample=int(g.attrs.get("oversample", 1)),
             )
             return out
         if kind == "pupil":

@@ -238,6 +238,7 @@ class SplinePSF(PSFBase):
         h.update(np.ascontiguousarray(self.stack, dtype="<f8").tobytes())
         h.update(np.ascontiguousarray(self.z, dtype="<f8").tobytes())
         h.update(np.float64(self.pixel_size).tobytes())
+        h.update(np.array([*self.centre, self.oversample], dtype="<f8").tobytes())
         return h.hexdigest()[:16]
 
     def _check_pixel(self, pixel_size: float) -> None:
