@@ -451,6 +451,9 @@ def plot_calibration(cal, path: str | Path, *, n_planes: int = 7) -> Path:
         x0 = (psf.centre[1] + 0.5) * p
         y0 = (psf.centre[0] + 0.5) * p
         mod = psf.images(np.full(idx.size, x0), np.full(idx.size, y0), zs_mod, (nr, nc), p)
+    # With a fitted pupil the third row is the fit's residual; without one it shows how much
+    # the PSF changes over half a z step (what the spline interpolates across).
+    res_label = "residual" if cal.pupil is not None else "change over\nhalf a step"
     fig = Figure(figsize=(2.0 * n_planes, 12.5))
     grid = fig.add_gridspec(5, n_planes, height_ratios=[2.6, 1, 1, 1, 1.4])
     ax = fig.add_subplot(grid[0, :])
@@ -483,7 +486,7 @@ def plot_calibration(cal, path: str | Path, *, n_planes: int = 7) -> Path:
                 ),
                 (
                     avg[j] - mod[j],
-                    "residual",
+                    res_label,
                     {"vmin": -res_lim, "vmax": res_lim, "cmap": "RdBu_r"},
                 ),
             )
