@@ -320,12 +320,6 @@ def localize(
         opts["pixel_size"] = float(cal_px)
     if opts["pixel_size"] is None:
         _fail("give the pixel size in sample space with --pixel-size NM")
-    if cal_px is not None and abs(float(cal_px) - opts["pixel_size"]) > 1e-3 * float(cal_px):
-        _fail(
-            f"the PSF calibration {opts['psf']} was made at {float(cal_px):g} nm pixels but "
-            f"--pixel-size is {opts['pixel_size']:g} nm; pass the matching pixel size or "
-            "recalibrate"
-        )
     mov = _run(Movie.open, [str(p) for p in movie] if len(movie) > 1 else str(movie[0]))
     with mov:
         if mov.pixel_size and abs(mov.pixel_size - opts["pixel_size"]) > 0.01 * opts["pixel_size"]:
@@ -347,8 +341,8 @@ def localize(
                 f"the offset ({opts['offset']:g} ADU) is not below the median pixel value "
                 f"({float(np.median(first)):g} ADU) of the first frame; check --offset"
             )
-        window_px, margin_px = _window_for(
-            model, opts["pixel_size"], opts["window"], opts["margin"]
+        window_px, margin_px = _run(
+            _window_for, model, opts["pixel_size"], opts["window"], opts["margin"]
         )
         lo, hi = model.z_range
         zr = (

@@ -147,6 +147,18 @@ def as_emitters(
     return tuple(np.ascontiguousarray(a) for a in arrays)
 
 
+def energy_radius(images: NDArray[np.float64], r: NDArray[np.float64], fraction: float) -> float:
+    """Largest radius over ``images`` (K, rows, cols) holding ``fraction`` of each image's
+    (positive) energy; ``r`` gives each pixel's distance from the emitter, flattened."""
+    order = np.argsort(r)
+    radius = 0.0
+    for img in images:
+        cum = np.cumsum(np.clip(img.ravel()[order], 0, None))
+        idx = int(np.searchsorted(cum, fraction * cum[-1]))
+        radius = max(radius, float(r[order[min(idx, r.size - 1)]]))
+    return radius
+
+
 def pixel_centres(n: int, pixel_size: float, origin: float = 0.0) -> NDArray[np.float64]:
     """Centres (nm) of ``n`` pixels of size ``pixel_size`` starting at ``origin``."""
     return origin + (np.arange(n, dtype=np.float64) + 0.5) * pixel_size
@@ -298,13 +310,7 @@ class PSFBase:
             imgs = self.images(np.full(9, half), np.full(9, half), zs, (n, n), step)
             c = pixel_centres(n, step) - half
             r = np.hypot(c[None, :], c[:, None]).ravel()
-            order = np.argsort(r)
-            radius = 0.0
-            for img in imgs:
-                cum = np.cumsum(img.ravel()[order])
-                idx = int(np.searchsorted(cum, fraction * cum[-1]))
-                radius = max(radius, float(r[order[min(idx, len(r) - 1)]]))
-            cache[key] = radius + px
+            cache[key] = energy_radius(imgs, r, fraction) + px
         return cache[key]
 
 

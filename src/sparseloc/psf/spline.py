@@ -23,7 +23,7 @@ import hashlib
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .base import PSFBase, check_pixel_size, pixel_centres
+from .base import PSFBase, check_pixel_size, energy_radius, pixel_centres
 
 __all__ = ["SplinePSF", "bspline_weights"]
 
@@ -329,10 +329,4 @@ class SplinePSF(PSFBase):
         rr = (np.arange(nr) - self.centre[0])[:, None]
         cc = (np.arange(nc) - self.centre[1])[None, :]
         r = np.hypot(rr, cc).ravel() * px / self.oversample
-        order = np.argsort(r)
-        radius = 0.0
-        for img in planes:
-            cum = np.cumsum(np.clip(img.ravel()[order], 0, None))
-            idx = int(np.searchsorted(cum, fraction * cum[-1]))
-            radius = max(radius, float(r[order[min(idx, r.size - 1)]]))
-        return radius + px
+        return energy_radius(planes, r, fraction) + px
