@@ -34,13 +34,14 @@ from .io.tables import LOCS_COLUMNS, empty_locs
 from .psf.base import PSFModel
 from .psf.spline import SplinePSF
 from .solvers import WindowSolution, convex_solve, hybrid_solve, matching_pursuit
+from .solvers.frame import FrameFit, frame_fit, frame_pursuit, frame_templates
 from .solvers.refine import refine_solution
 
 log = logging.getLogger(__name__)
 
 __all__ = ["LocalizeParams", "LocalizeResult", "localize", "psf_hash"]
 
-METHODS = ("hybrid", "mp", "co")
+METHODS = ("frame", "hybrid", "mp", "co")
 
 
 @dataclass(frozen=True)
@@ -51,8 +52,11 @@ class LocalizeParams:
     ----------
     pixel_size : float
         Pixel size in sample space (nm).
-    method : {"hybrid", "mp", "co"}
-        Window solver.
+    method : {"frame", "hybrid", "mp", "co"}
+        ``frame``: pursuit over the whole frame, then maximum-likelihood fits of groups of
+        overlapping emitters with their neighbours' light held fixed
+        (:mod:`sparseloc.solvers.frame`). The others solve fixed windows (tiles) with the
+        paper's hybrid MP+CO, matching pursuit or convex recovery.
     refine : bool
         Maximum-likelihood stage with count selection (part of ``hybrid``; applied after
         ``mp`` and ``co`` too).
@@ -66,7 +70,7 @@ class LocalizeParams:
         grid, 20 nm with ``refine`` (the fit goes beyond the grid) or the paper's 10 nm
         without; axial steps 120 and 30 (or 15) nm.
     threshold : float
-        Candidate signal-to-noise threshold.
+        Candidate signal-to-noise threshold (``frame``: of a new emitter in the pursuit).
     background_frames : int
         Frames in the sliding block of the temporal background.
     background_percentile : float
@@ -202,6 +206,72 @@ class _Solver:
         return sol
 
 
+class _FrameSolver:
+    """Templates and FFTs built once per frame shape; solves one whole frame."""
+
+    def __init__(self, model: PSFModel, params: LocalizeParams, shape: tuple[int, int]) -> None:
+        from .solvers.frame import _Correlator
+
+        self.model = model
+        self.p = params
+        zr = params.z_range or model.z_range
+        self.templates = frame_templates(
+            model, params.pixel_size, dxy=params.coarse[0], dz=params.coarse[1], z_range=zr
+        )
+        self.correlator = _Correlator(self.templates, shape)
+        r50 = self.templates.core_radius
+        # Groups: emitters closer than the radius holding half the light (broadest plane) are
+        # fitted together, in a window reaching 0.6 of it beyond them. On dense double-helix
+        # frames (r50 10.6 px) groups at 8 px with 6 px pads gave Jaccard 74 %, 12 px / 8 px
+        # 70 %, 5 px / 5 px 42 %.
+        self.group_distance = r50 * params.pixel_size
+        self.pad = int(np.ceil(0.6 * r50))
+        self.reach = 0.5 * self.templates.images.shape[-1] * params.pixel_size
+
+    def __call__(self, frame: NDArray, background: NDArray) -> FrameFit:
+        p = self.p
+        start = frame_pursuit(
+            frame,
+            background,
+            self.templates,
+            threshold=p.threshold,
+            correlator=self.correlator,
+        )
+        return frame_fit(
+            frame,
+            self.model,
+            start,
+            pixel_size=p.pixel_size,
+            background=background,
+            group_distance=self.group_distance,
+            pad=self.pad,
+            reach=self.reach,
+            count_selection=p.refine,
+            max_emitters=p.max_emitters,
+            noise=p.noise,
+        )
+
+
+def _frame_rows(fit: FrameFit, frame: int, id0: int) -> dict:
+    e = fit.emitters
+    k = len(e)
+    return {
+        "frame": np.full(k, frame, dtype=np.int64),
+        "x_nm": e.x,
+        "y_nm": e.y,
+        "z_nm": e.z,
+        "photons": e.photons,
+        "background": fit.background,
+        "sigma_x_nm": fit.sigma[:, 0],
+        "sigma_y_nm": fit.sigma[:, 1],
+        "sigma_z_nm": fit.sigma[:, 2],
+        "sigma_photons": fit.sigma[:, 3],
+        "gof": fit.gof,
+        "flag": fit.flags.astype(object),
+        "window_id": id0 + fit.group,
+    }
+
+
 def _rows(sol: WindowSolution, tile: Tile, frame: int, window_id: int, px: float) -> dict:
     e = sol.emitters
     k = len(e)
@@ -280,8 +350,13 @@ def localize(
         # Every window renders the model thousands of times; a spline table of it renders
         # ~50x faster than a pupil model at the same precision (RMSE / CRLB 0.94-0.99, bias
         # < 1 nm on isolated double-helix emitters; see SplinePSF.from_model).
-        work_model = SplinePSF.from_model(model, p.pixel_size, roi=2 * p.window + 3, z_step=10.0)
-    solver = _Solver(work_model, p)
+        # The frame solver's templates reach 20 px from the emitter (frame_templates).
+        roi = 45 if p.method == "frame" else 2 * p.window + 3
+        work_model = SplinePSF.from_model(model, p.pixel_size, roi=roi, z_step=10.0)
+    if p.method == "frame":
+        solver = _FrameSolver(work_model, p, shape)
+    else:
+        solver = _Solver(work_model, p)
     zr = p.z_range or model.z_range
     tsize = min(2 * p.window + 1, 2 * (min(shape) // 2) - 1)
     template = z_averaged_psf(work_model, p.pixel_size, zr, tsize)
@@ -304,6 +379,14 @@ def localize(
             else:
                 bg = spatial_background(chunk[i])
             frame = chunk[i]
+            if p.method == "frame":
+                fit = solver(frame, bg)
+                # window ids: one per group, unique over the movie (at most 10^4 per frame)
+                parts.append(_frame_rows(fit, f, f * 10_000))
+                n_windows += int(np.unique(fit.group).size)
+                if progress is not None:
+                    progress(1)
+                continue
             cand = detect_candidates(frame, bg, template, threshold=p.threshold)
             for tile in _tiles_to_solve(tiling, cand, p.margin):
                 y = frame[tile.row0 : tile.row0 + p.window, tile.col0 : tile.col0 + p.window]

@@ -27,6 +27,7 @@ from .base import PSFBase, check_pixel_size, energy_radius, pixel_centres
 
 __all__ = ["SplinePSF", "bspline_weights"]
 
+_Z_EXTRA = 3  # planes tabulated beyond a model's z range (see SplinePSF.from_model)
 _PAD = 3  # zero pixels around the stack so the spline falls smoothly to zero at the ROI edge
 
 
@@ -208,13 +209,27 @@ class SplinePSF(PSFBase):
         lo, hi = model.z_range if z_range is None else z_range
         n = max(4, int(np.ceil((hi - lo) / z_step)) + 1)
         zs = np.linspace(lo, hi, n)
+        # The spline's z boundary mirrors the end planes, which zeroes d/dz at the range's ends
+        # (and is 27 % off one plane in): a fit starting there cannot move. Models that render
+        # beyond their range (all of this package's) get _Z_EXTRA planes more at each end.
+        render = model.images
+        if isinstance(model, PSFBase) and not isinstance(model, SplinePSF):
+            dz = zs[1] - zs[0]
+            zs = np.concatenate(
+                [lo - dz * np.arange(_Z_EXTRA, 0, -1), zs, hi + dz * np.arange(1, _Z_EXTRA + 1)]
+            )
+            n = zs.size
+
+            def render(x, y, z, shape, pixel_size):
+                return model._images(x, y, z, shape, pixel_size, (0.0, 0.0), False)
+
         roi = int(roi) | 1
         s = int(oversample)
         c = roi * px / 2.0  # the centre of pixel roi // 2
         stack = np.empty((n, roi * s, roi * s))
         for a in range(s):  # x phase: the emitter moves left by a/s px, offsets grow by a/s
             for b in range(s):
-                img = model.images(
+                img = render(
                     np.full(n, c - a * px / s), np.full(n, c - b * px / s), zs, (roi, roi), px
                 )
                 stack[:, b::s, a::s] = img
@@ -224,6 +239,7 @@ class SplinePSF(PSFBase):
             px,
             zs,
             centre=centre,
+            z_range=(lo, hi),
             name=f"{getattr(model, 'name', 'psf')}",
             normalise=False,
             oversample=s,

@@ -112,7 +112,9 @@ class FitResult:
 class _Problem:
     """The window, the PSF and the noise model: likelihood, gradient and Fisher matrix."""
 
-    def __init__(self, y, model, pixel_size, origin, noise, read_variance, plane, xy_margin):
+    def __init__(
+        self, y, model, pixel_size, origin, noise, read_variance, plane, xy_margin, offset=None
+    ):
         if noise not in NOISE_MODELS:
             raise ValueError(f"noise must be one of {', '.join(NOISE_MODELS)}; got {noise!r}")
         self.y = y
@@ -132,6 +134,8 @@ class _Problem:
                 raise ValueError("read_variance is only used with noise='scmos'")
             self.v = np.zeros(y.shape)
         self.yv = y + self.v
+        # Known light that is not fitted (neighbours' emitters fitted elsewhere), photons/pixel.
+        self.offset = 0.0 if offset is None else np.broadcast_to(np.asarray(offset, float), y.shape)
         rows, cols = y.shape
         self.plane = plane
         self.n_bg = 3 if plane else 1
@@ -166,7 +170,7 @@ class _Problem:
 
     def mu(self, theta):
         em, b = self.split(theta)
-        img = self.background(b)
+        img = self.background(b) + self.offset
         if len(em):
             img = img + self.model.render(
                 em[:, 0], em[:, 1], em[:, 2], em[:, 3], self.shape, self.px, origin=self.origin
@@ -225,6 +229,7 @@ def fit_emitters(
     max_iter: int = 60,
     tol: float = 1e-6,
     xy_margin: float = 1.0,
+    offset: ArrayLike | None = None,
 ) -> FitResult:
     """Maximum-likelihood fit of K emitters plus a background in one window.
 
@@ -254,6 +259,9 @@ def fit_emitters(
         Stop when the relative decrease of ``-log L`` is below this.
     xy_margin : float
         How far (pixels) an emitter may leave the window.
+    offset : float or ndarray, shape (rows, cols), optional
+        Known expected light (photons/pixel) added to the model and not fitted, such as the
+        images of neighbouring emitters fitted in other windows.
 
     Returns
     -------
@@ -264,12 +272,10 @@ def fit_emitters(
         raise ValueError("fit_emitters takes one window (rows, cols)")
     if np.any(y < -1e-9) and noise != "scmos":
         raise ValueError("the window has negative photon counts; convert ADU to photons first")
-    prob = _Problem(y, model, pixel_size, origin, noise, read_variance, plane, xy_margin)
+    prob = _Problem(y, model, pixel_size, origin, noise, read_variance, plane, xy_margin, offset)
     em0 = emitters.as_array()
     if background is None:
-        resid = y - (
-            prob.mu(np.concatenate([em0.ravel(), np.zeros(prob.n_bg)])) if len(em0) else 0.0
-        )
+        resid = y - prob.mu(np.concatenate([em0.ravel(), np.zeros(prob.n_bg)]))
         background = float(max(np.median(resid), 1.0))
     b0 = np.zeros(prob.n_bg)
     b0[0] = background

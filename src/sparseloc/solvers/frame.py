@@ -1,0 +1,474 @@
+"""Whole-frame solver: greedy pursuit over the frame, then maximum-likelihood fits by groups.
+
+Fixed windows see only part of the scene: an engineered PSF spreads a molecule's light over
+tens of pixels, so a window holds pieces of its neighbours' images that its dictionary cannot
+explain, and the solver answers them with ghost emitters at its edges. Here the whole frame is
+one model:
+
+1. **Pursuit** (:func:`frame_pursuit`): matching pursuit over the frame with a dictionary of
+   shifted templates (sub-pixel phases x z planes), in cycles. Each cycle correlates the
+   residual with every template through one FFT per template (the dictionary's shift
+   invariance: all atoms of a template are one convolution), keeps the strongest significant
+   peaks that are far enough apart not to be pieces of one another, then refits all the
+   amplitudes jointly (non-negative least squares) and updates the residual.
+2. **Fit** (:func:`frame_fit`): emitters closer than ``group_distance`` form a group; each group
+   gets a window around it and a maximum-likelihood fit with count selection
+   (:func:`~sparseloc.solvers.refine.fit_with_count_selection`) in which the light of all other
+   emitters of the frame is a known offset. Groups are visited three times (Gauss-Seidel), each
+   time with the neighbours' latest fitted images: on dense double-helix frames one sweep gave
+   Jaccard 51 %, two 61-63 %, three 74 %.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import fft as sfft
+from scipy import ndimage as ndi
+from scipy.optimize import nnls
+
+from ..psf.base import PSFModel, energy_radius
+from .emitters import Emitters
+from .refine import fit_emitters, fit_with_count_selection
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "ADD_THRESHOLD",
+    "FrameFit",
+    "FrameTemplates",
+    "frame_fit",
+    "frame_pursuit",
+    "frame_templates",
+]
+
+
+#: Likelihood-ratio threshold of the count selection in a frame. The chi-square argument of
+#: :data:`~sparseloc.solvers.refine.LR_THRESHOLD` (18.47) holds for an exact model; here each
+#: group's model includes its neighbours' fitted images, whose errors leave structured residuals
+#: that the test reads as one more emitter. On simulated double-helix frames at 1 /um^2
+#: (4 frames, 160 emitters) 18.47 gave precision 0.71 at recall 0.85 and 40 gave 0.84-0.88 at
+#: recall 0.79-0.84 (Jaccard 63 -> 69-74 %); 80 lost recall (0.72).
+ADD_THRESHOLD = 40.0
+
+
+@dataclass(frozen=True)
+class FrameTemplates:
+    """Unit-photon images of one emitter per (sub-pixel phase, z plane).
+
+    Attributes
+    ----------
+    images : ndarray, shape (J, T, T)
+        Emitter near the centre of pixel (T // 2, T // 2), offset by ``(dx, dy)``.
+    dx, dy : ndarray, shape (J,)
+        Offsets (nm) from that pixel's centre.
+    z : ndarray, shape (J,)
+        Axial positions (nm).
+    pixel_size : float
+        Pixel size (nm).
+    core_radius : float
+        Radius (pixels) holding half of the light of the broadest plane: peaks closer than
+        twice this are not accepted in the same pursuit cycle.
+    """
+
+    images: NDArray[np.float64]
+    dx: NDArray[np.float64]
+    dy: NDArray[np.float64]
+    z: NDArray[np.float64]
+    pixel_size: float
+    core_radius: float
+
+
+def frame_templates(
+    model: PSFModel,
+    pixel_size: float,
+    *,
+    dxy: float,
+    dz: float,
+    z_range: tuple[float, float] | None = None,
+    size: int | None = None,
+) -> FrameTemplates:
+    """Templates of the pursuit: ``pixel_size / dxy`` phases per axis times the z planes.
+
+    Parameters
+    ----------
+    model : PSFModel
+        The PSF model.
+    pixel_size : float
+        Pixel size (nm).
+    dxy, dz : float
+        Lateral step (nm, must divide the pixel) and axial step (nm).
+    z_range : (float, float), optional
+        Axial range (nm); default the model's.
+    size : int, optional
+        Template side (pixels, odd); default twice the radius holding 90 % of the light
+        plus one, at most 41.
+    """
+    px = float(pixel_size)
+    phases = round(px / dxy)
+    if phases < 1 or abs(phases * dxy - px) > 1e-6 * px:
+        raise ValueError(f"the lateral step {dxy} nm must divide the pixel ({px} nm)")
+    if dz <= 0:
+        raise ValueError(f"the axial step must be > 0 nm, got {dz}")
+    lo, hi = model.z_range if z_range is None else z_range
+    zs = np.linspace(lo, hi, int(np.ceil((hi - lo) / dz - 1e-9)) + 1)
+    probe = 61
+    c = probe * px / 2
+    imgs = model.images(np.full(zs.size, c), np.full(zs.size, c), zs, (probe, probe), px)
+    rr = np.hypot(*np.meshgrid(np.arange(probe) - probe // 2, np.arange(probe) - probe // 2))
+    if size is None:
+        size = int(min(2 * np.ceil(energy_radius(imgs, rr.ravel(), 0.9)) + 1, 41))
+    if size < 3 or size % 2 == 0:
+        raise ValueError(f"template size must be odd and >= 3, got {size}")
+    r50 = energy_radius(imgs, rr.ravel(), 0.5)
+    offs = ((np.arange(phases) + 0.5) / phases - 0.5) * px
+    dx, dy, zz = (a.ravel() for a in np.meshgrid(offs, offs, zs, indexing="ij"))
+    centre = (size // 2 + 0.5) * px
+    images = model.images(centre + dx, centre + dy, zz, (size, size), px)
+    return FrameTemplates(images, dx, dy, zz, px, float(r50))
+
+
+class _Correlator:
+    """FFT correlation of one frame shape with every template (and its square)."""
+
+    def __init__(self, templates: FrameTemplates, shape: tuple[int, int]) -> None:
+        t = templates.images
+        self.h = t.shape[-1] // 2
+        self.shape = shape
+        self.fshape = tuple(sfft.next_fast_len(n + t.shape[-1] - 1, real=True) for n in shape)
+        flipped = t[:, ::-1, ::-1]
+        self.ft = sfft.rfft2(flipped, s=self.fshape)
+        self.ft2 = sfft.rfft2(flipped**2, s=self.fshape)
+        self.norm2 = self.correlate(np.ones(shape), squared=True)
+
+    def correlate(self, img: NDArray, squared: bool = False) -> NDArray[np.float64]:
+        """(J, rows, cols): sum over the template of ``img`` times the template (or its
+        square), the template centred on each pixel; pixels outside the frame count zero."""
+        f = sfft.rfft2(img, s=self.fshape)
+        full = sfft.irfft2(f[None] * (self.ft2 if squared else self.ft), s=self.fshape)
+        h, (rows, cols) = self.h, self.shape
+        return full[:, h : h + rows, h : h + cols]
+
+
+def _place(templates: FrameTemplates, atoms: list[tuple[int, int, int]], shape) -> NDArray:
+    """(pixels, K) matrix whose columns are the atoms' images in the frame."""
+    rows, cols = shape
+    h = templates.images.shape[-1] // 2
+    a = np.zeros((rows * cols, len(atoms)))
+    for k, (j, r, c) in enumerate(atoms):
+        img = np.zeros(shape)
+        r0, r1 = max(r - h, 0), min(r + h + 1, rows)
+        c0, c1 = max(c - h, 0), min(c + h + 1, cols)
+        img[r0:r1, c0:c1] = templates.images[j, r0 - r + h : r1 - r + h, c0 - c + h : c1 - c + h]
+        a[:, k] = img.ravel()
+    return a
+
+
+def frame_pursuit(
+    frame: NDArray,
+    background: NDArray | float,
+    templates: FrameTemplates,
+    *,
+    threshold: float = 5.0,
+    min_photons: float = 100.0,
+    max_cycles: int = 10,
+    max_emitters: int | None = None,
+    per_cycle: int | None = None,
+    exclusion: float | None = None,
+    correlator: _Correlator | None = None,
+) -> Emitters:
+    """Emitters of one frame by matching pursuit over the whole frame.
+
+    Parameters
+    ----------
+    frame : ndarray, shape (rows, cols)
+        One frame in photons.
+    background : ndarray or float
+        Background (photons/pixel), a map or a constant.
+    templates : FrameTemplates
+        The pursuit's dictionary (see :func:`frame_templates`).
+    threshold : float
+        A new emitter's correlation must exceed ``threshold`` times its Poisson standard
+        deviation.
+    min_photons : float
+        Smallest amplitude (photons) of a new emitter.
+    max_cycles : int
+        Cap on correlate-select-refit cycles.
+    max_emitters : int, optional
+        Cap on the count (default: one per 16 pixels).
+    correlator : optional
+        A correlator built for this frame shape and templates (reused across frames).
+
+    Returns
+    -------
+    Emitters
+        Positions (nm, frame coordinates: pixel (0, 0) spans 0..pixel_size) on the pursuit's
+        grid, and photons.
+    """
+    f = np.asarray(frame, dtype=np.float64)
+    if f.ndim != 2:
+        raise ValueError(f"frame must be 2-D, got shape {f.shape}")
+    bg = np.broadcast_to(np.asarray(background, dtype=np.float64), f.shape)
+    cor = correlator or _Correlator(templates, f.shape)
+    if cor.shape != f.shape:
+        raise ValueError(f"the correlator was built for {cor.shape}, not {f.shape}")
+    rows, cols = f.shape
+    cap = max_emitters or max(1, rows * cols // 16)
+    y = f - bg
+    atoms: list[tuple[int, int, int]] = []
+    amps = np.zeros(0)
+    model = np.zeros_like(y)
+    excl = max(2.0, 2.0 * templates.core_radius) if exclusion is None else exclusion
+    per_cycle = per_cycle or cap
+    for _ in range(max_cycles):
+        corr = cor.correlate(y - model)
+        var = cor.correlate(np.maximum(bg + model, 1e-3), squared=True)
+        score = corr / np.sqrt(np.maximum(cor.norm2, 1e-12))
+        jb = np.argmax(score, axis=0)
+        sb, cb, nb, vb = (
+            np.take_along_axis(a, jb[None], 0)[0] for a in (score, corr, cor.norm2, var)
+        )
+        ok = (cb / np.sqrt(np.maximum(vb, 1e-12)) > threshold) & (cb / nb > min_photons)
+        peaks = ok & (ndi.maximum_filter(sb, size=3, mode="constant", cval=-np.inf) == sb)
+        rc = np.argwhere(peaks)
+        if len(rc) == 0:
+            break
+        order = np.argsort(-sb[peaks])
+        new: list[tuple[int, int, int]] = []
+        for r, c in rc[order]:
+            if len(atoms) + len(new) >= cap or len(new) >= per_cycle:
+                break
+            if any((r - r2) ** 2 + (c - c2) ** 2 < excl**2 for _, r2, c2 in new):
+                continue
+            new.append((int(jb[r, c]), int(r), int(c)))
+        if not new:
+            break
+        atoms += new
+        a = _place(templates, atoms, f.shape)
+        amps, _ = nnls(a, y.ravel(), maxiter=50 * len(atoms))
+        keep = amps > 0.5 * min_photons
+        atoms = [at for at, k in zip(atoms, keep, strict=True) if k]
+        amps = amps[keep]
+        model = (a[:, keep] @ amps).reshape(f.shape) if len(atoms) else np.zeros_like(y)
+        if len(atoms) >= cap:
+            break
+    if not atoms:
+        return Emitters.empty()
+    j, r, c = (np.array(v) for v in zip(*atoms, strict=True))
+    px = templates.pixel_size
+    return Emitters(
+        (c + 0.5) * px + templates.dx[j],
+        (r + 0.5) * px + templates.dy[j],
+        templates.z[j].astype(np.float64),
+        amps.astype(np.float64),
+    )
+
+
+@dataclass
+class FrameFit:
+    """The emitters of one frame after :func:`frame_fit`, with per-emitter fit results.
+
+    Attributes
+    ----------
+    emitters : Emitters
+    sigma : ndarray, shape (K, 4)
+        CRLB standard errors of x, y, z (nm) and photons.
+    background : ndarray, shape (K,)
+        Fitted background of each emitter's group (photons/pixel).
+    gof : ndarray, shape (K,)
+        Deviance per degree of freedom of each emitter's group window.
+    flags : ndarray of str, shape (K,)
+    group : ndarray of int, shape (K,)
+        Group index (one window per group).
+    """
+
+    emitters: Emitters
+    sigma: NDArray[np.float64]
+    background: NDArray[np.float64]
+    gof: NDArray[np.float64]
+    flags: NDArray[np.str_]
+    group: NDArray[np.int64]
+
+
+def _groups(xy: NDArray, distance: float) -> list[NDArray[np.intp]]:
+    """Connected components of points closer than ``distance``."""
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    if len(xy) == 0:
+        return []
+    pairs = cKDTree(xy).query_pairs(distance, output_type="ndarray")
+    from scipy.sparse import coo_matrix
+
+    n = len(xy)
+    adj = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(adj, directed=False)
+    return [np.flatnonzero(labels == k) for k in range(labels.max() + 1)]
+
+
+def _try_z_flips(y, model, fit, kw, fraction):
+    """Refit from the other end of the z range each emitter near an end; keep what fits best."""
+    lo, hi = model.z_range
+    span = hi - lo
+    arr = fit.emitters.as_array().reshape(-1, 4)
+    for k in range(len(arr)):
+        zk = arr[k, 2]
+        if min(zk - lo, hi - zk) > fraction * span:
+            continue
+        alt = fit.emitters.as_array().reshape(-1, 4).copy()
+        alt[k, 2] = np.clip(zk - span if zk > (lo + hi) / 2 else zk + span, lo, hi)
+        trial = fit_emitters(y, model, Emitters.from_array(alt), **kw)
+        if trial.log_likelihood > fit.log_likelihood and len(trial.emitters) == len(arr):
+            trial.history = [*fit.history, f"z flip of emitter {k}"]
+            fit = trial
+    return fit
+
+
+def frame_fit(
+    frame: NDArray,
+    model: PSFModel,
+    emitters: Emitters,
+    *,
+    pixel_size: float,
+    background: NDArray | float,
+    group_distance: float,
+    pad: int,
+    reach: float,
+    sweeps: int = 3,
+    count_selection: bool = True,
+    threshold: float = ADD_THRESHOLD,
+    min_photons: float = 200.0,
+    max_emitters: int = 10,
+    z_flip: float = 0.15,
+    **fit_kwargs,
+) -> FrameFit:
+    """Maximum-likelihood fit of a frame's emitters, group by group.
+
+    Parameters
+    ----------
+    frame : ndarray, shape (rows, cols)
+        One frame in photons.
+    model : PSFModel
+        The continuous PSF model.
+    emitters : Emitters
+        Starting emitters (frame coordinates, nm), e.g. from :func:`frame_pursuit`.
+    pixel_size : float
+        Pixel size (nm).
+    background : ndarray or float
+        Background map or constant (photons/pixel): the start of each group's fitted constant.
+    group_distance : float
+        Emitters closer than this (nm, laterally) are fitted together.
+    pad : int
+        Pixels around a group's emitters in its window.
+    reach : float
+        Emitters farther than this (nm) from a window are left out of its offset.
+    sweeps : int
+        Passes over the groups.
+    count_selection, threshold, min_photons, max_emitters
+        Count selection in each group (see :func:`fit_with_count_selection`); the default
+        threshold is :data:`ADD_THRESHOLD`. A group may always grow by two emitters.
+    z_flip : float
+        Emitters fitted within this fraction of the z range from either end are refitted
+        from the other end, and the better likelihood is kept: a double helix that turns by
+        half a revolution over its range looks alike at both ends, and the fit cannot cross
+        from one to the other. 0 disables.
+    **fit_kwargs
+        ``noise``, ``read_variance`` (a map is cropped to each window), ``plane``.
+
+    Returns
+    -------
+    FrameFit
+        Emitters inside the frame.
+    """
+    f = np.asarray(frame, dtype=np.float64)
+    rows, cols = f.shape
+    px = float(pixel_size)
+    bg = np.broadcast_to(np.asarray(background, dtype=np.float64), f.shape)
+    rv = fit_kwargs.pop("read_variance", None)
+    em = emitters.as_array().reshape(-1, 4)
+    info: list[tuple] = [(np.full(4, np.nan), np.nan, np.nan, "ok", -1)] * len(em)
+    for _ in range(max(sweeps, 1)):
+        if len(em) == 0:
+            break
+        groups = _groups(em[:, :2], group_distance)
+        # brightest groups first: their light is the largest offset for the others
+        groups.sort(key=lambda g: -em[g, 3].sum())
+        new_em: list[NDArray] = []
+        new_info: list[tuple] = []
+        done = np.zeros(len(em), bool)
+        for gi, g in enumerate(groups):
+            pr = em[g, 1] / px
+            pc = em[g, 0] / px
+            r0 = int(np.clip(np.floor(pr.min()) - pad, 0, rows - 1))
+            r1 = int(np.clip(np.ceil(pr.max()) + pad + 1, r0 + 1, rows))
+            c0 = int(np.clip(np.floor(pc.min()) - pad, 0, cols - 1))
+            c1 = int(np.clip(np.ceil(pc.max()) + pad + 1, c0 + 1, cols))
+            origin = (c0 * px, r0 * px)
+            shape = (r1 - r0, c1 - c0)
+            # others: groups already refitted in this sweep (new_em), the rest as they were
+            others = [e for e in new_em if len(e)]
+            rest = np.flatnonzero(~done)
+            rest = rest[~np.isin(rest, g)]
+            if len(rest):
+                others.append(em[rest])
+            offset = np.zeros(shape)
+            if others:
+                o = np.vstack(others)
+                near = (
+                    (o[:, 0] > origin[0] - reach)
+                    & (o[:, 0] < c1 * px + reach)
+                    & (o[:, 1] > origin[1] - reach)
+                    & (o[:, 1] < r1 * px + reach)
+                )
+                if near.any():
+                    o = o[near]
+                    offset = model.render(*o.T, shape, px, origin=origin)
+            y = f[r0:r1, c0:c1]
+            kw = dict(
+                pixel_size=px,
+                origin=origin,
+                offset=offset,
+                background=float(max(np.median(bg[r0:r1, c0:c1]), 1e-3)),
+                **fit_kwargs,
+            )
+            if rv is not None:
+                kw["read_variance"] = np.broadcast_to(rv, f.shape)[r0:r1, c0:c1]
+            start = Emitters.from_array(em[g])
+            if count_selection:
+                fit = fit_with_count_selection(
+                    y,
+                    model,
+                    start,
+                    threshold=threshold,
+                    min_photons=min_photons,
+                    max_emitters=max(max_emitters, len(g) + 2),
+                    **kw,
+                )
+            else:
+                fit = fit_emitters(y, model, start, **kw)
+            if z_flip:
+                fit = _try_z_flips(y, model, fit, kw, z_flip)
+            done[g] = True
+            arr = fit.emitters.as_array().reshape(-1, 4)
+            new_em.append(arr)
+            for k in range(len(arr)):
+                new_info.append(
+                    (fit.sigma[k], float(fit.background[0]), fit.deviance_per_dof, fit.flags[k], gi)
+                )
+        em = np.vstack(new_em) if new_em else np.zeros((0, 4))
+        info = new_info
+    inside = (em[:, 0] >= 0) & (em[:, 0] < cols * px) & (em[:, 1] >= 0) & (em[:, 1] < rows * px)
+    em = em[inside]
+    info = [i for i, k in zip(info, inside, strict=True) if k]
+    k = len(em)
+    return FrameFit(
+        emitters=Emitters.from_array(em),
+        sigma=np.array([i[0] for i in info]).reshape(k, 4),
+        background=np.array([i[1] for i in info], dtype=np.float64),
+        gof=np.array([i[2] for i in info], dtype=np.float64),
+        flags=np.array([i[3] for i in info], dtype="<U16"),
+        group=np.array([i[4] for i in info], dtype=np.int64),
+    )
