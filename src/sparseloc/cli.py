@@ -172,7 +172,7 @@ LOCALIZE_DEFAULTS: dict = {
     "em_gain": 1.0,
     "qe": 1.0,
     "camera": "ideal",
-    "method": "hybrid",
+    "method": "frame",
     "window": None,
     "margin": None,
     "z_min": None,
@@ -259,7 +259,7 @@ def localize(
     em_gain: Annotated[float | None, typer.Option(help="EM gain.")] = None,
     qe: Annotated[float | None, typer.Option(help="Quantum efficiency.")] = None,
     camera: Annotated[str | None, typer.Option(help="ideal, emccd or scmos.")] = None,
-    method: Annotated[str | None, typer.Option(help="hybrid, mp or co.")] = None,
+    method: Annotated[str | None, typer.Option(help="frame (default), hybrid, mp or co.")] = None,
     window: Annotated[
         int | None, typer.Option(help="Window size (px); default from a calibrated PSF, or 11.")
     ] = None,

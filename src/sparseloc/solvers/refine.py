@@ -62,6 +62,9 @@ __all__ = [
 NOISE_MODELS = ("poisson", "emccd", "scmos")
 #: 0.1 % tail of a chi-square with 4 degrees of freedom (one emitter's x, y, z, photons).
 LR_THRESHOLD = 18.47
+#: Count-selection refits are skipped when a cheap statistic (Wald for a removal, score for an
+#: addition) is this many times beyond the threshold.
+SKIP_FACTOR = 4.0
 _MIN_PHOTONS = 1.0
 _MIN_BG = 1e-3
 
@@ -361,7 +364,8 @@ def _result(prob: _Problem, theta, mu, f, jac, converged, n_iter) -> FitResult:
 
 def _residual_candidates(y, fit: FitResult, model, pixel_size, origin, n_planes=13, n_best=2):
     """Up to ``n_best`` (x, y, z, photons) where the fit's residual correlates best with the
-    PSF, at least two pixels apart, best first."""
+    PSF, at least two pixels apart, best first, and the largest score statistic
+    ``corr^2 / var(corr)`` (Poisson variance from the fit) of an emitter on the grid."""
     from scipy.signal import correlate
 
     rows, cols = y.shape
@@ -372,10 +376,14 @@ def _residual_candidates(y, fit: FitResult, model, pixel_size, origin, n_planes=
     cy = (rows - 0.5) * pixel_size
     tmpl = model.images(np.full(n_planes, cx), np.full(n_planes, cy), zs, canvas, pixel_size)
     ones = np.ones_like(resid)
+    mu = np.maximum(fit.model_image, 1e-9)
     scores, amps = [], []
+    stat = 0.0
     for t in tmpl:
         corr = correlate(t, resid, mode="valid")  # [a, b]: emitter at pixel (rows-1-a, cols-1-b)
         nrm2 = correlate(t**2, ones, mode="valid")
+        var = correlate(t**2, mu, mode="valid")
+        stat = max(stat, float(np.max(np.where(corr > 0, corr**2 / np.maximum(var, 1e-24), 0))))
         scores.append(corr / np.sqrt(np.maximum(nrm2, 1e-24)))
         amps.append(corr / np.maximum(nrm2, 1e-24))
     scores, amps = np.array(scores), np.array(amps)
@@ -402,7 +410,7 @@ def _residual_candidates(y, fit: FitResult, model, pixel_size, origin, n_planes=
                 ),
             )
         )
-    return [cand for _, _, cand in out]
+    return [cand for _, _, cand in out], stat
 
 
 def fit_with_count_selection(
@@ -452,6 +460,12 @@ def fit_with_count_selection(
         if k >= 1:
             arr = best.emitters.as_array()
             weakest = int(np.argmin(arr[:, 3]))
+            wald = (arr[weakest, 3] / best.sigma[weakest, 3]) ** 2 / w
+        # An emitter whose photons are many standard errors from zero (Wald statistic above
+        # SKIP_FACTOR times the threshold) would not be removed: skip that refit.
+        if k >= 1 and (
+            not np.isfinite(wald) or wald < SKIP_FACTOR * threshold or arr[weakest, 3] < min_photons
+        ):
             fewer = fit_emitters(
                 y,
                 model,
@@ -464,9 +478,16 @@ def fit_with_count_selection(
                 best.history.append(f"removed one: K={k - 1}, LR={ratio:.1f}")
                 changes += 1
                 continue
-        if k < max_emitters:
+        cands, stat = (
+            _residual_candidates(y, best, model, pixel_size, origin)
+            if k < max_emitters
+            else ([], 0.0)
+        )
+        # The score statistic of the best grid emitter approximates the likelihood ratio of
+        # adding it; far below the threshold, the refits cannot pass it.
+        if stat >= threshold / SKIP_FACTOR:
             more = None
-            for cand in _residual_candidates(y, best, model, pixel_size, origin):
+            for cand in cands:
                 arr = np.vstack([best.emitters.as_array().reshape(-1, 4), cand])
                 trial = fit_emitters(y, model, Emitters.from_array(arr), **{**kw, "background": bg})
                 if more is None or trial.log_likelihood > more.log_likelihood:
