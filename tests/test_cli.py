@@ -77,19 +77,24 @@ def test_mask_file_that_is_not_2d(tmp_path):
     assert "must be 2-D" in res.output
 
 
-def test_demo_runs_and_writes_pictures(tmp_path):
+def test_demo_runs_and_writes_its_outputs(tmp_path):
+    from sparseloc.io.tables import read_table
+
     out = tmp_path / "demo"
-    res = run("demo", "-o", out)
+    res = run("demo", "-o", out, "--frames", "12")
     assert res.exit_code == 0, res.output
-    for name in (
-        "psf_models.png",
-        "dense_dh_scene.png",
-        "dense_dh_scene.tif",
-        "crlb_dh.png",
-        "hybrid_solve.png",
-    ):
+    for name in ("movie.tif", "locs.parquet", "render.png", "frame0.png", "psf.png"):
         assert (out / name).stat().st_size > 1000
-    assert "emitters" in res.output and "CRLB" in res.output
+    report = (out / "report.txt").read_text()
+    assert "Jaccard" in report and "RMSE" in report and "Jaccard" in res.output
+    locs = read_table(out / "locs.parquet")
+    assert len(locs) > 50 and locs["frame"].max() <= 11
+
+
+def test_demo_refuses_a_bad_density(tmp_path):
+    res = run("demo", "-o", tmp_path / "d", "--density", "0")
+    assert res.exit_code == 2
+    assert "density" in res.output
 
 
 def test_entry_point_is_installed():

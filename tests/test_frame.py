@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from sparseloc.psf import make_psf
@@ -340,3 +341,30 @@ def test_localize_with_the_frame_method():
     assert res.n_windows == tab["window_id"].nunique()
     ev = evaluate(tab, sim.truth)
     assert ev.recall >= 0.6 and ev.precision >= 0.6
+
+
+def test_two_worker_processes_give_the_same_table():
+    from sparseloc.pipeline import LocalizeParams, localize
+    from sparseloc.psf import make_psf
+    from sparseloc.simulate import simulate
+
+    model = make_psf("dh-analytic")
+    sim = simulate(
+        model,
+        scene="uniform",
+        n_frames=6,
+        shape=(40, 40),
+        pixel_size=100.0,
+        density=0.5,
+        photons=(2000.0, 5000.0),
+        background=10.0,
+        seed=5,
+    )
+    frames = sim.movie.astype(float) - sim.camera.offset
+    params = LocalizeParams(pixel_size=100.0)
+    one = localize(frames, model, params)
+    two = localize(frames, model, params, workers=2)
+    assert len(one.table) > 5
+    pd.testing.assert_frame_equal(one.table, two.table)
+    with pytest.raises(ValueError, match="workers"):
+        localize(frames, model, params, workers=0)

@@ -78,12 +78,19 @@ def demo(
         "sparseloc_demo"
     ),
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    frames: Annotated[int, typer.Option(help="Movie length.", min=1)] = 200,
+    density: Annotated[float, typer.Option(help="Active emitters per um^2.")] = 0.5,
 ) -> None:
-    """Simulate a dense double-helix scene and write pictures of the models and the scene."""
+    """Simulate a dense 3D double-helix movie, localize it, score it against the truth and
+    write the table, a rendered image and a report."""
     from .demo import run_demo
 
+    if not density > 0:
+        _fail(f"--density must be > 0, got {density}")
     t0 = time.perf_counter()
-    summary = _run(run_demo, out, seed=seed, progress=sys.stderr.isatty())
+    summary = _run(
+        run_demo, out, seed=seed, n_frames=frames, density=density, progress=sys.stderr.isatty()
+    )
     typer.echo(summary["text"])
     typer.echo(f"wrote {len(summary['files'])} files to {out} in {time.perf_counter() - t0:.1f} s:")
     for f in summary["files"]:
@@ -182,6 +189,7 @@ LOCALIZE_DEFAULTS: dict = {
     "refine": True,
     "frames": None,
     "format": None,
+    "workers": 1,
 }
 
 
@@ -282,6 +290,9 @@ def localize(
     fmt: Annotated[
         str | None, typer.Option("--format", help="parquet, thunderstorm, picasso, smlm.")
     ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Processes solving frames (default 1).", min=1)
+    ] = None,
     config: Annotated[Path | None, typer.Option(help="TOML file with the same keys.")] = None,
 ) -> None:
     """Localize a movie and write the localization table."""
@@ -310,6 +321,7 @@ def localize(
         "background": background,
         "frames": frames,
         "format": fmt,
+        "workers": workers,
     }
     opts = {**LOCALIZE_DEFAULTS, **_load_config(config)}
     opts.update({k: v for k, v in given.items() if v is not None})
@@ -379,6 +391,7 @@ def localize(
                 start=start,
                 stop=stop,
                 progress=bar.update,
+                workers=int(opts["workers"]),
             )
         meta = {**res.metadata, "movie": [str(p) for p in mov.paths], "camera": cam.to_dict()}
         _run(

@@ -312,6 +312,7 @@ def localize(
     stop: int | None = None,
     block: int = 64,
     progress: Callable[[int], None] | None = None,
+    workers: int = 1,
 ) -> LocalizeResult:
     """Localize every frame of a movie (photons) and return the localization table.
 
@@ -330,6 +331,9 @@ def localize(
         Frames read at once.
     progress : callable, optional
         Called with the number of frames just finished.
+    workers : int
+        Processes solving frames (1: this process). Frames are independent, so the table is
+        the same whatever the number; the reading and the background stay here.
 
     Returns
     -------
@@ -350,7 +354,9 @@ def localize(
     shape = first.shape[-2:]
     p = params
     # The frame solver needs no tiles but frames of at least one window all the same.
-    tiling = tiles(shape, p.window, p.margin)
+    tiles(shape, p.window, p.margin)
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     t0 = time.perf_counter()
     work_model = model
     if p.tabulate and not isinstance(model, SplinePSF):
@@ -360,48 +366,26 @@ def localize(
         # The frame solver's templates reach 20 px from the emitter (frame_templates).
         roi = 45 if p.method == "frame" else 2 * p.window + 3
         work_model = SplinePSF.from_model(model, p.pixel_size, roi=roi, z_step=10.0)
-    if p.method == "frame":
-        solver = _FrameSolver(work_model, p, shape)
-    else:
-        solver = _Solver(work_model, p)
-    zr = p.z_range or model.z_range
-    if p.method != "frame":
-        tsize = min(2 * p.window + 1, 2 * (min(shape) // 2) - 1)
-        template = z_averaged_psf(work_model, p.pixel_size, zr, tsize)
     parts: list[dict] = []
     n_windows = 0
-    half = p.background_frames // 2
-    for b0 in range(start, stop, block):
-        b1 = min(b0 + block, stop)
-        lo, hi = max(b0 - half, 0), min(b1 + half, n)
-        chunk = np.asarray(get(lo, hi), dtype=np.float64)
-        if not np.all(np.isfinite(chunk)):
-            raise ValueError(f"frames {lo}-{hi - 1} contain NaN or inf values")
-        for f in range(b0, b1):
-            i = f - lo
-            j0, j1 = max(i - half, 0), min(i + half + 1, chunk.shape[0])
-            if p.background == "temporal" or (
-                p.background == "auto" and n >= p.min_temporal_frames
-            ):
-                bg = temporal_background(chunk[j0:j1], percentile=p.background_percentile)
-            else:
-                bg = spatial_background(chunk[i])
-            frame = chunk[i]
-            if p.method == "frame":
-                fit = solver(frame, bg)
-                # window ids: one per group, unique over the movie (at most 10^4 per frame)
-                parts.append(_frame_rows(fit, f, f * 10_000))
-                n_windows += int(np.unique(fit.group).size)
+    inputs = _frames_and_backgrounds(get, n, start, stop, block, p)
+    if workers == 1:
+        from threadpoolctl import threadpool_limits
+
+        # One BLAS thread, as in the worker processes: the matrices are small (no gain from
+        # threads) and the same arithmetic gives the same table whatever ``workers``.
+        with threadpool_limits(limits=1):
+            work = _FrameWork(work_model, p, shape)
+            for f, frame, bg in inputs:
+                rows, nw = work(f, frame, bg)
+                parts.extend(rows)
+                n_windows += nw
                 if progress is not None:
                     progress(1)
-                continue
-            cand = detect_candidates(frame, bg, template, threshold=p.threshold)
-            for tile in _tiles_to_solve(tiling, cand, p.margin):
-                y = frame[tile.row0 : tile.row0 + p.window, tile.col0 : tile.col0 + p.window]
-                sol = solver(y)
-                window_id = f * len(tiling) + tile.index
-                parts.append(_rows(sol, tile, f, window_id, p.pixel_size))
-                n_windows += 1
+    else:
+        for rows, nw in _in_processes(inputs, workers, (work_model, p, shape)):
+            parts.extend(rows)
+            n_windows += nw
             if progress is not None:
                 progress(1)
     seconds = time.perf_counter() - t0
@@ -419,6 +403,99 @@ def localize(
         "shape": list(shape),
     }
     return LocalizeResult(table, stop - start, n_windows, seconds, meta)
+
+
+class _FrameWork:
+    """Everything needed to solve one frame, built once (per process)."""
+
+    def __init__(self, work_model: PSFModel, p: LocalizeParams, shape: tuple[int, int]) -> None:
+        self.p = p
+        self.tiling = tiles(shape, p.window, p.margin)
+        if p.method == "frame":
+            self.solver: Any = _FrameSolver(work_model, p, shape)
+        else:
+            self.solver = _Solver(work_model, p)
+            zr = p.z_range or work_model.z_range
+            tsize = min(2 * p.window + 1, 2 * (min(shape) // 2) - 1)
+            self.template = z_averaged_psf(work_model, p.pixel_size, zr, tsize)
+
+    def __call__(self, f: int, frame: NDArray, bg: NDArray) -> tuple[list[dict], int]:
+        """Table parts and the number of windows of frame ``f``."""
+        p = self.p
+        if p.method == "frame":
+            fit = self.solver(frame, bg)
+            # window ids: one per group, unique over the movie (at most 10^4 per frame)
+            return [_frame_rows(fit, f, f * 10_000)], int(np.unique(fit.group).size)
+        parts = []
+        cand = detect_candidates(frame, bg, self.template, threshold=p.threshold)
+        todo = _tiles_to_solve(self.tiling, cand, p.margin)
+        for tile in todo:
+            y = frame[tile.row0 : tile.row0 + p.window, tile.col0 : tile.col0 + p.window]
+            sol = self.solver(y)
+            window_id = f * len(self.tiling) + tile.index
+            parts.append(_rows(sol, tile, f, window_id, p.pixel_size))
+        return parts, len(todo)
+
+
+def _frames_and_backgrounds(get, n: int, start: int, stop: int, block: int, p: LocalizeParams):
+    """Yield (frame index, frame, background), reading ``block`` frames at a time."""
+    half = p.background_frames // 2
+    temporal = p.background == "temporal" or (p.background == "auto" and n >= p.min_temporal_frames)
+    for b0 in range(start, stop, block):
+        b1 = min(b0 + block, stop)
+        lo, hi = max(b0 - half, 0), min(b1 + half, n)
+        chunk = np.asarray(get(lo, hi), dtype=np.float64)
+        if not np.all(np.isfinite(chunk)):
+            raise ValueError(f"frames {lo}-{hi - 1} contain NaN or inf values")
+        for f in range(b0, b1):
+            i = f - lo
+            j0, j1 = max(i - half, 0), min(i + half + 1, chunk.shape[0])
+            if temporal:
+                bg = temporal_background(chunk[j0:j1], percentile=p.background_percentile)
+            else:
+                bg = spatial_background(chunk[i])
+            yield f, chunk[i], bg
+
+
+_WORK: _FrameWork | None = None
+
+
+def _init_worker(work_model: PSFModel, p: LocalizeParams, shape: tuple[int, int]) -> None:
+    global _WORK
+    # One BLAS thread per process: the processes already share out the cores.
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1)
+    _WORK = _FrameWork(work_model, p, shape)
+
+
+def _solve_in_worker(f: int, frame: NDArray, bg: NDArray) -> tuple[list[dict], int]:
+    assert _WORK is not None
+    return _WORK(f, frame, bg)
+
+
+def _in_processes(inputs, workers: int, init_args: tuple):
+    """Solve frames in a pool of processes; yield their results in frame order.
+
+    At most ``4 * workers`` frames are in flight, so memory stays bounded on long movies.
+    """
+    import multiprocessing
+    from collections import deque
+    from concurrent.futures import ProcessPoolExecutor
+
+    # The platform's default: fork on Linux (no re-import of the caller's script), spawn
+    # elsewhere (scripts then need the usual ``if __name__ == "__main__":`` guard).
+    ctx = multiprocessing.get_context()
+    with ProcessPoolExecutor(
+        workers, mp_context=ctx, initializer=_init_worker, initargs=init_args
+    ) as pool:
+        pending: deque = deque()
+        for item in inputs:
+            pending.append(pool.submit(_solve_in_worker, *item))
+            if len(pending) >= 4 * workers:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
 
 
 def _tiles_to_solve(tiling: list[Tile], cand: NDArray, margin: int) -> list[Tile]:

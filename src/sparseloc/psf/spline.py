@@ -27,6 +27,7 @@ from .base import PSFBase, check_pixel_size, energy_radius, pixel_centres
 
 __all__ = ["SplinePSF", "bspline_weights"]
 
+_TABLE_PLANES = 16  # planes rendered at once by SplinePSF.from_model
 _Z_EXTRA = 3  # planes tabulated beyond a model's z range (see SplinePSF.from_model)
 _PAD = 3  # zero pixels around the stack so the spline falls smoothly to zero at the ROI edge
 
@@ -229,10 +230,18 @@ class SplinePSF(PSFBase):
         stack = np.empty((n, roi * s, roi * s))
         for a in range(s):  # x phase: the emitter moves left by a/s px, offsets grow by a/s
             for b in range(s):
-                img = render(
-                    np.full(n, c - a * px / s), np.full(n, c - b * px / s), zs, (roi, roi), px
-                )
-                stack[:, b::s, a::s] = img
+                # A pupil model works on large complex fields per plane: render a few planes
+                # at a time (all 200 at once peaked near 1 GB).
+                for z0 in range(0, n, _TABLE_PLANES):
+                    z1 = min(z0 + _TABLE_PLANES, n)
+                    k = z1 - z0
+                    stack[z0:z1, b::s, a::s] = render(
+                        np.full(k, c - a * px / s),
+                        np.full(k, c - b * px / s),
+                        zs[z0:z1],
+                        (roi, roi),
+                        px,
+                    )
         centre = (float(s * (roi // 2)), float(s * (roi // 2)))
         out = cls(
             stack,

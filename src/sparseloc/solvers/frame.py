@@ -153,6 +153,21 @@ class _Correlator:
         self.ft = sfft.rfft2(flipped, s=self.fshape)
         self.ft2 = sfft.rfft2(flipped**2, s=self.fshape)
         self.norm2 = self.correlate(np.ones(shape), squared=True)
+        # One kernel for local means of the variance: the templates' mean square, normalised.
+        sq = (flipped**2).mean(axis=0)
+        self.fw = sfft.rfft2(sq / sq.sum(), s=self.fshape)
+        self.wsum = np.maximum(self._smooth(np.ones(shape)), 1e-12)
+
+    def local_mean(self, img: NDArray) -> NDArray[np.float64]:
+        """(rows, cols): ``img`` averaged with the templates' mean square as weights (over
+        the pixels inside the frame)."""
+        return self._smooth(img) / self.wsum
+
+    def _smooth(self, img: NDArray) -> NDArray[np.float64]:
+        f = sfft.rfft2(img, s=self.fshape)
+        full = sfft.irfft2(f * self.fw, s=self.fshape)
+        h, (rows, cols) = self.h, self.shape
+        return full[h : h + rows, h : h + cols]
 
     def correlate(self, img: NDArray, squared: bool = False) -> NDArray[np.float64]:
         """(J, rows, cols): sum over the template of ``img`` times the template (or its
@@ -254,12 +269,12 @@ def frame_pursuit(
     per_cycle = cap if per_cycle is None else per_cycle
     for _ in range(max_cycles):
         corr = cor.correlate(y - model)
-        var = cor.correlate(np.maximum(bg + model, 1e-3), squared=True)
         score = corr / np.sqrt(np.maximum(cor.norm2, 1e-12))
         jb = np.argmax(score, axis=0)
-        sb, cb, nb, vb = (
-            np.take_along_axis(a, jb[None], 0)[0] for a in (score, corr, cor.norm2, var)
-        )
+        sb, cb, nb = (np.take_along_axis(a, jb[None], 0)[0] for a in (score, corr, cor.norm2))
+        # Poisson variance of the correlation, sum(t^2 mu), as (local mean of mu) x sum(t^2):
+        # one FFT instead of one per template.
+        vb = cor.local_mean(np.maximum(bg + model, 1e-3)) * nb
         ok = (cb / np.sqrt(np.maximum(vb, 1e-12)) > threshold) & (cb / nb > min_photons)
         peaks = ok & (ndi.maximum_filter(sb, size=3, mode="constant", cval=-np.inf) == sb)
         rc = np.argwhere(peaks)
@@ -378,6 +393,20 @@ def _try_z_flips(y, model, fit, kw, fraction):
     return fit
 
 
+def _settled(prev: NDArray, em: NDArray, xy_tol: float = 2.0, z_tol: float = 5.0) -> bool:
+    """Whether a sweep left the emitters where they were (same count; nm tolerances)."""
+    if prev.shape != em.shape or len(em) == 0:
+        return len(em) == 0 and len(prev) == 0
+    from scipy.spatial import cKDTree
+
+    d, j = cKDTree(prev[:, :2]).query(em[:, :2])
+    return bool(
+        np.all(d < xy_tol)
+        and len(np.unique(j)) == len(j)
+        and np.all(abs(prev[j, 2] - em[:, 2]) < z_tol)
+    )
+
+
 def frame_fit(
     frame: NDArray,
     model: PSFModel,
@@ -417,7 +446,7 @@ def frame_fit(
     reach : float
         Emitters farther than this (nm) from a window are left out of its offset.
     sweeps : int
-        Passes over the groups.
+        Most passes over the groups; fewer when a pass leaves every emitter in place.
     count_selection, threshold, min_photons, max_emitters
         Count selection in each group (see :func:`fit_with_count_selection`); the default
         threshold is :data:`ADD_THRESHOLD`. A group may always grow by two emitters.
@@ -510,8 +539,11 @@ def frame_fit(
                 new_info.append(
                     (fit.sigma[k], float(fit.background[0]), fit.deviance_per_dof, fit.flags[k], gi)
                 )
+        prev = em
         em = np.vstack(new_em) if new_em else np.zeros((0, 4))
         info = new_info
+        if _settled(prev, em):
+            break
     inside = (em[:, 0] >= 0) & (em[:, 0] < cols * px) & (em[:, 1] >= 0) & (em[:, 1] < rows * px)
     em = em[inside]
     info = [i for i, k in zip(info, inside, strict=True) if k]

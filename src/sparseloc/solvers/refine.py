@@ -366,7 +366,7 @@ def _residual_candidates(y, fit: FitResult, model, pixel_size, origin, n_planes=
     """Up to ``n_best`` (x, y, z, photons) where the fit's residual correlates best with the
     PSF, at least two pixels apart, best first, and the largest score statistic
     ``corr^2 / var(corr)`` (Poisson variance from the fit) of an emitter on the grid."""
-    from scipy.signal import correlate
+    from scipy import fft as sfft
 
     rows, cols = y.shape
     resid = y - fit.model_image
@@ -375,18 +375,22 @@ def _residual_candidates(y, fit: FitResult, model, pixel_size, origin, n_planes=
     cx = (cols - 0.5) * pixel_size  # emitter at the centre of canvas pixel (rows-1, cols-1)
     cy = (rows - 0.5) * pixel_size
     tmpl = model.images(np.full(n_planes, cx), np.full(n_planes, cy), zs, canvas, pixel_size)
-    ones = np.ones_like(resid)
     mu = np.maximum(fit.model_image, 1e-9)
-    scores, amps = [], []
-    stat = 0.0
-    for t in tmpl:
-        corr = correlate(t, resid, mode="valid")  # [a, b]: emitter at pixel (rows-1-a, cols-1-b)
-        nrm2 = correlate(t**2, ones, mode="valid")
-        var = correlate(t**2, mu, mode="valid")
-        stat = max(stat, float(np.max(np.where(corr > 0, corr**2 / np.maximum(var, 1e-24), 0))))
-        scores.append(corr / np.sqrt(np.maximum(nrm2, 1e-24)))
-        amps.append(corr / np.maximum(nrm2, 1e-24))
-    scores, amps = np.array(scores), np.array(amps)
+    # Valid-mode correlations of every plane with the residual, ones and mu, batched in one
+    # FFT size: [a, b] is an emitter at pixel (rows-1-a, cols-1-b).
+    s = tuple(sfft.next_fast_len(3 * n - 2, real=True) for n in (rows, cols))
+    ft = sfft.rfft2(tmpl, s=s)
+    ft2 = sfft.rfft2(tmpl**2, s=s)
+
+    def valid(f_tmpl, img):
+        full = sfft.irfft2(f_tmpl * sfft.rfft2(img[::-1, ::-1], s=s)[None], s=s)
+        return full[:, rows - 1 : 2 * rows - 1, cols - 1 : 2 * cols - 1]
+
+    corr = valid(ft, resid)
+    nrm2 = np.maximum(valid(ft2, np.ones_like(resid)), 1e-24)
+    var = np.maximum(valid(ft2, mu), 1e-24)
+    stat = float(np.max(np.where(corr > 0, corr**2 / var, 0.0)))
+    scores, amps = corr / np.sqrt(nrm2), corr / nrm2
     best_plane = np.argmax(scores, axis=0)
     best = np.take_along_axis(scores, best_plane[None], 0)[0]
     out = []
