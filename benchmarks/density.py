@@ -2,13 +2,15 @@
 
 Simulates double-helix movies (pupil model, 100 nm pixels, 1000-5000 photons, background 10,
 z in -1000..1000 nm, Poisson camera) at several densities, localizes them with the pipeline
-(spline table of the model, hybrid MP+CO+MLE) and prints Jaccard, RMSE lateral and axial and
-efficiency per density; writes JSON.
+(spline table of the model; the default frame solver, or ``--method hybrid`` for the paper's
+windowed MP+CO+MLE) and prints Jaccard, RMSE lateral and axial and efficiency per density;
+writes JSON.
 
 Usage::
 
-    python benchmarks/density.py [--densities 0.5,1,2] [--frames 4] [--size 64]
-                                 [--window 21] [--margin 6] [--out FILE]
+    python benchmarks/density.py [--densities 0.5,1,2] [--frames 10] [--size 64]
+                                 [--method frame|hybrid] [--window 21] [--margin 6]
+                                 [--workers 2] [--out FILE]
 """
 
 from __future__ import annotations
@@ -30,7 +32,9 @@ from sparseloc.simulate import simulate
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--densities", default="0.5,1,2", help="emitters per um^2")
-    ap.add_argument("--frames", type=int, default=4)
+    ap.add_argument("--frames", type=int, default=10)
+    ap.add_argument("--method", default="frame")
+    ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--size", type=int, default=64, help="frame side (px)")
     ap.add_argument("--window", type=int, default=21)
     ap.add_argument("--margin", type=int, default=6)
@@ -41,11 +45,15 @@ def main(argv: list[str] | None = None) -> dict:
     model = make_psf(args.psf)
     px = 100.0
     densities = [float(d) for d in args.densities.split(",")]
-    params = LocalizeParams(pixel_size=px, window=args.window, margin=args.margin)
+    params = LocalizeParams(
+        pixel_size=px, method=args.method, window=args.window, margin=args.margin
+    )
     print(
         f"{args.psf} pupil model, {args.frames} frames of {args.size}x{args.size} px of "
         f"{px:.0f} nm per density, 1000-5000 photons, background 10, z -1000..1000 nm; "
-        f"windows {args.window} px, margin {args.margin} px"
+        f"method {args.method}"
+        + (f", windows {args.window} px, margin {args.margin} px" if args.method != "frame" else "")
+        + f"; {args.workers} worker process(es)"
     )
     hdr = (
         f"{'density':>8} {'emitters':>8} | {'Jaccard %':>9} {'recall':>7} {'precision':>9} | "
@@ -72,7 +80,7 @@ def main(argv: list[str] | None = None) -> dict:
         )
         frames = sim.movie.astype(np.float64) - sim.camera.offset
         t0 = time.perf_counter()
-        res = localize(frames, model, params)
+        res = localize(frames, model, params, workers=args.workers)
         secs = time.perf_counter() - t0
         ev = evaluate(res.table, sim.truth)
         row = {

@@ -274,8 +274,12 @@ def localize(
     margin: Annotated[
         int | None, typer.Option(help="Window margin outside its core (px); default likewise.")
     ] = None,
-    z_min: Annotated[float | None, typer.Option(help="Lowest z of the dictionaries (nm).")] = None,
-    z_max: Annotated[float | None, typer.Option(help="Highest z of the dictionaries (nm).")] = None,
+    z_min: Annotated[
+        float | None, typer.Option(help="Lowest z (nm) searched (sets a pupil model's range).")
+    ] = None,
+    z_max: Annotated[
+        float | None, typer.Option(help="Highest z (nm) searched (sets a pupil model's range).")
+    ] = None,
     threshold: Annotated[float | None, typer.Option(help="Candidate SNR threshold.")] = None,
     refine: Annotated[
         bool | None, typer.Option("--refine/--no-refine", help="Maximum-likelihood stage.")
@@ -327,6 +331,16 @@ def localize(
     opts.update({k: v for k, v in given.items() if v is not None})
     out = _output_path(output)
     model = _run(make_psf, opts["psf"])
+    from .psf.pupil import PupilPSF
+
+    if isinstance(model, PupilPSF) and (opts["z_min"] is not None or opts["z_max"] is not None):
+        # A pupil model renders any depth: the user's z range becomes the model's.
+        lo, hi = model.z_range
+        zr_model = (
+            lo if opts["z_min"] is None else float(opts["z_min"]),
+            hi if opts["z_max"] is None else float(opts["z_max"]),
+        )
+        model = _run(make_psf, opts["psf"], z_range=zr_model)
     cal_px = getattr(model, "pixel_size", None)
     if opts["pixel_size"] is None and cal_px is not None:
         opts["pixel_size"] = float(cal_px)

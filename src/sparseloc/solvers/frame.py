@@ -142,19 +142,24 @@ def frame_templates(
 
 
 class _Correlator:
-    """FFT correlation of one frame shape with every template (and its square)."""
+    """FFT correlation of one frame shape with every template (and its square).
 
-    def __init__(self, templates: FrameTemplates, shape: tuple[int, int]) -> None:
+    Memory: the templates' spectra are kept in single precision and correlations are formed
+    ``batch`` templates at a time, so a large frame with many templates stays within a few
+    hundred MB (scores need ~1e-6 relative precision, not 1e-15).
+    """
+
+    def __init__(self, templates: FrameTemplates, shape: tuple[int, int], batch: int = 16):
         t = templates.images
         self.h = t.shape[-1] // 2
         self.shape = shape
+        self.batch = int(batch)
         self.fshape = tuple(sfft.next_fast_len(n + t.shape[-1] - 1, real=True) for n in shape)
-        flipped = t[:, ::-1, ::-1]
-        self.ft = sfft.rfft2(flipped, s=self.fshape)
-        self.ft2 = sfft.rfft2(flipped**2, s=self.fshape)
-        self.norm2 = self.correlate(np.ones(shape), squared=True)
+        self._flipped = t[:, ::-1, ::-1]
+        self.ft = sfft.rfft2(self._flipped, s=self.fshape).astype(np.complex64)
+        self.norm2 = self.correlate(np.ones(shape), squared=True).astype(np.float32)
         # One kernel for local means of the variance: the templates' mean square, normalised.
-        sq = (flipped**2).mean(axis=0)
+        sq = (self._flipped**2).mean(axis=0)
         self.fw = sfft.rfft2(sq / sq.sum(), s=self.fshape)
         self.wsum = np.maximum(self._smooth(np.ones(shape)), 1e-12)
 
@@ -169,13 +174,44 @@ class _Correlator:
         h, (rows, cols) = self.h, self.shape
         return full[h : h + rows, h : h + cols]
 
+    def _batches(self, img: NDArray, squared: bool):
+        f = sfft.rfft2(img, s=self.fshape)
+        h, (rows, cols) = self.h, self.shape
+        n = self.ft.shape[0]
+        for j0 in range(0, n, self.batch):
+            j1 = min(j0 + self.batch, n)
+            ft = sfft.rfft2(self._flipped[j0:j1] ** 2, s=self.fshape) if squared else self.ft[j0:j1]
+            full = sfft.irfft2(f[None] * ft, s=self.fshape)
+            yield j0, full[:, h : h + rows, h : h + cols]
+
     def correlate(self, img: NDArray, squared: bool = False) -> NDArray[np.float64]:
         """(J, rows, cols): sum over the template of ``img`` times the template (or its
         square), the template centred on each pixel; pixels outside the frame count zero."""
-        f = sfft.rfft2(img, s=self.fshape)
-        full = sfft.irfft2(f[None] * (self.ft2 if squared else self.ft), s=self.fshape)
-        h, (rows, cols) = self.h, self.shape
-        return full[:, h : h + rows, h : h + cols]
+        out = np.empty((self.ft.shape[0], *self.shape))
+        for j0, part in self._batches(img, squared):
+            out[j0 : j0 + len(part)] = part
+        return out
+
+    def best(self, img: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """Per pixel, the template whose normalised correlation with ``img`` is largest.
+
+        Returns ``(score, j, corr, norm2)`` at that template, each (rows, cols): the score is
+        ``corr / sqrt(norm2)`` (matching pursuit's choice).
+        """
+        sb = np.full(self.shape, -np.inf)
+        jb = np.zeros(self.shape, dtype=np.intp)
+        cb = np.zeros(self.shape)
+        for j0, part in self._batches(img, False):
+            n2 = self.norm2[j0 : j0 + len(part)]
+            score = part / np.sqrt(np.maximum(n2, 1e-12))
+            k = np.argmax(score, axis=0)
+            s = np.take_along_axis(score, k[None], 0)[0]
+            better = s > sb
+            sb[better] = s[better]
+            jb[better] = (j0 + k)[better]
+            cb[better] = np.take_along_axis(part, k[None], 0)[0][better]
+        nb = np.take_along_axis(self.norm2, jb[None], 0)[0].astype(np.float64)
+        return sb, jb, cb, nb
 
 
 def _place(templates: FrameTemplates, atoms: list[tuple[int, int, int]], shape):
@@ -268,10 +304,7 @@ def frame_pursuit(
     excl = max(2.0, 2.0 * templates.core_radius) if exclusion is None else exclusion
     per_cycle = cap if per_cycle is None else per_cycle
     for _ in range(max_cycles):
-        corr = cor.correlate(y - model)
-        score = corr / np.sqrt(np.maximum(cor.norm2, 1e-12))
-        jb = np.argmax(score, axis=0)
-        sb, cb, nb = (np.take_along_axis(a, jb[None], 0)[0] for a in (score, corr, cor.norm2))
+        sb, jb, cb, nb = cor.best(y - model)
         # Poisson variance of the correlation, sum(t^2 mu), as (local mean of mu) x sum(t^2):
         # one FFT instead of one per template.
         vb = cor.local_mean(np.maximum(bg + model, 1e-3)) * nb
