@@ -148,3 +148,20 @@ def test_storm_analysis_dh_random_density(shared_data, dh_calibration):
     assert ev.recall >= 0.9
     assert ev.jaccard >= 75.0
     assert ev.rmse_lateral < 50.0 and ev.rmse_axial < 90.0
+
+
+@pytest.mark.slow
+def test_storm_analysis_dh_random_density_1_per_um2(shared_data, dh_calibration):
+    """1 emitter/um^2 of double helices (a third of the frame): most images overlap two or
+    more others.
+
+    Measured on this crop with the frame solver: recall 0.92, precision 0.63, Jaccard 59 %,
+    RMSE lateral 70 nm and axial 113 nm (median errors 24 and 33 nm); on the whole frame
+    recall 0.90, Jaccard 61 % (the windowed hybrid: 53.5 %). False positives (median 1700
+    photons against 4000 true) split the light of true emitters: the known weakness at this
+    density. The thresholds guard the recall and the Jaccard index against regressions.
+    """
+    ev = _localize_crop(shared_data, "dh_random_density0.01px2", dh_calibration, 21, 6)
+    assert ev.recall >= 0.85
+    assert ev.jaccard >= 50.0
+    assert ev.rmse_lateral < 90.0 and ev.rmse_axial < 140.0

@@ -178,6 +178,8 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
     for args, msg in [
         (["--config", cfg, "--pixel-size", "100"], "differs from the movie"),
         (["--config", cfg, "--offset", "5000"], "offset"),
+        (["--config", cfg, "--n-sample", "1.33"], "apply to pupil models"),
+        (["--config", cfg, "--psf", "dh", "--focal-depth", "500"], "needs --n-sample"),
     ]:
         res = run("localize", movie, "-o", tmp_path / "x.csv", *args)
         assert res.exit_code == 2 and msg in res.output, res.output

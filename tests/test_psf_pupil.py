@@ -219,3 +219,37 @@ def test_mask_file_must_be_2d(tmp_path):
         load_mask(path)
     with pytest.raises(ValueError, match="does not exist"):
         load_mask(tmp_path / "missing.mat")
+
+
+def test_sample_index_equal_to_immersion_changes_nothing():
+    x = np.array([1100.0])
+    plain = PupilPSF(None)
+    same = PupilPSF(None, n_sample=1.518, focal_depth=1200.0)
+    for z in (-600.0, 0.0, 700.0):
+        a = plain.images(x, x, [z], (21, 21), 100.0)
+        b = same.images(x, x, [z], (21, 21), 100.0)
+        assert np.allclose(a, b, rtol=0, atol=1e-12 * a.max())
+
+
+def test_water_sample_moves_the_focus_towards_the_coverslip():
+    """An oil objective focused 2 um into water: the sharpest image lies at a depth of about
+    n_water / n_oil of the nominal one (paraxial focal shift 0.88; high angles give less),
+    i.e. at z < 0, and its derivative in z still matches finite differences."""
+    water = PupilPSF(None, n_sample=1.33, focal_depth=2000.0, z_range=(-2000.0, 1000.0))
+    x = np.array([1100.0])
+    zs = np.arange(-900.0, 301.0, 50.0)
+    peaks = [water.images(x, x, [z], (21, 21), 100.0).max() for z in zs]
+    z_best = zs[int(np.argmax(peaks))]
+    assert -700.0 <= z_best <= -150.0
+    img, der = water.images(x, x, [-200.0], (21, 21), 100.0, derivatives=True)
+    hi = water.images(x, x, [-199.5], (21, 21), 100.0)
+    lo = water.images(x, x, [-200.5], (21, 21), 100.0)
+    fd = (hi - lo)[0] / 1.0
+    assert np.max(np.abs(der[0, 2] - fd)) < 1e-3 * np.max(np.abs(fd))
+
+
+def test_emitters_below_the_coverslip_are_refused():
+    with pytest.raises(ValueError, match="coverslip"):
+        PupilPSF(None, n_sample=1.33, focal_depth=500.0, z_range=(-1000.0, 1000.0))
+    with pytest.raises(ValueError, match="n_sample"):
+        PupilPSF(None, n_sample=0.0)

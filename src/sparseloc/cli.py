@@ -190,6 +190,8 @@ LOCALIZE_DEFAULTS: dict = {
     "frames": None,
     "format": None,
     "workers": 1,
+    "n_sample": None,
+    "focal_depth": None,
 }
 
 
@@ -297,6 +299,14 @@ def localize(
     workers: Annotated[
         int | None, typer.Option(help="Processes solving frames (default 1).", min=1)
     ] = None,
+    n_sample: Annotated[
+        float | None,
+        typer.Option(help="Sample refractive index (pupil models; e.g. 1.33 for water)."),
+    ] = None,
+    focal_depth: Annotated[
+        float | None,
+        typer.Option(help="Nominal focal plane above the coverslip (nm; with --n-sample)."),
+    ] = None,
     config: Annotated[Path | None, typer.Option(help="TOML file with the same keys.")] = None,
 ) -> None:
     """Localize a movie and write the localization table."""
@@ -326,6 +336,8 @@ def localize(
         "frames": frames,
         "format": fmt,
         "workers": workers,
+        "n_sample": n_sample,
+        "focal_depth": focal_depth,
     }
     opts = {**LOCALIZE_DEFAULTS, **_load_config(config)}
     opts.update({k: v for k, v in given.items() if v is not None})
@@ -333,14 +345,21 @@ def localize(
     model = _run(make_psf, opts["psf"])
     from .psf.pupil import PupilPSF
 
-    if isinstance(model, PupilPSF) and (opts["z_min"] is not None or opts["z_max"] is not None):
+    optics = {k: float(opts[k]) for k in ("n_sample", "focal_depth") if opts[k] is not None}
+    if optics and not isinstance(model, PupilPSF):
+        _fail("--n-sample and --focal-depth apply to pupil models (built-in names, mask files)")
+    if "focal_depth" in optics and "n_sample" not in optics:
+        _fail("--focal-depth needs --n-sample (the sample's refractive index)")
+    if isinstance(model, PupilPSF) and (
+        optics or opts["z_min"] is not None or opts["z_max"] is not None
+    ):
         # A pupil model renders any depth: the user's z range becomes the model's.
         lo, hi = model.z_range
         zr_model = (
             lo if opts["z_min"] is None else float(opts["z_min"]),
             hi if opts["z_max"] is None else float(opts["z_max"]),
         )
-        model = _run(make_psf, opts["psf"], z_range=zr_model)
+        model = _run(make_psf, opts["psf"], z_range=zr_model, **optics)
     cal_px = getattr(model, "pixel_size", None)
     if opts["pixel_size"] is None and cal_px is not None:
         opts["pixel_size"] = float(cal_px)

@@ -57,6 +57,16 @@ class PupilPSF(PSFBase):
         Apply the ``1/sqrt(cos theta)`` apodisation.
     name : str
         Label used in plots and files.
+    n_sample : float, optional
+        Refractive index of the sample (e.g. 1.33 for water). ``None``: the same as the
+        immersion medium (no mismatch). With a mismatch, an emitter at ``z`` sits at depth
+        ``focal_depth + z`` above the coverslip and its pupil phase is
+        ``kz_sample (focal_depth + z) - kz_immersion focal_depth`` (the usual scalar model of
+        index mismatch, without Fresnel coefficients; angles beyond ``n_sample`` are
+        evanescent in the sample and fade with depth).
+    focal_depth : float
+        Nominal focal plane: the stage's focus position above the coverslip (nm), used only
+        with ``n_sample``.
     """
 
     def __init__(
@@ -70,6 +80,8 @@ class PupilPSF(PSFBase):
         pupil_samples: int = 96,
         aplanatic: bool = True,
         name: str = "pupil",
+        n_sample: float | None = None,
+        focal_depth: float = 0.0,
     ) -> None:
         super().__init__()
         if not (0 < na < n_immersion):
@@ -80,6 +92,16 @@ class PupilPSF(PSFBase):
             raise ValueError(f"pupil_samples must be >= 16, got {pupil_samples}")
         if not z_range[0] < z_range[1]:
             raise ValueError(f"z_range must be (z_min, z_max) with z_min < z_max, got {z_range}")
+        if n_sample is not None:
+            if not n_sample > 0:
+                raise ValueError(f"n_sample must be > 0, got {n_sample}")
+            if focal_depth + z_range[0] < -1e-6:
+                raise ValueError(
+                    f"z_range starts {-z_range[0]:g} nm below the focal plane but the focal "
+                    f"plane is only {focal_depth:g} nm above the coverslip"
+                )
+        self.n_sample = None if n_sample is None else float(n_sample)
+        self.focal_depth = float(focal_depth)
         self.mask = mask
         self.na = float(na)
         self.wavelength = float(wavelength)
@@ -111,6 +133,12 @@ class PupilPSF(PSFBase):
             phase = np.where(inside, np.asarray(mask(rho, phi), dtype=np.float64), 0.0)
         self._pupil0 = amp * np.exp(1j * phase)
         self._kz = np.where(inside, kz, 0.0)
+        if self.n_sample is not None:
+            ks = 2 * np.pi * self.n_sample / self.wavelength
+            # Complex beyond the sample's critical angle: exp(i kz_s depth) decays there.
+            kzs = np.where(inside, np.sqrt(ks**2 - kr**2 + 0j), 0.0)
+            self._pupil0 = self._pupil0 * np.exp(1j * (kzs - self._kz) * self.focal_depth)
+            self._kz = kzs
         # Keep only the OTF's support (|index| <= half) for the matrix DFT.
         half = min(self.pupil_samples + 2, m // 2 - 1)
         self._otf_idx = np.arange(-half, half + 1)
@@ -120,7 +148,13 @@ class PupilPSF(PSFBase):
     def __repr__(self) -> str:
         return (
             f"PupilPSF(name={self.name!r}, na={self.na}, wavelength={self.wavelength}, "
-            f"n_immersion={self.n_immersion}, z_range={self.z_range})"
+            f"n_immersion={self.n_immersion}, z_range={self.z_range}"
+            + (
+                f", n_sample={self.n_sample}, focal_depth={self.focal_depth}"
+                if self.n_sample is not None
+                else ""
+            )
+            + ")"
         )
 
     # -- OTF ------------------------------------------------------------------------------

@@ -370,8 +370,22 @@ class FrameFit:
     group: NDArray[np.int64]
 
 
-def _groups(xy: NDArray, distance: float) -> list[NDArray[np.intp]]:
-    """Connected components of points closer than ``distance``."""
+def _split(idx: NDArray[np.intp], xy: NDArray, max_size: int) -> list[NDArray[np.intp]]:
+    """Halve a group across the longer side of its bounding box until no part exceeds
+    ``max_size`` (the parts' neighbours are held fixed in each fit, so splitting costs
+    little accuracy and keeps each fit small)."""
+    if len(idx) <= max_size:
+        return [idx]
+    p = xy[idx]
+    axis = int(np.argmax(np.ptp(p, axis=0)))
+    order = idx[np.argsort(p[:, axis], kind="stable")]
+    half = len(order) // 2
+    return _split(order[:half], xy, max_size) + _split(order[half:], xy, max_size)
+
+
+def _groups(xy: NDArray, distance: float, max_size: int = 8) -> list[NDArray[np.intp]]:
+    """Connected components of points closer than ``distance``, split into parts of at most
+    ``max_size``."""
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
@@ -383,7 +397,10 @@ def _groups(xy: NDArray, distance: float) -> list[NDArray[np.intp]]:
     n = len(xy)
     adj = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     _, labels = connected_components(adj, directed=False)
-    return [np.flatnonzero(labels == k) for k in range(labels.max() + 1)]
+    out: list[NDArray[np.intp]] = []
+    for k in range(labels.max() + 1):
+        out.extend(_split(np.flatnonzero(labels == k), xy, max_size))
+    return out
 
 
 def _try_z_flips(y, model, fit, kw, fraction):
@@ -456,6 +473,7 @@ def frame_fit(
     min_photons: float = 200.0,
     max_emitters: int = 10,
     z_flip: float = 0.15,
+    max_group: int = 8,
     **fit_kwargs,
 ) -> FrameFit:
     """Maximum-likelihood fit of a frame's emitters, group by group.
@@ -483,6 +501,9 @@ def frame_fit(
     count_selection, threshold, min_photons, max_emitters
         Count selection in each group (see :func:`fit_with_count_selection`); the default
         threshold is :data:`ADD_THRESHOLD`. A group may always grow by two emitters.
+    max_group : int
+        Larger groups are halved (across their longer side) until no part exceeds this: a
+        dense field would otherwise make one huge fit (memory and time grow with its square).
     z_flip : float
         Emitters fitted within this fraction of the z range from either end are refitted
         from the other end, and the better likelihood is kept: a double helix that turns by
@@ -507,7 +528,7 @@ def frame_fit(
     for _ in range(max(sweeps, 1)):
         if len(em) == 0:
             break
-        groups = _groups(em[:, :2], group_distance)
+        groups = _groups(em[:, :2], group_distance, max_group)
         # brightest groups first: their light is the largest offset for the others
         groups.sort(key=lambda g: -em[g, 3].sum())
         new_em: list[NDArray] = []
