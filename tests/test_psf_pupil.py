@@ -241,7 +241,7 @@ def test_water_sample_moves_the_focus_towards_the_coverslip():
     peaks = [water.images(x, x, [z], (21, 21), 100.0).max() for z in zs]
     z_best = zs[int(np.argmax(peaks))]
     assert -700.0 <= z_best <= -150.0
-    img, der = water.images(x, x, [-200.0], (21, 21), 100.0, derivatives=True)
+    _img, der = water.images(x, x, [-200.0], (21, 21), 100.0, derivatives=True)
     hi = water.images(x, x, [-199.5], (21, 21), 100.0)
     lo = water.images(x, x, [-200.5], (21, 21), 100.0)
     fd = (hi - lo)[0] / 1.0
