@@ -68,7 +68,8 @@ class LocalizeParams:
         Grid steps (nm) of the coarse and fine dictionaries. The lateral step must divide
         the pixel; by default the largest such step up to 80 nm (coarse) and, for the fine
         grid, 20 nm with ``refine`` (the fit goes beyond the grid) or the paper's 10 nm
-        without; axial steps 120 and 30 (or 15) nm.
+        without; axial steps 120 and 30 (or 15) nm. The frame solver's pursuit uses the
+        coarse steps, with 60 nm planes by default.
     threshold : float
         Candidate signal-to-noise threshold (``frame``: of a new emitter in the pursuit).
     background_frames : int
@@ -123,7 +124,11 @@ class LocalizeParams:
             )
         px = float(self.pixel_size)
         if self.coarse is None:
-            object.__setattr__(self, "coarse", (px / np.ceil(px / 80.0 - 1e-9), 120.0))
+            # The frame solver's pursuit uses 60 nm planes: on dense double-helix frames (1
+            # /um^2, 5 x 4 frames) they cut the RMSE by 4-7 nm laterally and 6-15 nm axially
+            # against 120 nm planes, at 1.3x the time.
+            dz = 60.0 if self.method == "frame" else 120.0
+            object.__setattr__(self, "coarse", (px / np.ceil(px / 80.0 - 1e-9), dz))
         if self.fine is None:
             # With the maximum-likelihood stage the fine grid only seeds the fit: 20/30 nm steps
             # gave the same errors as the paper's 10/15 nm on overlapping pairs (18.5 vs 17.1 nm

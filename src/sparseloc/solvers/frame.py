@@ -14,9 +14,12 @@ one model:
 2. **Fit** (:func:`frame_fit`): emitters closer than ``group_distance`` form a group; each group
    gets a window around it and a maximum-likelihood fit with count selection
    (:func:`~sparseloc.solvers.refine.fit_with_count_selection`) in which the light of all other
-   emitters of the frame is a known offset. Groups are visited three times (Gauss-Seidel), each
-   time with the neighbours' latest fitted images: on dense double-helix frames one sweep gave
-   Jaccard 51 %, two 61-63 %, three 74 %.
+   emitters of the frame is a known offset. Groups are visited again and again (Gauss-Seidel),
+   each time with the neighbours' latest fitted images, until a sweep leaves every emitter in
+   place (at most 10 sweeps): on dense double-helix frames one sweep gave Jaccard 51 %, two
+   61-63 %, three 74 %; with 60 nm pursuit planes, up to 10 sweeps against 3 gave Jaccard
+   80.1 against 76.0 % on one set of frames and 74.2 against 72.8 % on another, with lower
+   RMSE on both.
 """
 
 from __future__ import annotations
@@ -467,7 +470,7 @@ def frame_fit(
     group_distance: float,
     pad: int,
     reach: float,
-    sweeps: int = 3,
+    sweeps: int = 10,
     count_selection: bool = True,
     threshold: float | None = None,
     min_photons: float = 200.0,
