@@ -380,3 +380,40 @@ def test_two_worker_processes_give_the_same_table():
     pd.testing.assert_frame_equal(one.table, two.table)
     with pytest.raises(ValueError, match="workers"):
         localize(frames, model, params, workers=0)
+
+
+def test_frame_fit_accepts_read_noise_below_zero(analytic):
+    """EMCCD/sCMOS frames in photons have pixels below zero; the fit clips them."""
+    px = 100.0
+    truth = np.array([[1650.0, 1550.0, 100.0, 3000.0]])
+    mu = 10.0 + analytic.render(*truth.T, (32, 32), px)
+    frame = np.random.default_rng(3).poisson(mu).astype(float) - 10.5
+    frame[0, 0] = -4.0
+    out = frame_fit(
+        frame,
+        analytic,
+        Emitters.from_array(np.add(truth, [40.0, -30.0, 50.0, 0.0])),
+        pixel_size=px,
+        background=1.0,
+        group_distance=500.0,
+        pad=6,
+        reach=2000.0,
+        noise="emccd",
+    )
+    assert len(out.emitters) == 1
+    assert abs(out.emitters.x[0] - truth[0, 0]) < 40.0
+
+
+def test_render_image_takes_a_truth_table_with_a_missing_z():
+    from sparseloc.plotting import render_image
+
+    t = pd.DataFrame(
+        {"x_nm": [500.0, 1500.0, 900.0], "y_nm": [500.0, 800.0, 1200.0], "z_nm": [0, np.nan, 300]}
+    )
+    img = render_image(t, (2000.0, 1600.0), render_px=20.0)
+    assert img.shape == (80, 100, 3) and np.all(np.isfinite(img)) and img.max() > 0.2
+
+
+def test_table_outside_the_model_range_is_refused(analytic):
+    with pytest.raises(ValueError, match="must lie within"):
+        SplinePSF.from_model(analytic, 100.0, roi=15, z_range=(-5000.0, 0.0))

@@ -138,6 +138,14 @@ def plot_scene(
     return save_figure(fig, path)
 
 
+def _median_sigma(locs: pd.DataFrame, default: float = 15.0) -> float:
+    """Median lateral uncertainty (nm) of a table, ``default`` when it has none."""
+    cols = [locs[c].to_numpy(float) for c in ("sigma_x_nm", "sigma_y_nm") if c in locs]
+    sig = np.concatenate(cols) if cols else np.zeros(0)
+    sig = sig[np.isfinite(sig)]
+    return float(np.median(sig)) if sig.size else default
+
+
 def render_image(
     locs: pd.DataFrame,
     fov_nm: tuple[float, float],
@@ -177,12 +185,10 @@ def render_image(
     x = locs["x_nm"].to_numpy(float)
     y = locs["y_nm"].to_numpy(float)
     z = locs["z_nm"].to_numpy(float)
+    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+    x, y, z = x[ok], y[ok], z[ok]
     if sigma_nm is None:
-        sig = np.concatenate(
-            [locs[c].to_numpy(float) for c in ("sigma_x_nm", "sigma_y_nm") if c in locs]
-        )
-        sig = sig[np.isfinite(sig)]
-        sigma_nm = float(np.median(sig)) if sig.size else 15.0
+        sigma_nm = _median_sigma(locs)
     sigma = max(sigma_nm / render_px, 1.0)
     lo, hi = (float(z.min()), float(z.max())) if z_range is None and len(z) else z_range or (0, 1)
     bins = (np.arange(rows + 1) * render_px, np.arange(cols + 1) * render_px)
@@ -224,13 +230,9 @@ def plot_render(
     ext = (0, w / 1000, h / 1000, 0)
     sigma = None
     for ax, (label, t) in zip(axes, tables, strict=True):
-        img = render_image(t, fov_nm, render_px=render_px, z_range=z_range, sigma_nm=sigma)
         if sigma is None:  # the truth is drawn with the localizations' spot size
-            sig = np.concatenate(
-                [t[c].to_numpy(float) for c in ("sigma_x_nm", "sigma_y_nm") if c in t]
-            )
-            sig = sig[np.isfinite(sig)]
-            sigma = float(np.median(sig)) if sig.size else 15.0
+            sigma = _median_sigma(t)
+        img = render_image(t, fov_nm, render_px=render_px, z_range=z_range, sigma_nm=sigma)
         ax.imshow(img, extent=ext, interpolation="nearest")
         ax.set_facecolor("black")
         _scale_bar(ax, ext, "white")

@@ -208,6 +208,11 @@ class SplinePSF(PSFBase):
         """
         px = check_pixel_size(pixel_size)
         lo, hi = model.z_range if z_range is None else z_range
+        mlo, mhi = model.z_range
+        if not (mlo - 1e-6 <= lo < hi <= mhi + 1e-6):
+            raise ValueError(
+                f"z_range ({lo:g}, {hi:g}) nm must lie within the model's ({mlo:g}, {mhi:g}) nm"
+            )
         n = max(4, int(np.ceil((hi - lo) / z_step)) + 1)
         zs = np.linspace(lo, hi, n)
         # The spline's z boundary mirrors the end planes, which zeroes d/dz at the range's ends
@@ -216,9 +221,11 @@ class SplinePSF(PSFBase):
         render = model.images
         if isinstance(model, PSFBase) and not isinstance(model, SplinePSF):
             dz = zs[1] - zs[0]
-            zs = np.concatenate(
-                [lo - dz * np.arange(_Z_EXTRA, 0, -1), zs, hi + dz * np.arange(1, _Z_EXTRA + 1)]
-            )
+            below = lo - dz * np.arange(_Z_EXTRA, 0, -1)
+            depth0 = getattr(model, "focal_depth", 0.0)
+            if getattr(model, "n_sample", None) is not None:
+                below = below[depth0 + below >= 0.0]  # never below the coverslip
+            zs = np.concatenate([below, zs, hi + dz * np.arange(1, _Z_EXTRA + 1)])
             n = zs.size
 
             def render(x, y, z, shape, pixel_size):

@@ -261,6 +261,7 @@ def frame_pursuit(
     max_emitters: int | None = None,
     per_cycle: int | None = None,
     exclusion: float | None = None,
+    noise_factor: float = 1.0,
     correlator: _Correlator | None = None,
 ) -> Emitters:
     """Emitters of one frame by matching pursuit over the whole frame.
@@ -282,6 +283,11 @@ def frame_pursuit(
         Cap on correlate-select-refit cycles.
     max_emitters : int, optional
         Cap on the count (default: one per 16 pixels).
+    per_cycle, exclusion : optional
+        At most ``per_cycle`` new emitters per cycle, at least ``exclusion`` pixels apart
+        (default: twice the templates' core radius).
+    noise_factor : float
+        Variance per expected photon (2 for EMCCD data: excess noise).
     correlator : optional
         A correlator built for this frame shape and templates (reused across frames).
 
@@ -310,7 +316,7 @@ def frame_pursuit(
         sb, jb, cb, nb = cor.best(y - model)
         # Poisson variance of the correlation, sum(t^2 mu), as (local mean of mu) x sum(t^2):
         # one FFT instead of one per template.
-        vb = cor.local_mean(np.maximum(bg + model, 1e-3)) * nb
+        vb = cor.local_mean(np.maximum(bg + model, 1e-3)) * nb * noise_factor
         ok = (cb / np.sqrt(np.maximum(vb, 1e-12)) > threshold) & (cb / nb > min_photons)
         peaks = ok & (ndi.maximum_filter(sb, size=3, mode="constant", cval=-np.inf) == sb)
         rc = np.argwhere(peaks)
@@ -565,6 +571,9 @@ def frame_fit(
                     o = o[near]
                     offset = model.render(*o.T, shape, px, origin=origin)
             y = f[r0:r1, c0:c1]
+            if fit_kwargs.get("noise", "poisson") != "scmos":
+                # Read noise puts some pixels below zero; the Poisson fit needs counts >= 0.
+                y = np.maximum(y, 0.0)
             kw = dict(
                 pixel_size=px,
                 origin=origin,

@@ -25,7 +25,8 @@ residual correlates best with the PSF (the two best places are tried, each fitte
 K+1 model is kept when the ratio
 ``2 (logL_{K+1} - logL_K)`` exceeds ``threshold``. Each emitter has 4 parameters, so under the
 smaller model the ratio is about chi-square with 4 degrees of freedom: the default threshold
-18.47 is its 0.1 % tail (a 1-in-1000 chance of adding a spurious emitter per test).
+18.47 is its 0.1 % tail (a 1-in-1000 chance of adding a spurious emitter per test). ``log L``
+carries the EMCCD weight, so the ratio is on that scale for EMCCD data too.
 
 Uncertainties: the Cramer-Rao bound at the fitted parameters, ``sqrt(diag(F^-1))`` (x, y, z in
 nm, photons), with the background parameters in ``F``. Goodness of fit: the deviance
@@ -464,7 +465,9 @@ def fit_with_count_selection(
         if k >= 1:
             arr = best.emitters.as_array()
             weakest = int(np.argmin(arr[:, 3]))
-            wald = (arr[weakest, 3] / best.sigma[weakest, 3]) ** 2 / w
+            # sigma comes from the weighted Fisher matrix: (N / sigma)^2 is on the scale of
+            # the (weighted) likelihood ratio below
+            wald = (arr[weakest, 3] / best.sigma[weakest, 3]) ** 2
         # An emitter whose photons are many standard errors from zero (Wald statistic above
         # SKIP_FACTOR times the threshold) would not be removed: skip that refit.
         if k >= 1 and (
@@ -476,7 +479,7 @@ def fit_with_count_selection(
                 Emitters.from_array(np.delete(arr, weakest, axis=0)),
                 **{**kw, "background": bg},
             )
-            ratio = 2.0 * (best.log_likelihood - fewer.log_likelihood) / w
+            ratio = 2.0 * (best.log_likelihood - fewer.log_likelihood)
             if ratio < threshold or arr[weakest, 3] < min_photons:
                 best = fewer
                 best.history.append(f"removed one: K={k - 1}, LR={ratio:.1f}")
@@ -489,7 +492,7 @@ def fit_with_count_selection(
         )
         # The score statistic of the best grid emitter approximates the likelihood ratio of
         # adding it; far below the threshold, the refits cannot pass it.
-        if stat >= threshold / SKIP_FACTOR:
+        if w * stat >= threshold / SKIP_FACTOR:  # stat uses the Poisson variance
             more = None
             for cand in cands:
                 arr = np.vstack([best.emitters.as_array().reshape(-1, 4), cand])
@@ -497,7 +500,7 @@ def fit_with_count_selection(
                 if more is None or trial.log_likelihood > more.log_likelihood:
                     more = trial
             if more is not None:
-                ratio = 2.0 * (more.log_likelihood - best.log_likelihood) / w
+                ratio = 2.0 * (more.log_likelihood - best.log_likelihood)
                 if (
                     ratio > threshold
                     and np.all(more.flags != "diverged")
