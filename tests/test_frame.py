@@ -417,3 +417,32 @@ def test_render_image_takes_a_truth_table_with_a_missing_z():
 def test_table_outside_the_model_range_is_refused(analytic):
     with pytest.raises(ValueError, match="must lie within"):
         SplinePSF.from_model(analytic, 100.0, roi=15, z_range=(-5000.0, 0.0))
+
+
+def test_tiled_pursuit_finds_what_the_whole_frame_finds(analytic):
+    from sparseloc.solvers.frame import tiled_pursuit
+
+    px = 100.0
+    truth = np.array(
+        [
+            [1250.0, 1350.0, -200.0, 3000.0],
+            [5150.0, 1450.0, 100.0, 2500.0],
+            [3050.0, 4150.0, 300.0, 3500.0],
+            [8350.0, 8650.0, 0.0, 3000.0],
+            [4650.0, 8250.0, -300.0, 2800.0],
+        ]
+    )
+    mu = 10.0 + analytic.render(*truth.T, (96, 96), px)
+    frame = np.random.default_rng(11).poisson(mu).astype(float)
+    t = frame_templates(analytic, px, dxy=50.0, dz=100.0)
+    whole = tiled_pursuit(frame, 10.0, t)
+    cache: dict = {}
+    tiled = tiled_pursuit(frame, 10.0, t, max_pixels=1000, core=40, correlators=cache)
+    assert list(cache) == [(70, 70)]  # tiles of 40 + 2 x 15 px, one shape for all
+    # the strong atoms (the emitters; weak extras are the fit's to prune) agree
+    a, b = (e.as_array() for e in (whole, tiled))
+    a, b = (v[v[:, 3] > 1000.0] for v in (a, b))
+    a, b = (v[np.lexsort(v[:, :2].T)] for v in (a, b))
+    assert len(a) == len(b) == 5
+    assert np.allclose(a[:, :3], b[:, :3]) and np.allclose(a[:, 3], b[:, 3], rtol=0.05)
+    assert np.all(np.hypot(*(a[:, :2] - truth[np.lexsort(truth[:, :2].T), :2]).T) < 100.0)

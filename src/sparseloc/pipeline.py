@@ -34,7 +34,7 @@ from .io.tables import LOCS_COLUMNS, empty_locs
 from .psf.base import PSFModel
 from .psf.spline import SplinePSF
 from .solvers import WindowSolution, convex_solve, hybrid_solve, matching_pursuit
-from .solvers.frame import FrameFit, frame_fit, frame_pursuit, frame_templates
+from .solvers.frame import FrameFit, frame_fit, frame_templates, tiled_pursuit
 from .solvers.refine import refine_solution
 
 log = logging.getLogger(__name__)
@@ -223,15 +223,13 @@ class _FrameSolver:
     """Templates and FFTs built once per frame shape; solves one whole frame."""
 
     def __init__(self, model: PSFModel, params: LocalizeParams, shape: tuple[int, int]) -> None:
-        from .solvers.frame import _Correlator
-
         self.model = model
         self.p = params
         zr = params.z_range or model.z_range
         self.templates = frame_templates(
             model, params.pixel_size, dxy=params.coarse[0], dz=params.coarse[1], z_range=zr
         )
-        self.correlator = _Correlator(self.templates, shape)
+        self.correlators: dict = {}  # per frame (or tile) shape, see tiled_pursuit
         r50 = self.templates.core_radius
         # Groups: emitters closer than the radius holding half the light (broadest plane) are
         # fitted together. On dense double-helix frames (r50 10.6 px) fixed distances of 8 px
@@ -242,13 +240,13 @@ class _FrameSolver:
 
     def __call__(self, frame: NDArray, background: NDArray) -> FrameFit:
         p = self.p
-        start = frame_pursuit(
+        start = tiled_pursuit(
             frame,
             background,
             self.templates,
             threshold=p.threshold,
             noise_factor=2.0 if p.noise == "emccd" else 1.0,
-            correlator=self.correlator,
+            correlators=self.correlators,
         )
         return frame_fit(
             frame,

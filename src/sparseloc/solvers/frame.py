@@ -46,6 +46,7 @@ __all__ = [
     "frame_fit",
     "frame_pursuit",
     "frame_templates",
+    "tiled_pursuit",
 ]
 
 
@@ -160,7 +161,9 @@ class _Correlator:
         self.fshape = tuple(sfft.next_fast_len(n + t.shape[-1] - 1, real=True) for n in shape)
         self._flipped = t[:, ::-1, ::-1]
         self.ft = sfft.rfft2(self._flipped, s=self.fshape).astype(np.complex64)
-        self.norm2 = self.correlate(np.ones(shape), squared=True).astype(np.float32)
+        self.norm2 = np.empty((t.shape[0], *shape), dtype=np.float32)
+        for j0, part in self._batches(np.ones(shape), True):
+            self.norm2[j0 : j0 + len(part)] = part
         # One kernel for local means of the variance: the templates' mean square, normalised.
         sq = (self._flipped**2).mean(axis=0)
         self.fw = sfft.rfft2(sq / sq.sum(), s=self.fshape)
@@ -351,6 +354,60 @@ def frame_pursuit(
         templates.z[j].astype(np.float64),
         amps.astype(np.float64),
     )
+
+
+def tiled_pursuit(
+    frame: NDArray,
+    background: NDArray | float,
+    templates: FrameTemplates,
+    *,
+    max_pixels: int = 512 * 512,
+    core: int = 256,
+    correlators: dict | None = None,
+    **kwargs,
+) -> Emitters:
+    """:func:`frame_pursuit` on the whole frame, or on overlapping tiles of a large one.
+
+    The pursuit keeps a correlation per template over the whole frame; a 2048 x 2048 sCMOS
+    frame would need several GB. Frames above ``max_pixels`` are cut into cores of ``core``
+    pixels, each searched with a margin of one template width around it (so it sees the
+    whole image of any emitter in it and of its neighbours) and keeping the emitters in its
+    core. The tiles at the far edges are shifted inwards so that every tile has the same
+    shape: one correlator serves them all. ``correlators`` caches correlators per shape
+    across frames.
+    """
+    f = np.asarray(frame, dtype=np.float64)
+    if f.ndim != 2:
+        raise ValueError(f"frame must be 2-D, got shape {f.shape}")
+    cache = {} if correlators is None else correlators
+    rows, cols = f.shape
+    bg = np.broadcast_to(np.asarray(background, dtype=np.float64), f.shape)
+
+    def run(sub, sub_bg):
+        cor = cache.get(sub.shape)
+        if cor is None:
+            cor = cache[sub.shape] = _Correlator(templates, sub.shape)
+        return frame_pursuit(sub, sub_bg, templates, correlator=cor, **kwargs)
+
+    if rows * cols <= max_pixels:
+        return run(f, bg)
+    px = templates.pixel_size
+    m = templates.images.shape[-1]
+    wr, wc = min(rows, core + 2 * m), min(cols, core + 2 * m)
+    parts = []
+    for r0 in range(0, rows, core):
+        for c0 in range(0, cols, core):
+            r1, c1 = min(r0 + core, rows), min(c0 + core, cols)
+            ra = int(np.clip(r0 - m, 0, rows - wr))
+            ca = int(np.clip(c0 - m, 0, cols - wc))
+            rb, cb = ra + wr, ca + wc
+            e = run(f[ra:rb, ca:cb], bg[ra:rb, ca:cb]).as_array().reshape(-1, 4)
+            e[:, 0] += ca * px
+            e[:, 1] += ra * px
+            inside = (e[:, 0] >= c0 * px) & (e[:, 0] < c1 * px)
+            inside &= (e[:, 1] >= r0 * px) & (e[:, 1] < r1 * px)
+            parts.append(e[inside])
+    return Emitters.from_array(np.vstack(parts))
 
 
 @dataclass
