@@ -138,11 +138,12 @@ def test_storm_analysis_dh_grid_frame(shared_data, dh_calibration):
 def test_storm_analysis_dh_random_density(shared_data, dh_calibration):
     """0.5 emitter/um^2 of heavily overlapping double helices (a third of the frame).
 
-    Measured on this crop with the frame solver: recall 0.986, Jaccard 88.5 %, RMSE lateral
-    36 nm and axial 64 nm, but median errors of 6 nm laterally and 8 nm axially: a few
-    overlapping pairs fitted 100-200 nm off carry the RMSE (without the worst 5 of 69 pairs
-    it is 16 nm). The windowed hybrid solver measured recall 0.87, Jaccard 76 %, RMSE 12.6 /
-    19 nm. The thresholds guard the recall of overlapping emitters and the bulk precision.
+    Measured on this crop with the frame solver (final defaults): recall 0.971, Jaccard
+    89.5 %, RMSE lateral 23 nm and axial 55 nm, but median errors of 6 nm laterally and 7 nm
+    axially: a few overlapping pairs fitted far off carry the RMSE (without the worst
+    5 of 68 pairs it is 10 nm laterally). The windowed hybrid solver measured recall 0.87,
+    Jaccard 76 %, RMSE 12.6 / 19 nm. The thresholds guard the recall of overlapping emitters
+    and the bulk precision.
     """
     ev = _localize_crop(shared_data, "dh_random_density0.005px2", dh_calibration, 21, 6)
     assert ev.recall >= 0.9
@@ -155,11 +156,12 @@ def test_storm_analysis_dh_random_density_1_per_um2(shared_data, dh_calibration)
     """1 emitter/um^2 of double helices (a third of the frame): most images overlap two or
     more others.
 
-    Measured on this crop with the frame solver: recall 0.92, precision 0.63, Jaccard 59 %,
-    RMSE lateral 70 nm and axial 113 nm (median errors 24 and 33 nm); on the whole frame
-    recall 0.90, Jaccard 61 % (the windowed hybrid: 53.5 %). False positives (median 1700
-    photons against 4000 true) split the light of true emitters: the known weakness at this
-    density. The thresholds guard the recall and the Jaccard index against regressions.
+    Measured on this crop with the frame solver (final defaults): recall 0.907, precision
+    0.714, Jaccard 66.5 %, RMSE lateral 65 nm and axial 110 nm (median errors 14 nm both);
+    on the whole frame recall 0.890, Jaccard 64.6 % (the windowed hybrid: 53.5 %). False
+    positives (median 2100 photons against 4000 true) split the light of true emitters: the
+    known weakness at this density. The thresholds guard the recall and the Jaccard index
+    against regressions.
     """
     ev = _localize_crop(shared_data, "dh_random_density0.01px2", dh_calibration, 21, 6)
     assert ev.recall >= 0.85

@@ -253,3 +253,12 @@ def test_emitters_below_the_coverslip_are_refused():
         PupilPSF(None, n_sample=1.33, focal_depth=500.0, z_range=(-1000.0, 1000.0))
     with pytest.raises(ValueError, match="n_sample"):
         PupilPSF(None, n_sample=0.0)
+
+
+def test_tabulation_never_renders_below_the_coverslip():
+    from sparseloc.psf.spline import SplinePSF
+
+    water = PupilPSF(None, n_sample=1.33, focal_depth=500.0, z_range=(-500.0, 500.0))
+    assert water.renders_beyond_range(np.array([-520.0, -490.0])).tolist() == [False, True]
+    table = SplinePSF.from_model(water, 100.0, roi=15, z_step=10.0)
+    assert table.z.min() == -500.0 and table.z.max() == 530.0  # 3 extra planes above only

@@ -194,6 +194,12 @@ class PSFBase:
     ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
         raise NotImplementedError
 
+    def renders_beyond_range(self, z: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Which of these z (nm) outside the valid range the model can still render
+        physically (used to tabulate a margin of planes); all of them unless a subclass
+        knows better."""
+        return np.ones(np.shape(z), dtype=bool)
+
     # -- public API ------------------------------------------------------------------------
     def images(
         self,

@@ -157,6 +157,13 @@ class PupilPSF(PSFBase):
             + ")"
         )
 
+    def renders_beyond_range(self, z: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """With a sample index, never below the coverslip (depth ``focal_depth + z < 0``)."""
+        z = np.asarray(z, dtype=np.float64)
+        if self.n_sample is None:
+            return np.ones(z.shape, dtype=bool)
+        return self.focal_depth + z >= 0.0
+
     # -- OTF ------------------------------------------------------------------------------
     def otf(self, z: NDArray[np.float64], derivative: bool = False):
         """OTF coefficients ``c_m`` (K, B, B), centred, with ``c_0 = 1``; optionally d/dz.

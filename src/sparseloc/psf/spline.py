@@ -222,9 +222,7 @@ class SplinePSF(PSFBase):
         if isinstance(model, PSFBase) and not isinstance(model, SplinePSF):
             dz = zs[1] - zs[0]
             below = lo - dz * np.arange(_Z_EXTRA, 0, -1)
-            depth0 = getattr(model, "focal_depth", 0.0)
-            if getattr(model, "n_sample", None) is not None:
-                below = below[depth0 + below >= 0.0]  # never below the coverslip
+            below = below[model.renders_beyond_range(below)]
             zs = np.concatenate([below, zs, hi + dz * np.arange(1, _Z_EXTRA + 1)])
             n = zs.size
 
