@@ -192,6 +192,10 @@ LOCALIZE_DEFAULTS: dict = {
     "workers": 1,
     "n_sample": None,
     "focal_depth": None,
+    "read_noise": 0.0,
+    "offset_map": None,
+    "variance_map": None,
+    "gain_map": None,
 }
 
 
@@ -269,6 +273,16 @@ def localize(
     em_gain: Annotated[float | None, typer.Option(help="EM gain.")] = None,
     qe: Annotated[float | None, typer.Option(help="Quantum efficiency.")] = None,
     camera: Annotated[str | None, typer.Option(help="ideal, emccd or scmos.")] = None,
+    read_noise: Annotated[
+        float | None, typer.Option(help="Read noise (e- rms; sCMOS, or EMCCD before gain).")
+    ] = None,
+    offset_map: Annotated[
+        Path | None, typer.Option(help="sCMOS offset map (ADU): .tif, .npy or .csv.")
+    ] = None,
+    variance_map: Annotated[
+        Path | None, typer.Option(help="sCMOS read-noise variance map (ADU^2).")
+    ] = None,
+    gain_map: Annotated[Path | None, typer.Option(help="sCMOS gain map (e-/ADU).")] = None,
     method: Annotated[str | None, typer.Option(help="frame (default), hybrid, mp or co.")] = None,
     window: Annotated[
         int | None, typer.Option(help="Window size (px); default from a calibrated PSF, or 11.")
@@ -338,6 +352,10 @@ def localize(
         "workers": workers,
         "n_sample": n_sample,
         "focal_depth": focal_depth,
+        "read_noise": read_noise,
+        "offset_map": offset_map,
+        "variance_map": variance_map,
+        "gain_map": gain_map,
     }
     opts = {**LOCALIZE_DEFAULTS, **_load_config(config)}
     opts.update({k: v for k, v in given.items() if v is not None})
@@ -372,16 +390,29 @@ def localize(
                 f"--pixel-size {opts['pixel_size']:g} nm differs from the movie's metadata "
                 f"({mov.pixel_size:g} nm)"
             )
-        cam = _run(
-            Camera,
-            kind=opts["camera"],
-            offset=opts["offset"],
-            gain=opts["gain"],
-            em_gain=opts["em_gain"],
-            qe=opts["qe"],
-        )
+        cam_kw = {
+            "kind": opts["camera"],
+            "offset": opts["offset"],
+            "gain": opts["gain"],
+            "em_gain": opts["em_gain"],
+            "qe": opts["qe"],
+            "read_noise": opts["read_noise"],
+        }
+        maps = {k: opts[f"{k}_map"] for k in ("offset", "variance", "gain") if opts[f"{k}_map"]}
+        if maps and opts["camera"] != "scmos":
+            _fail("--offset-map, --variance-map and --gain-map need --camera scmos")
+        if maps:
+            cam_kw.update({k: str(v) for k, v in maps.items()})
+            cam = _run(Camera.from_map_files, **cam_kw)
+        else:
+            cam = _run(Camera, **cam_kw)
         first = mov.frames(0, 1)
-        if opts["offset"] >= float(np.median(first)):
+        if cam.map_shape is not None and cam.map_shape != first.shape[-2:]:
+            _fail(
+                f"the camera maps are {cam.map_shape[0]}x{cam.map_shape[1]} pixels but the "
+                f"frames are {first.shape[-2]}x{first.shape[-1]}"
+            )
+        if cam.offset_map is None and opts["offset"] >= float(np.median(first)):
             _fail(
                 f"the offset ({opts['offset']:g} ADU) is not below the median pixel value "
                 f"({float(np.median(first)):g} ADU) of the first frame; check --offset"
@@ -389,6 +420,15 @@ def localize(
         window_px, margin_px = _run(
             _window_for, model, opts["pixel_size"], opts["window"], opts["margin"]
         )
+        # sCMOS read noise in photons^2 (a map with maps): the likelihood and the detection
+        # threshold add it to the shot noise.
+        read_var = (
+            np.asarray(cam._read_variance_e(first.shape[-2:])) / cam.qe**2
+            if opts["camera"] == "scmos"
+            else np.asarray(0.0)
+        )
+        if read_var.ndim == 2 and np.ptp(read_var) == 0:
+            read_var = np.asarray(read_var.flat[0])
         lo, hi = model.z_range
         zr = (
             lo if opts["z_min"] is None else opts["z_min"],
@@ -411,7 +451,8 @@ def localize(
             z_range=zr,
             threshold=opts["threshold"],
             background=opts["background"],
-            noise="emccd" if opts["camera"] == "emccd" else "poisson",
+            noise={"emccd": "emccd", "scmos": "scmos"}.get(opts["camera"], "poisson"),
+            read_variance=float(read_var) if read_var.ndim == 0 else 0.0,
         )
         from tqdm import tqdm
 
@@ -425,6 +466,7 @@ def localize(
                 stop=stop,
                 progress=bar.update,
                 workers=int(opts["workers"]),
+                read_variance=read_var if read_var.ndim == 2 else None,
             )
         meta = {**res.metadata, "movie": [str(p) for p in mov.paths], "camera": cam.to_dict()}
         _run(

@@ -89,6 +89,9 @@ class LocalizeParams:
         See ``background``.
     noise : {"poisson", "emccd", "scmos"}
         Likelihood of the maximum-likelihood stage.
+    read_variance : float
+        Read-noise variance per pixel in photons^2 (``noise="scmos"``): enters the
+        detection threshold and the likelihood (Huang et al. 2013).
     max_emitters : int
         Cap per window.
     """
@@ -109,6 +112,7 @@ class LocalizeParams:
     min_temporal_frames: int = 50
     noise: str = "poisson"
     max_emitters: int = 10
+    read_variance: float = 0.0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -119,6 +123,10 @@ class LocalizeParams:
             raise ValueError(f"window {self.window} px and margin {self.margin} px leave no core")
         if self.background_frames < 1:
             raise ValueError("background_frames must be >= 1")
+        if self.noise not in ("poisson", "emccd", "scmos"):
+            raise ValueError(f"noise must be poisson, emccd or scmos; got {self.noise!r}")
+        if not (np.isfinite(self.read_variance) and self.read_variance >= 0):
+            raise ValueError(f"read_variance must be >= 0 photons^2, got {self.read_variance}")
         if self.background not in ("auto", "temporal", "spatial"):
             raise ValueError(
                 f"background must be auto, temporal or spatial; got {self.background!r}"
@@ -188,6 +196,7 @@ class _Solver:
                 refine=p.refine,
                 noise=p.noise,
                 max_emitters=p.max_emitters,
+                **self._read(),
             )
         if p.method == "mp":
             sol = matching_pursuit(
@@ -208,8 +217,17 @@ class _Solver:
                 pixel_size=p.pixel_size,
                 noise=p.noise,
                 max_emitters=p.max_emitters,
+                **self._read(),
             )
         return sol
+
+    def _read(self) -> dict:
+        return _read_kwargs(self.p)
+
+
+def _read_kwargs(p: LocalizeParams) -> dict:
+    """The read-noise keyword for the maximum-likelihood stage (sCMOS only)."""
+    return {"read_variance": p.read_variance} if p.noise == "scmos" else {}
 
 
 #: Largest pad (pixels) of a group's window around its emitters in the frame solver. The pad is
@@ -222,9 +240,20 @@ PAD_CAP = 12.0
 class _FrameSolver:
     """Templates and FFTs built once per frame shape; solves one whole frame."""
 
-    def __init__(self, model: PSFModel, params: LocalizeParams, shape: tuple[int, int]) -> None:
+    def __init__(
+        self,
+        model: PSFModel,
+        params: LocalizeParams,
+        shape: tuple[int, int],
+        read_variance: NDArray | None = None,
+    ) -> None:
         self.model = model
         self.p = params
+        self.read_variance = (
+            (params.read_variance if read_variance is None else read_variance)
+            if params.noise == "scmos"
+            else 0.0
+        )
         zr = params.z_range or model.z_range
         self.templates = frame_templates(
             model, params.pixel_size, dxy=params.coarse[0], dz=params.coarse[1], z_range=zr
@@ -246,6 +275,7 @@ class _FrameSolver:
             self.templates,
             threshold=p.threshold,
             noise_factor=2.0 if p.noise == "emccd" else 1.0,
+            read_variance=self.read_variance,
             correlators=self.correlators,
         )
         return frame_fit(
@@ -260,6 +290,7 @@ class _FrameSolver:
             count_selection=p.refine,
             max_emitters=p.max_emitters,
             noise=p.noise,
+            **({"read_variance": self.read_variance} if p.noise == "scmos" else {}),
         )
 
 
@@ -318,6 +349,7 @@ def localize(
     block: int = 64,
     progress: Callable[[int], None] | None = None,
     workers: int = 1,
+    read_variance: NDArray | None = None,
 ) -> LocalizeResult:
     """Localize every frame of a movie (photons) and return the localization table.
 
@@ -339,6 +371,9 @@ def localize(
     workers : int
         Processes solving frames (1: this process). Frames are independent, so the table is
         the same whatever the number; the reading and the background stay here.
+    read_variance : ndarray, shape (rows, cols), optional
+        Per-pixel read-noise variance (photons^2) of an sCMOS camera, for ``noise="scmos"``
+        with the frame solver; replaces ``params.read_variance``.
 
     Returns
     -------
@@ -362,6 +397,16 @@ def localize(
     tiles(shape, p.window, p.margin)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    if read_variance is not None:
+        read_variance = np.asarray(read_variance, dtype=np.float64)
+        if read_variance.shape != tuple(shape):
+            raise ValueError(
+                f"the read-variance map is {read_variance.shape}, the frames are {tuple(shape)}"
+            )
+        if p.noise != "scmos" or p.method != "frame":
+            raise ValueError("a read-variance map needs noise='scmos' and method='frame'")
+        if not np.all(np.isfinite(read_variance)) or np.any(read_variance < 0):
+            raise ValueError("the read-variance map must be finite and >= 0 photons^2")
     t0 = time.perf_counter()
     work_model = model
     if p.tabulate and not isinstance(model, SplinePSF):
@@ -379,11 +424,11 @@ def localize(
         # One BLAS thread, as in the worker processes: the matrices are small (no gain from
         # threads) and the same arithmetic gives the same table whatever ``workers``.
         with threadpool_limits(limits=1):
-            work = _FrameWork(work_model, p, shape)
+            work = _FrameWork(work_model, p, shape, read_variance)
             results = (work(f, frame, bg) for f, frame, bg in inputs)
             n_windows = _collect(results, parts, p.method == "frame", progress)
     else:
-        results = _in_processes(inputs, workers, (work_model, p, shape))
+        results = _in_processes(inputs, workers, (work_model, p, shape, read_variance))
         n_windows = _collect(results, parts, p.method == "frame", progress)
     seconds = time.perf_counter() - t0
     if parts:
@@ -399,6 +444,10 @@ def localize(
         "frames": [start, stop],
         "shape": list(shape),
     }
+    if read_variance is not None:
+        meta["read_variance_map_sha256"] = hashlib.sha256(
+            np.ascontiguousarray(read_variance, "<f8").tobytes()
+        ).hexdigest()[:16]
     return LocalizeResult(table, stop - start, n_windows, seconds, meta)
 
 
@@ -421,11 +470,17 @@ def _collect(results, parts: list[dict], renumber: bool, progress) -> int:
 class _FrameWork:
     """Everything needed to solve one frame, built once (per process)."""
 
-    def __init__(self, work_model: PSFModel, p: LocalizeParams, shape: tuple[int, int]) -> None:
+    def __init__(
+        self,
+        work_model: PSFModel,
+        p: LocalizeParams,
+        shape: tuple[int, int],
+        read_variance: NDArray | None = None,
+    ) -> None:
         self.p = p
         self.tiling = tiles(shape, p.window, p.margin)
         if p.method == "frame":
-            self.solver: Any = _FrameSolver(work_model, p, shape)
+            self.solver: Any = _FrameSolver(work_model, p, shape, read_variance)
         else:
             self.solver = _Solver(work_model, p)
             zr = p.z_range or work_model.z_range
@@ -473,13 +528,18 @@ def _frames_and_backgrounds(get, n: int, start: int, stop: int, block: int, p: L
 _WORK: _FrameWork | None = None
 
 
-def _init_worker(work_model: PSFModel, p: LocalizeParams, shape: tuple[int, int]) -> None:
+def _init_worker(
+    work_model: PSFModel,
+    p: LocalizeParams,
+    shape: tuple[int, int],
+    read_variance: NDArray | None = None,
+) -> None:
     global _WORK
     # One BLAS thread per process: the processes already share out the cores.
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1)
-    _WORK = _FrameWork(work_model, p, shape)
+    _WORK = _FrameWork(work_model, p, shape, read_variance)
 
 
 def _solve_in_worker(f: int, frame: NDArray, bg: NDArray) -> tuple[list[dict], int]:

@@ -265,6 +265,7 @@ def frame_pursuit(
     per_cycle: int | None = None,
     exclusion: float | None = None,
     noise_factor: float = 1.0,
+    read_variance: float | NDArray = 0.0,
     correlator: _Correlator | None = None,
 ) -> Emitters:
     """Emitters of one frame by matching pursuit over the whole frame.
@@ -291,6 +292,8 @@ def frame_pursuit(
         (default: twice the templates' core radius).
     noise_factor : float
         Variance per expected photon (2 for EMCCD data: excess noise).
+    read_variance : float or ndarray, shape (rows, cols)
+        Read-noise variance per pixel (photons^2) added to the shot noise (sCMOS).
     correlator : optional
         A correlator built for this frame shape and templates (reused across frames).
 
@@ -314,12 +317,16 @@ def frame_pursuit(
     amps = np.zeros(0)
     model = np.zeros_like(y)
     excl = max(2.0, 2.0 * templates.core_radius) if exclusion is None else exclusion
+    rv = np.asarray(read_variance, dtype=np.float64)
+    if rv.ndim:
+        # sum(t^2 var_read) over each atom's pixels, as a local mean like the shot noise's.
+        rv = cor.local_mean(np.broadcast_to(rv, f.shape))
     per_cycle = cap if per_cycle is None else per_cycle
     for _ in range(max_cycles):
         sb, jb, cb, nb = cor.best(y - model)
         # Poisson variance of the correlation, sum(t^2 mu), as (local mean of mu) x sum(t^2):
         # one FFT instead of one per template.
-        vb = cor.local_mean(np.maximum(bg + model, 1e-3)) * nb * noise_factor
+        vb = (cor.local_mean(np.maximum(bg + model, 1e-3)) * noise_factor + rv) * nb
         ok = (cb / np.sqrt(np.maximum(vb, 1e-12)) > threshold) & (cb / nb > min_photons)
         peaks = ok & (ndi.maximum_filter(sb, size=3, mode="constant", cval=-np.inf) == sb)
         rc = np.argwhere(peaks)
@@ -382,12 +389,15 @@ def tiled_pursuit(
     cache = {} if correlators is None else correlators
     rows, cols = f.shape
     bg = np.broadcast_to(np.asarray(background, dtype=np.float64), f.shape)
+    rv = np.asarray(kwargs.pop("read_variance", 0.0), dtype=np.float64)
+    rv_map = np.broadcast_to(rv, f.shape) if rv.ndim else None
 
-    def run(sub, sub_bg):
+    def run(sub, sub_bg, window=(slice(None), slice(None))):
         cor = cache.get(sub.shape)
         if cor is None:
             cor = cache[sub.shape] = _Correlator(templates, sub.shape)
-        return frame_pursuit(sub, sub_bg, templates, correlator=cor, **kwargs)
+        sub_rv = rv if rv_map is None else rv_map[window]
+        return frame_pursuit(sub, sub_bg, templates, correlator=cor, read_variance=sub_rv, **kwargs)
 
     if rows * cols <= max_pixels:
         return run(f, bg)
@@ -401,7 +411,8 @@ def tiled_pursuit(
             ra = int(np.clip(r0 - m, 0, rows - wr))
             ca = int(np.clip(c0 - m, 0, cols - wc))
             rb, cb = ra + wr, ca + wc
-            e = run(f[ra:rb, ca:cb], bg[ra:rb, ca:cb]).as_array().reshape(-1, 4)
+            win = (slice(ra, rb), slice(ca, cb))
+            e = run(f[win], bg[win], win).as_array().reshape(-1, 4)
             e[:, 0] += ca * px
             e[:, 1] += ra * px
             inside = (e[:, 0] >= c0 * px) & (e[:, 0] < c1 * px)

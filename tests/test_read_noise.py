@@ -1,0 +1,173 @@
+"""sCMOS read noise through the pipeline, and the pupil model's blur."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from sparseloc.cli import app
+from sparseloc.pipeline import LocalizeParams, localize
+from sparseloc.psf import PupilPSF, make_psf
+from sparseloc.simulate import simulate
+from sparseloc.solvers.frame import frame_pursuit, frame_templates
+
+PX = 100.0
+
+
+# --- blur ----------------------------------------------------------------------------------
+
+
+def _moments(img):
+    r, c = np.indices(img.shape)
+    s = img.sum()
+    mr, mc = (img * r).sum() / s, (img * c).sum() / s
+    return s, ((r - mr) ** 2 * img).sum() / s, ((c - mc) ** 2 * img).sum() / s
+
+
+def test_blur_adds_its_variance_and_keeps_the_photons():
+    sharp = PupilPSF(None, z_range=(-500.0, 500.0))
+    blurred = PupilPSF(None, z_range=(-500.0, 500.0), blur=150.0)
+    x = y = 40.5 * PX
+    a = sharp.images([x], [y], [0.0], (81, 81), PX)[0]
+    b = blurred.images([x], [y], [0.0], (81, 81), PX)[0]
+    sa, vra, vca = _moments(a)
+    sb, vrb, vcb = _moments(b)
+    assert sb == pytest.approx(sa, rel=1e-3)
+    # variances add under convolution: 1.5 px blur adds 2.25 px^2 in each axis
+    assert vrb - vra == pytest.approx(2.25, rel=0.05)
+    assert vcb - vca == pytest.approx(2.25, rel=0.05)
+    assert b.max() < a.max()
+
+
+def test_blur_derivatives_match_finite_differences():
+    m = PupilPSF(make_psf("dh").mask, z_range=(-500.0, 500.0), blur=100.0)
+    x, y, z = 10.3 * PX, 9.8 * PX, 120.0
+    _, d = m.images([x], [y], [z], (21, 21), PX, derivatives=True)
+    h = 0.5
+    up = m.images([x], [y], [z + h], (21, 21), PX)[0]
+    dn = m.images([x], [y], [z - h], (21, 21), PX)[0]
+    np.testing.assert_allclose(d[0, 2], (up - dn) / (2 * h), atol=1e-7)
+
+
+def test_negative_blur_is_refused():
+    with pytest.raises(ValueError, match="blur"):
+        PupilPSF(None, blur=-1.0)
+
+
+# --- read noise in the pursuit and the pipeline --------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def analytic():
+    return make_psf("dh-analytic")
+
+
+def test_read_noise_raises_the_detection_bar(analytic):
+    t = frame_templates(analytic, PX, dxy=50.0, dz=120.0)
+    mu = analytic.render([2400.0], [2400.0], [0.0], [700.0], (48, 48), PX) + 5.0
+    frame = np.random.default_rng(2).poisson(mu).astype(float)
+    quiet = frame_pursuit(frame, 5.0, t)
+    noisy = frame_pursuit(frame, 5.0, t, read_variance=400.0)
+    assert len(quiet) >= 1
+    assert len(noisy) == 0
+    # a constant map is the scalar
+    mapped = frame_pursuit(frame, 5.0, t, read_variance=np.full(frame.shape, 400.0))
+    assert len(mapped) == len(noisy)
+
+
+@pytest.fixture(scope="module")
+def movie(analytic):
+    sim = simulate(
+        analytic,
+        scene="uniform",
+        n_frames=2,
+        shape=(40, 40),
+        pixel_size=PX,
+        density=0.4,
+        photons=(2000.0, 5000.0),
+        background=10.0,
+        seed=4,
+    )
+    return sim.movie.astype(float) - sim.camera.offset
+
+
+def test_constant_read_variance_map_equals_the_scalar(analytic, movie):
+    scalar = LocalizeParams(pixel_size=PX, noise="scmos", read_variance=4.0)
+    a = localize(movie, analytic, scalar)
+    b = localize(movie, analytic, scalar, read_variance=np.full(movie.shape[1:], 4.0))
+    assert len(a.table) > 3
+    pd.testing.assert_frame_equal(a.table, b.table)
+    assert "read_variance_map_sha256" in b.metadata
+    # the read noise changes the likelihood: the uncertainties grow
+    c = localize(movie, analytic, LocalizeParams(pixel_size=PX))
+    assert a.table.sigma_x_nm.median() > c.table.sigma_x_nm.median()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "rv", "message"),
+    [
+        ({"noise": "scmos"}, np.ones((5, 5)), "read-variance map is"),
+        ({}, np.ones((40, 40)), "needs noise='scmos'"),
+        ({"noise": "scmos"}, -np.ones((40, 40)), ">= 0"),
+    ],
+)
+def test_bad_read_variance_maps_are_refused(analytic, movie, kwargs, rv, message):
+    with pytest.raises(ValueError, match=message):
+        localize(movie, analytic, LocalizeParams(pixel_size=PX, **kwargs), read_variance=rv)
+
+
+def test_bad_noise_parameters_are_refused():
+    with pytest.raises(ValueError, match="noise must be"):
+        LocalizeParams(pixel_size=PX, noise="gaussian")
+    with pytest.raises(ValueError, match="read_variance"):
+        LocalizeParams(pixel_size=PX, read_variance=-1.0)
+
+
+# --- command line --------------------------------------------------------------------------
+
+
+def test_localize_cli_takes_scmos_read_noise_and_maps(tmp_path):
+    import tifffile
+
+    runner = CliRunner()
+    movie = tmp_path / "m.tif"
+    res = runner.invoke(
+        app,
+        [
+            "simulate", "-o", str(movie), "--psf", "dh-analytic", "--frames", "1",
+            "--rows", "32", "--cols", "32", "--pixel-size", "100", "--density", "0.3",
+            "--photons-min", "3000", "--photons-max", "4000", "--camera", "scmos",
+            "--read-noise", "1.5", "--seed", "1",
+        ],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    base = ["localize", str(movie), "--psf", "dh-analytic", "--pixel-size", "100"]
+    out = tmp_path / "a.parquet"
+    res = runner.invoke(app, [*base, "-o", str(out), "--camera", "scmos", "--read-noise", "1.5"])
+    assert res.exit_code == 0, res.output
+    from sparseloc.io.tables import read_parquet
+
+    table, meta = read_parquet(out)
+    assert len(table) >= 1
+    assert meta["params"]["noise"] == "scmos"
+    assert meta["params"]["read_variance"] == pytest.approx(2.25)
+    var = tmp_path / "var.tif"
+    tifffile.imwrite(var, np.full((32, 32), 2.25, np.float32))
+    out2 = tmp_path / "b.parquet"
+    res = runner.invoke(
+        app, [*base, "-o", str(out2), "--camera", "scmos", "--variance-map", str(var)]
+    )
+    assert res.exit_code == 0, res.output
+    # a uniform map is passed as the scalar it is
+    assert read_parquet(out2)[1]["params"]["read_variance"] == pytest.approx(2.25)
+    small = tmp_path / "small.tif"
+    tifffile.imwrite(small, np.ones((8, 8), np.float32))
+    for args, msg in [
+        (["--variance-map", str(var)], "need --camera scmos"),
+        (["--camera", "scmos", "--variance-map", str(small)], "camera maps are 8x8"),
+    ]:
+        res = runner.invoke(app, [*base, "-o", str(tmp_path / "x.csv"), *args])
+        assert res.exit_code == 2 and msg in res.output, res.output
+    assert not (tmp_path / "x.csv").exists()
