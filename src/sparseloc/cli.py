@@ -11,7 +11,7 @@ import sys
 import time
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 import typer
@@ -633,6 +633,211 @@ def evaluate(
 
         _output_path(json_out)
         write_text_atomic(json_out, json.dumps(result.as_dict(), indent=2))
+
+
+def _read_locs(path: Path) -> tuple[Any, dict]:
+    """A localization table and its metadata (Parquet files carry the analysis')."""
+    from .io.tables import read_parquet, read_table
+
+    if not path.is_file():
+        _fail(f"{str(path)!r} does not exist or is not a file")
+    if path.suffix.lower() in (".parquet", ".pq"):
+        return _run(read_parquet, path)
+    return _run(read_table, path), {}
+
+
+def _write_locs(table, out: Path, meta: dict) -> None:
+    """Write a processed table in the format of ``out``'s suffix, with the metadata."""
+    from .io.tables import write_table
+
+    params = meta.get("params", {}) if isinstance(meta.get("params"), dict) else {}
+    shape = meta.get("shape")
+    kwargs: dict[str, Any] = {"metadata": meta}
+    if out.suffix.lower() in (".hdf5", ".h5"):
+        if not params.get("pixel_size") or not shape:
+            _fail(
+                "a Picasso HDF5 output needs the pixel size and frame shape, which only a "
+                "sparseloc Parquet input carries; write .parquet or .csv instead"
+            )
+        kwargs.update(pixel_size=float(params["pixel_size"]), shape=tuple(shape))
+        kwargs["n_frames"] = int(table["frame"].max()) + 1 if len(table) else 1
+    _run(write_table, table, out, **kwargs)
+
+
+@app.command()
+def render(
+    locs: Annotated[Path, typer.Argument(help="Localization table (any supported format).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Image (.png).")],
+    px: Annotated[
+        float | None, typer.Option(help="Render pixel (nm); default: from the uncertainties.")
+    ] = None,
+    z_min: Annotated[float | None, typer.Option(help="Colour scale start (nm).")] = None,
+    z_max: Annotated[float | None, typer.Option(help="Colour scale end (nm).")] = None,
+    volume: Annotated[
+        Path | None, typer.Option(help="Also write a 3D rendering as a TIFF stack (ImageJ).")
+    ] = None,
+    voxel: Annotated[
+        tuple[float, float], typer.Option(help="Volume voxel: lateral and axial size (nm).")
+    ] = (20.0, 50.0),
+    frc_plot: Annotated[
+        Path | None, typer.Option("--frc", help="Also write the FRC curve (.png).")
+    ] = None,
+) -> None:
+    """Render localizations: xy coloured by depth, with xz and yz; FRC resolution."""
+    from .render import frc, plot_frc, plot_projections, render_volume, write_volume_tiff
+
+    out = _output_path(output)
+    if out.suffix.lower() != ".png":
+        _fail(f"the image must be a .png file, got {out.name!r}")
+    for extra in (volume, frc_plot):
+        if extra is not None:
+            _output_path(extra)
+    table, _ = _read_locs(locs)
+    if len(table) == 0:
+        _fail(f"{locs.name} holds no localizations")
+    zr = None
+    if z_min is not None or z_max is not None:
+        zr = (
+            float(table.z_nm.min()) if z_min is None else z_min,
+            float(table.z_nm.max()) if z_max is None else z_max,
+        )
+        if not zr[0] < zr[1]:
+            _fail(f"--z-min {zr[0]:g} must be below --z-max {zr[1]:g}")
+    _run(plot_projections, table, out, px_nm=px, z_range=zr, title=locs.name)
+    typer.echo(f"wrote {out}")
+    res = _run(frc, table)
+    if np.isfinite(res.resolution_nm):
+        typer.echo(f"FRC resolution: {res.resolution_nm:.1f} nm")
+    else:
+        typer.echo("FRC resolution: not determined (the curve never falls below 1/7)")
+    if frc_plot is not None:
+        _run(plot_frc, res, frc_plot)
+        typer.echo(f"wrote {frc_plot}")
+    if volume is not None:
+        vol, vmeta = _run(render_volume, table, px_nm=voxel[0], pz_nm=voxel[1], z_range=zr)
+        _run(write_volume_tiff, volume, vol, voxel[0], voxel[1], vmeta["z0_nm"])
+        typer.echo(f"wrote {volume} ({vol.shape[0]} planes of {vol.shape[1]}x{vol.shape[2]})")
+
+
+@app.command()
+def drift(
+    locs: Annotated[Path, typer.Argument(help="Localization table (any supported format).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Corrected table.")],
+    method: Annotated[str, typer.Option(help="rcc or fiducial.")] = "rcc",
+    segments: Annotated[int, typer.Option(help="Time segments (rcc).", min=2)] = 10,
+    plot: Annotated[Path | None, typer.Option(help="Drift curve (.png).")] = None,
+    force: Annotated[
+        bool, typer.Option(help="Apply an estimate flagged unreliable anyway.")
+    ] = False,
+) -> None:
+    """Estimate the drift (x, y, z) and write the table with it removed."""
+    from .drift import apply_drift, fiducial_drift, plot_drift, rcc_drift
+
+    out = _output_path(output)
+    if plot is not None:
+        _output_path(plot)
+    if method not in ("rcc", "fiducial"):
+        _fail(f"--method must be rcc or fiducial, got {method!r}")
+    table, meta = _read_locs(locs)
+    if method == "rcc":
+        est = _run(rcc_drift, table, segments=segments)
+    else:
+        est = _run(fiducial_drift, table)
+    for w in est.warnings:
+        typer.echo(f"warning: {w}", err=True)
+    if plot is not None:
+        _run(plot_drift, est, plot)
+        typer.echo(f"wrote {plot}")
+    if not est.reliable and not force:
+        _fail("the drift estimate is unreliable (see the warnings); --force applies it anyway")
+    span = np.ptp(est.drift, axis=0)
+    typer.echo(
+        f"drift ({est.method}): range x {span[0]:.1f} nm, y {span[1]:.1f} nm, z {span[2]:.1f} nm"
+    )
+    corrected = apply_drift(table, est)
+    meta = {**meta, "drift": {"method": est.method, "reliable": bool(est.reliable)}}
+    _write_locs(corrected, out, meta)
+    typer.echo(f"wrote {out}")
+
+
+@app.command(name="filter")
+def filter_cmd(
+    locs: Annotated[Path, typer.Argument(help="Localization table (any supported format).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Filtered table.")],
+    photons_min: Annotated[float | None, typer.Option(help="Fewest photons.")] = None,
+    photons_max: Annotated[float | None, typer.Option(help="Most photons.")] = None,
+    sigma_max: Annotated[float | None, typer.Option(help="Max lateral sigma (nm).")] = None,
+    sigma_z_max: Annotated[float | None, typer.Option(help="Max axial sigma (nm).")] = None,
+    gof_max: Annotated[float | None, typer.Option(help="Largest deviance per dof.")] = None,
+    z_min: Annotated[float | None, typer.Option(help="Lowest z (nm).")] = None,
+    z_max: Annotated[float | None, typer.Option(help="Highest z (nm).")] = None,
+    all_flags: Annotated[
+        bool, typer.Option(help="Keep flagged fits too (default: only 'ok').")
+    ] = False,
+    merge: Annotated[
+        bool, typer.Option(help="Merge a molecule's localizations in consecutive frames.")
+    ] = False,
+    max_distance: Annotated[
+        float | None, typer.Option(help="Merge distance (nm); default 3x the median uncertainty.")
+    ] = None,
+    max_gap: Annotated[int, typer.Option(help="Dark frames a merged track may skip.")] = 1,
+) -> None:
+    """Filter localizations by photons, uncertainty, fit quality and z; merge blinks."""
+    from .postprocess import filter_locs, merge_blinks
+
+    out = _output_path(output)
+    table, meta = _read_locs(locs)
+    zr = None
+    if z_min is not None or z_max is not None:
+        zr = (-np.inf if z_min is None else z_min, np.inf if z_max is None else z_max)
+    res = _run(
+        filter_locs,
+        table,
+        photons_min=photons_min,
+        photons_max=photons_max,
+        sigma_xy_max_nm=sigma_max,
+        sigma_z_max_nm=sigma_z_max,
+        gof_max=gof_max,
+        z_range=zr,
+        flags=None if all_flags else ("ok",),
+    )
+    kept = res.locs
+    removed = ", ".join(f"{k} {v:,}" for k, v in res.removed.items() if v) or "none"
+    typer.echo(f"kept {len(kept):,} of {len(table):,} localizations (removed: {removed})")
+    if merge:
+        n0 = len(kept)
+        kept = _run(merge_blinks, kept, max_distance_nm=max_distance, max_gap=max_gap)
+        typer.echo(f"merged {n0:,} localizations into {len(kept):,}")
+    _write_locs(kept, out, {**meta, "filter": {"merge": merge}})
+    typer.echo(f"wrote {out}")
+
+
+@app.command()
+def report(
+    locs: Annotated[Path, typer.Argument(help="Localization table (any supported format).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Report (.html).")] = Path(
+        "report.html"
+    ),
+    truth: Annotated[
+        Path | None, typer.Option(help="Ground truth CSV: adds the evaluation.")
+    ] = None,
+    pixel_size: Annotated[
+        float | None, typer.Option(help="Pixel size (nm) for truth given in pixels.")
+    ] = None,
+) -> None:
+    """Write a one-page HTML quality report (histograms, drift, image, FRC, evaluation)."""
+    from .io.truth import read_truth_csv
+    from .report import write_report
+
+    out = _output_path(output)
+    table, meta = _read_locs(locs)
+    truth_df = None
+    if truth is not None:
+        if not truth.is_file():
+            _fail(f"{str(truth)!r} does not exist or is not a file")
+        truth_df = _run(read_truth_csv, truth, pixel_size=pixel_size)
+    _run(write_report, table, out, truth=truth_df, metadata=meta, title=f"sparseloc: {locs.name}")
+    typer.echo(f"wrote {out}")
 
 
 def main() -> None:

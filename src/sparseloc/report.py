@@ -1,0 +1,337 @@
+"""One-page quality report of a localization table: a self-contained HTML file.
+
+The page holds a summary table; histograms of photons, uncertainties, z and fit quality;
+localizations per frame; the drift estimated by redundant cross-correlation (when the movie
+is long and dense enough); the rendered image (xy with xz and yz) and its FRC resolution;
+and, given the ground truth, the evaluation figures and the error against z. Figures are
+embedded as PNG data URIs, so the file can be mailed or archived on its own.
+
+A small inline script counts the figures the browser decoded and writes the count on the
+``<body>`` (``data-figures-ok``): a headless browser's DOM dump shows at once whether the page
+rendered completely.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import logging
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from .io.atomic import write_text_atomic
+
+__all__ = ["build_report", "write_report"]
+
+logger = logging.getLogger(__name__)
+
+#: Fewest frames and localizations for which the report tries a drift estimate.
+DRIFT_MIN_FRAMES = 200
+DRIFT_MIN_LOCS = 2000
+
+
+def _png(fig) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _png_file(path: Path) -> str:
+    return base64.b64encode(path.read_bytes()).decode("ascii")
+
+
+def _hist_figure(t: pd.DataFrame) -> str:
+    from matplotlib.figure import Figure
+
+    panels = [
+        ("photons", "photons", "photons"),
+        ("sigma_x_nm", "sigma x (nm)", "uncertainty x"),
+        ("sigma_y_nm", "sigma y (nm)", "uncertainty y"),
+        ("sigma_z_nm", "sigma z (nm)", "uncertainty z"),
+        ("z_nm", "z (nm)", "depth"),
+        ("gof", "deviance / dof", "fit quality"),
+    ]
+    fig = Figure(figsize=(12, 6), layout="constrained")
+    axes = fig.subplots(2, 3).ravel()
+    for ax, (col, label, title) in zip(axes, panels, strict=True):
+        v = t[col].to_numpy(float) if col in t else np.zeros(0)
+        v = v[np.isfinite(v)]
+        if v.size:
+            hi = np.percentile(v, 99.5)
+            lo = min(v.min(), np.percentile(v, 0.5))
+            ax.hist(v, bins=60, range=(lo, hi if hi > lo else lo + 1), color="#3b75af")
+            ax.axvline(np.median(v), color="k", lw=1, ls="--")
+            ax.set_title(f"{title}: median {np.median(v):.3g}", fontsize=10)
+        else:
+            ax.text(0.5, 0.5, "no values", ha="center", va="center", transform=ax.transAxes)
+            ax.set_title(title, fontsize=10)
+        ax.set_xlabel(label)
+    return _png(fig)
+
+
+def _per_frame_figure(t: pd.DataFrame, n_frames: int) -> str:
+    from matplotlib.figure import Figure
+
+    counts = np.bincount(t["frame"].to_numpy(np.int64), minlength=n_frames)
+    fig = Figure(figsize=(12, 3), layout="constrained")
+    ax = fig.subplots()
+    ax.plot(np.arange(len(counts)), counts, lw=0.6, color="#999999", label="per frame")
+    w = max(1, len(counts) // 100)
+    if w > 1:
+        smooth = np.convolve(counts, np.ones(w) / w, mode="same")
+        ax.plot(np.arange(len(counts)), smooth, color="k", lw=1.2, label=f"mean over {w}")
+        ax.legend(fontsize=8)
+    ax.set_xlabel("frame")
+    ax.set_ylabel("localizations")
+    return _png(fig)
+
+
+def _drift_section(t: pd.DataFrame, n_frames: int) -> tuple[str, str | None]:
+    """Text and figure of the drift estimate, or the reason there is none."""
+    if n_frames < DRIFT_MIN_FRAMES or len(t) < DRIFT_MIN_LOCS:
+        return (
+            f"Not estimated: {n_frames} frames and {len(t):,} localizations (redundant "
+            f"cross-correlation needs at least {DRIFT_MIN_FRAMES} frames and "
+            f"{DRIFT_MIN_LOCS:,} localizations).",
+            None,
+        )
+    from matplotlib.figure import Figure
+
+    from .drift import rcc_drift
+
+    try:
+        d = rcc_drift(t)
+    except ValueError as exc:
+        return f"Not estimated: {exc}", None
+    fig = Figure(figsize=(12, 3), layout="constrained")
+    ax = fig.subplots()
+    for i, (axis, color) in enumerate(zip("xyz", ("C0", "C1", "C2"), strict=True)):
+        ax.plot(d.frames, d.drift[:, i], color=color, label=f"{axis}")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("drift (nm)")
+    ax.legend(fontsize=8)
+    span = np.ptp(d.drift, axis=0)
+    text = (
+        f"Redundant cross-correlation: drift range x {span[0]:.0f} nm, y {span[1]:.0f} nm, "
+        f"z {span[2]:.0f} nm over the movie (not applied here; see <code>sparseloc drift</code>)."
+    )
+    if not d.reliable:
+        text += " <b>Unreliable:</b> " + html.escape("; ".join(d.warnings))
+    return text, _png(fig)
+
+
+def _truth_section(t: pd.DataFrame, truth: pd.DataFrame) -> tuple[str, str]:
+    from matplotlib.figure import Figure
+
+    from .evaluate import evaluate, match_localizations
+
+    ev = evaluate(t, truth)
+    m = match_localizations(t, truth, lateral_tol=ev.lateral_tol, axial_tol=ev.axial_tol)
+    rows = [
+        ("truth / localizations", f"{ev.n_truth:,} / {ev.n_locs:,}"),
+        ("true / false positives, false negatives", f"{ev.tp:,} / {ev.fp:,}, {ev.fn:,}"),
+        ("Jaccard", f"{ev.jaccard:.1f} %"),
+        ("recall / precision", f"{ev.recall:.3f} / {ev.precision:.3f}"),
+        ("RMSE lateral / axial", f"{ev.rmse_lateral:.1f} / {ev.rmse_axial:.1f} nm"),
+        ("bias x / y / z", f"{ev.bias_x:.1f} / {ev.bias_y:.1f} / {ev.bias_z:.1f} nm"),
+        (
+            "efficiency lateral / axial",
+            f"{ev.efficiency_lateral:.1f} / {ev.efficiency_axial:.1f} %",
+        ),
+        ("tolerances", f"{ev.lateral_tol:g} nm lateral, {ev.axial_tol:g} nm axial"),
+    ]
+    fig = Figure(figsize=(12, 3.5), layout="constrained")
+    ax1, ax2 = fig.subplots(1, 2)
+    zt = m["z_truth"].to_numpy(float)
+    if len(m) and np.isfinite(zt).all():
+        edges = np.linspace(zt.min(), zt.max() + 1e-9, 11)
+        idx = np.clip(np.digitize(zt, edges) - 1, 0, 9)
+        mid = 0.5 * (edges[1:] + edges[:-1])
+        rms = {
+            axis: [
+                np.sqrt(np.mean(m[f"d{axis}"].to_numpy(float)[idx == i] ** 2))
+                if np.any(idx == i)
+                else np.nan
+                for i in range(10)
+            ]
+            for axis in "xyz"
+        }
+        for axis in "xyz":
+            ax1.plot(mid, rms[axis], "o-", label=axis)
+        ax1.legend(fontsize=8)
+        counts = np.bincount(idx, minlength=10)
+        ax2.bar(mid, counts, width=np.diff(edges), color="#3b75af", label="matched")
+        tz = truth["z_nm"].to_numpy(float) if "z_nm" in truth else np.zeros(len(truth))
+        all_counts = np.histogram(tz, bins=edges)[0]
+        ax2.step(mid, all_counts, where="mid", color="k", label="truth")
+        ax2.legend(fontsize=8)
+    ax1.set_xlabel("true z (nm)")
+    ax1.set_ylabel("RMS error (nm)")
+    ax1.set_title("error against depth", fontsize=10)
+    ax2.set_xlabel("true z (nm)")
+    ax2.set_title("detections against depth", fontsize=10)
+    table = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>" for k, v in rows)
+    return f"<table>{table}</table>", _png(fig)
+
+
+def build_report(
+    locs: pd.DataFrame,
+    *,
+    truth: pd.DataFrame | None = None,
+    metadata: Mapping[str, Any] | None = None,
+    title: str = "sparseloc report",
+    render_px: float | None = None,
+) -> str:
+    """The report as an HTML string (see the module docstring).
+
+    Parameters
+    ----------
+    locs : DataFrame
+        Localization table (:data:`sparseloc.io.tables.LOCS_COLUMNS`; nm, photons).
+    truth : DataFrame, optional
+        Ground truth (``frame, x_nm, y_nm[, z_nm]``): adds the evaluation and error against z.
+    metadata : mapping, optional
+        Shown as a table (e.g. the analysis parameters stored in a Parquet file).
+    title : str
+        Page title.
+    render_px : float, optional
+        Pixel size (nm) of the rendered image; default chosen by
+        :func:`sparseloc.render.plot_projections`.
+
+    Raises
+    ------
+    ValueError
+        If the table is empty.
+    """
+    from .io.tables import complete_locs
+    from .render import frc, plot_projections
+
+    if len(locs) == 0:
+        raise ValueError("the localization table is empty: nothing to report")
+    t = complete_locs(locs)
+    n_frames = int(t["frame"].max()) + 1
+    flags = t["flag"].value_counts().to_dict()
+    summary = [
+        ("localizations", f"{len(t):,}"),
+        ("frames", f"{n_frames:,} ({len(t) / n_frames:.1f} localizations per frame)"),
+        ("field (x, y)", f"{np.ptp(t.x_nm) / 1000:.1f} x {np.ptp(t.y_nm) / 1000:.1f} µm"),
+        ("z range", f"{t.z_nm.min():.0f} to {t.z_nm.max():.0f} nm"),
+        ("median photons", f"{t.photons.median():.0f}"),
+        (
+            "median uncertainty x / y / z",
+            f"{t.sigma_x_nm.median():.1f} / {t.sigma_y_nm.median():.1f} / "
+            f"{t.sigma_z_nm.median():.1f} nm",
+        ),
+        ("median deviance / dof", f"{t.gof.median():.2f}"),
+        ("flags", ", ".join(f"{k}: {v:,}" for k, v in flags.items())),
+    ]
+    sections: list[str] = []
+    sections.append(_table_html("Summary", summary))
+    sections.append(_figure_html("Distributions", _hist_figure(t)))
+    sections.append(_figure_html("Localizations per frame", _per_frame_figure(t, n_frames)))
+    text, fig = _drift_section(t, n_frames)
+    sections.append(_figure_html("Drift", fig, text))
+    with tempfile.TemporaryDirectory() as tmp:
+        png = plot_projections(t, Path(tmp) / "render.png", px_nm=render_px, title="")
+        render_b64 = _png_file(png)
+    try:
+        res = frc(t)
+        frc_text = (
+            f"FRC resolution (1/7 threshold, halves of alternating frame blocks): "
+            f"<b>{res.resolution_nm:.1f} nm</b>"
+            if np.isfinite(res.resolution_nm)
+            else "FRC: the curve never falls below 1/7 (too few localizations or no structure)."
+        )
+    except ValueError as exc:
+        frc_text = f"FRC not computed: {html.escape(str(exc))}"
+    sections.append(_figure_html("Rendered image (colour = z)", render_b64, frc_text))
+    if truth is not None:
+        table, fig = _truth_section(t, truth)
+        sections.append(_figure_html("Against the ground truth", fig, table))
+    if metadata:
+        items = [(str(k), _short(v)) for k, v in metadata.items()]
+        sections.append(_table_html("Metadata", items))
+    body = "\n".join(sections)
+    n_fig = body.count("<img ")
+    return _PAGE.format(
+        title=html.escape(title), body=body, n_figures=n_fig, style=_STYLE, script=_SCRIPT
+    )
+
+
+def write_report(
+    locs: pd.DataFrame,
+    path: str | Path,
+    *,
+    truth: pd.DataFrame | None = None,
+    metadata: Mapping[str, Any] | None = None,
+    title: str = "sparseloc report",
+    render_px: float | None = None,
+) -> Path:
+    """Write :func:`build_report` to ``path`` (``.html``) atomically and return the path."""
+    p = Path(path)
+    if p.suffix.lower() not in (".html", ".htm"):
+        raise ValueError(f"the report is an HTML file: give a .html path, not {p.name!r}")
+    if not p.parent.is_dir():
+        raise ValueError(f"the folder {str(p.parent)!r} does not exist")
+    page = build_report(locs, truth=truth, metadata=metadata, title=title, render_px=render_px)
+    return write_text_atomic(p, page)
+
+
+def _short(v: Any) -> str:
+    s = str(v)
+    return s if len(s) <= 300 else s[:297] + "..."
+
+
+def _table_html(heading: str, rows: list[tuple[str, str]]) -> str:
+    cells = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>" for k, v in rows)
+    return f"<section><h2>{html.escape(heading)}</h2><table>{cells}</table></section>"
+
+
+def _figure_html(heading: str, b64: str | None, text: str = "") -> str:
+    img = f'<img class="figure" alt="{html.escape(heading)}" src="data:image/png;base64,{b64}">'
+    parts = [f"<h2>{html.escape(heading)}</h2>"]
+    if text:
+        parts.append(f"<div>{text}</div>")
+    if b64 is not None:
+        parts.append(img)
+    return "<section>" + "".join(parts) + "</section>"
+
+
+_STYLE = """
+body { font-family: sans-serif; max-width: 1250px; margin: 1em auto; color: #222; }
+h1 { font-size: 1.5em; } h2 { font-size: 1.15em; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; margin: 0.5em 0; }
+th { text-align: left; padding: 2px 12px 2px 0; font-weight: normal; color: #555; }
+td { padding: 2px 0; } img.figure { max-width: 100%; }
+"""
+
+_SCRIPT = """
+window.addEventListener("load", function () {
+  var imgs = document.querySelectorAll("img.figure"), ok = 0;
+  for (var i = 0; i < imgs.length; i++) {
+    if (imgs[i].complete && imgs[i].naturalWidth > 0) { ok++; }
+  }
+  document.body.setAttribute("data-figures-ok", ok + "/" + imgs.length);
+});
+"""
+
+_PAGE = """<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<title>{title}</title>
+<style>{style}</style>
+</head>
+<body data-figures-expected="{n_figures}">
+<h1>{title}</h1>
+{body}
+<script>{script}</script>
+</body>
+</html>
+"""

@@ -1,0 +1,212 @@
+"""The quality report, and the render / drift / filter / report commands."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from html.parser import HTMLParser
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from sparseloc.cli import app
+from sparseloc.io.tables import complete_locs, write_table
+from sparseloc.report import build_report, write_report
+from sparseloc.simulate import filament_scene
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Blinking filaments over 400 frames: truth, and localizations = truth + noise."""
+    rng = np.random.default_rng(3)
+    truth = filament_scene(rng, 400, (6400.0, 6400.0), n_filaments=3, z_range=(-400.0, 400.0))
+    n = len(truth)
+    locs = truth[["frame", "x_nm", "y_nm", "z_nm", "photons"]].copy()
+    locs["x_nm"] += rng.normal(0, 12, n)
+    locs["y_nm"] += rng.normal(0, 12, n)
+    locs["z_nm"] += rng.normal(0, 30, n)
+    locs["sigma_x_nm"] = 12.0
+    locs["sigma_y_nm"] = 12.0
+    locs["sigma_z_nm"] = 30.0
+    locs["gof"] = rng.normal(1.0, 0.05, n)
+    return complete_locs(locs), truth
+
+
+class _Collect(HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.tags: list[str] = []
+        self.open: list[str] = []
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append(tag)
+        if tag not in ("img", "meta", "br"):
+            self.open.append(tag)
+
+    def handle_endtag(self, tag):
+        assert self.open and self.open[-1] == tag, f"</{tag}> closes <{self.open[-1:]}>"
+        self.open.pop()
+
+
+def test_report_has_every_section(scene):
+    locs, truth = scene
+    assert len(locs) > 2000  # the drift section runs
+    page = build_report(locs, truth=truth, metadata={"psf": "dh"})
+    parser = _Collect()
+    parser.feed(page)
+    assert parser.open == []  # every element closed
+    for heading in (
+        "Summary",
+        "Distributions",
+        "Localizations per frame",
+        "Drift",
+        "Rendered image",
+        "Against the ground truth",
+        "Metadata",
+    ):
+        assert f"<h2>{heading}" in page
+    expected = int(re.search(r'data-figures-expected="(\d+)"', page).group(1))
+    assert expected == parser.tags.count("img") == 5
+    assert "FRC resolution" in page
+    assert "Jaccard" in page
+
+
+def test_report_without_truth_or_enough_frames(scene):
+    locs, _ = scene
+    few = locs[locs.frame < 50]
+    page = build_report(few)
+    assert "Against the ground truth" not in page
+    assert "Not estimated" in page
+    with pytest.raises(ValueError, match="empty"):
+        build_report(locs.iloc[:0])
+
+
+def test_report_refuses_a_bad_path(scene, tmp_path):
+    locs, _ = scene
+    with pytest.raises(ValueError, match=r"\.html"):
+        write_report(locs, tmp_path / "r.pdf")
+    with pytest.raises(ValueError, match="does not exist"):
+        write_report(locs, tmp_path / "no" / "r.html")
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="needs Debian's chromium")
+def test_report_opens_in_headless_chromium(scene, tmp_path):
+    locs, truth = scene
+    path = write_report(locs, tmp_path / "report.html", truth=truth)
+    res = subprocess.run(
+        [
+            "chromium",
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--enable-logging=stderr",
+            "--v=0",
+            "--virtual-time-budget=10000",
+            "--dump-dom",
+            path.as_uri(),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert res.returncode == 0, res.stderr[-2000:]
+    # the page's own check: every figure decoded
+    m = re.search(r'data-figures-ok="(\d+)/(\d+)"', res.stdout)
+    assert m is not None, res.stdout[:500]
+    assert m.group(1) == m.group(2) == "5"
+    console = [ln for ln in res.stderr.splitlines() if "CONSOLE" in ln]
+    assert not [ln for ln in console if "Uncaught" in ln or "rror" in ln], console
+
+
+# --- commands ------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def table_file(scene, tmp_path):
+    locs, truth = scene
+    path = tmp_path / "locs.parquet"
+    write_table(
+        locs, path, metadata={"params": {"pixel_size": 100.0}, "shape": [64, 64], "psf": "dh"}
+    )
+    tpath = tmp_path / "truth.csv"
+    truth[["frame", "x_nm", "y_nm", "z_nm", "photons"]].to_csv(tpath, index=False)
+    return path, tpath
+
+
+def test_render_command(table_file, tmp_path):
+    import tifffile
+
+    path, _ = table_file
+    out = tmp_path / "img.png"
+    vol = tmp_path / "vol.tif"
+    res = CliRunner().invoke(
+        app,
+        [
+            "render",
+            str(path),
+            "-o",
+            str(out),
+            "--volume",
+            str(vol),
+            "--frc",
+            str(tmp_path / "f.png"),
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    assert out.stat().st_size > 10_000 and (tmp_path / "f.png").exists()
+    assert "FRC resolution" in res.output
+    assert tifffile.imread(vol).ndim == 3
+    bad = CliRunner().invoke(app, ["render", str(path), "-o", str(tmp_path / "img.jpg")])
+    assert bad.exit_code == 2 and ".png" in bad.output
+    missing = CliRunner().invoke(app, ["render", str(tmp_path / "x.parquet"), "-o", str(out)])
+    assert missing.exit_code == 2 and "does not exist" in missing.output
+
+
+def test_filter_and_merge_command(table_file, tmp_path):
+    from sparseloc.io.tables import read_parquet
+
+    path, _ = table_file
+    out = tmp_path / "f.parquet"
+    res = CliRunner().invoke(
+        app,
+        ["filter", str(path), "-o", str(out), "--photons-min", "1500", "--gof-max", "1.05"],
+    )
+    assert res.exit_code == 0, res.output
+    kept, meta = read_parquet(out)
+    assert len(kept) > 0 and kept.photons.min() >= 1500 and kept.gof.max() <= 1.05
+    assert meta["psf"] == "dh"  # the input's metadata travels
+    out2 = tmp_path / "m.parquet"
+    res = CliRunner().invoke(app, ["filter", str(path), "-o", str(out2), "--merge"])
+    assert res.exit_code == 0, res.output
+    merged, _ = read_parquet(out2)
+    assert len(merged) < len(pd.read_parquet(path))
+    out3 = tmp_path / "m.hdf5"
+    res = CliRunner().invoke(app, ["filter", str(path), "-o", str(out3)])
+    assert res.exit_code == 0, res.output  # pixel size and shape come from the metadata
+
+
+def test_drift_command(table_file, tmp_path):
+    path, _ = table_file
+    out = tmp_path / "d.parquet"
+    res = CliRunner().invoke(
+        app,
+        ["drift", str(path), "-o", str(out), "--plot", str(tmp_path / "d.png"), "--force"],
+    )
+    assert res.exit_code == 0, res.output
+    assert out.exists() and (tmp_path / "d.png").exists()
+    bad = CliRunner().invoke(app, ["drift", str(path), "-o", str(out), "--method", "beads"])
+    assert bad.exit_code == 2 and "rcc or fiducial" in bad.output
+
+
+def test_report_command(table_file, tmp_path):
+    path, tpath = table_file
+    out = tmp_path / "r.html"
+    res = CliRunner().invoke(app, ["report", str(path), "-o", str(out), "--truth", str(tpath)])
+    assert res.exit_code == 0, res.output
+    page = out.read_text()
+    assert "Jaccard" in page and "pixel_size" in page
+    bad = CliRunner().invoke(app, ["report", str(path), "-o", str(tmp_path / "r.txt")])
+    assert bad.exit_code == 2 and not (tmp_path / "r.txt").exists()
