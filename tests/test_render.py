@@ -392,7 +392,10 @@ def test_bad_input_raises_clear_errors(tmp_path):
         (lambda: R.frc(t, n_blocks=1), "n_blocks"),
         (lambda: R.frc(empty), "empty"),
         (lambda: R.write_volume_tiff(tmp_path / "v.tif", np.zeros((4, 4)), 20, 50, 0), "shape"),
-        (lambda: R.write_volume_tiff(tmp_path / "no" / "v.tif", np.zeros((2, 4, 4)), 20, 50), ""),
+        (
+            lambda: R.write_volume_tiff(tmp_path / "no" / "v.tif", np.zeros((2, 4, 4)), 20, 50),
+            "does not exist",
+        ),
     ]
     for call, words in cases:
         with pytest.raises(ValueError, match=words):
