@@ -109,7 +109,7 @@ def test_constant_read_variance_map_equals_the_scalar(analytic, movie):
     ("kwargs", "rv", "message"),
     [
         ({"noise": "scmos"}, np.ones((5, 5)), "read-variance map is"),
-        ({}, np.ones((40, 40)), "needs noise='scmos'"),
+        ({}, np.ones((40, 40)), "sCMOS likelihood"),
         ({"noise": "scmos"}, -np.ones((40, 40)), ">= 0"),
     ],
 )
@@ -171,3 +171,49 @@ def test_localize_cli_takes_scmos_read_noise_and_maps(tmp_path):
         res = runner.invoke(app, [*base, "-o", str(tmp_path / "x.csv"), *args])
         assert res.exit_code == 2 and msg in res.output, res.output
     assert not (tmp_path / "x.csv").exists()
+
+
+def test_a_read_variance_map_is_placed_by_rows_and_columns_and_tiles(analytic):
+    t = frame_templates(analytic, PX, dxy=50.0, dz=120.0)
+    shape = (64, 96)
+    mu = analytic.render([1500.0, 8000.0], [3200.0, 3200.0], [0.0, 0.0], [700.0] * 2, shape, PX)
+    frame = np.random.default_rng(3).poisson(mu + 5.0).astype(float)
+    rv = np.zeros(shape)
+    rv[:, :48] = 1000.0  # noisy left half (x < 4800 nm): its emitter is not significant there
+    from sparseloc.solvers.frame import tiled_pursuit
+
+    whole = tiled_pursuit(frame, 5.0, t, read_variance=rv)
+    tiled = tiled_pursuit(frame, 5.0, t, read_variance=rv, max_pixels=1000, core=32)
+    for found in (whole, tiled):
+        assert len(found) >= 1
+        assert np.all(found.x > 4800.0)  # only the right-hand emitter
+    assert len(tiled_pursuit(frame, 5.0, t)) >= 2  # both, without the read noise
+
+
+def test_read_variance_needs_the_scmos_likelihood():
+    with pytest.raises(ValueError, match="applies to noise='scmos'"):
+        LocalizeParams(pixel_size=PX, read_variance=2.0)
+
+
+def test_cli_converts_the_variance_map_with_gain_and_qe(tmp_path):
+    import tifffile
+
+    movie = tmp_path / "m.tif"
+    rng = np.random.default_rng(0)
+    tifffile.imwrite(movie, (100 + rng.poisson(20.0, (2, 32, 32))).astype(np.uint16))
+    var = tmp_path / "var.tif"
+    tifffile.imwrite(var, np.full((32, 32), 16.0, np.float32))
+    out = tmp_path / "a.parquet"
+    res = CliRunner().invoke(
+        app,
+        [
+            "localize", str(movie), "-o", str(out), "--psf", "dh-analytic",
+            "--pixel-size", "100", "--camera", "scmos", "--variance-map", str(var),
+            "--gain", "0.5", "--qe", "0.8",
+        ],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    from sparseloc.io.tables import read_parquet
+
+    # 16 ADU^2 x (0.5 e-/ADU)^2 / 0.8^2 = 6.25 photons^2
+    assert read_parquet(out)[1]["params"]["read_variance"] == pytest.approx(6.25)

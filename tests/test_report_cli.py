@@ -210,3 +210,63 @@ def test_report_command(table_file, tmp_path):
     assert "Jaccard" in page and "pixel_size" in page
     bad = CliRunner().invoke(app, ["report", str(path), "-o", str(tmp_path / "r.txt")])
     assert bad.exit_code == 2 and not (tmp_path / "r.txt").exists()
+
+
+def test_drift_command_corrects_and_refuses_unreliable_estimates(scene, tmp_path):
+    from sparseloc.io.tables import read_parquet
+
+    locs, _ = scene
+    drifted = locs.copy()
+    drifted["x_nm"] += 0.5 * drifted["frame"]  # 200 nm over the 400 frames
+    path = tmp_path / "d.parquet"
+    write_table(drifted, path, metadata={})
+    out = tmp_path / "c.parquet"
+    res = CliRunner().invoke(app, ["drift", str(path), "-o", str(out), "--no-z"])
+    assert res.exit_code == 0, res.output
+    fixed, _ = read_parquet(out)
+    late = drifted.frame > 300
+    err_before = np.abs(drifted.x_nm[late] - locs.x_nm[late]).mean()
+    err_after = np.abs(fixed.x_nm.to_numpy()[late.to_numpy()] - locs.x_nm[late]).mean()
+    assert err_before > 150 and err_after < 30
+    # a handful of localizations: no estimate, one sentence, no table
+    few = tmp_path / "few.parquet"
+    write_table(drifted.iloc[::40], few, metadata={})
+    out2 = tmp_path / "c2.parquet"
+    res = CliRunner().invoke(app, ["drift", str(few), "-o", str(out2)])
+    assert res.exit_code == 2 and not out2.exists()
+    assert "Traceback" not in res.output
+
+
+def test_render_short_and_wide_tables(tmp_path):
+    rng = np.random.default_rng(1)
+    n = 400
+    for name, frames, width in (("short", 10, 5000.0), ("wide", 100, 200_000.0)):
+        t = complete_locs(
+            pd.DataFrame(
+                {
+                    "frame": rng.integers(0, frames, n),
+                    "x_nm": rng.uniform(0, width, n),
+                    "y_nm": rng.uniform(0, 5000.0, n),
+                    "z_nm": rng.uniform(-300, 300, n),
+                }
+            )
+        )
+        path = tmp_path / f"{name}.parquet"
+        write_table(t, path, metadata={})
+        out = tmp_path / f"{name}.png"
+        res = CliRunner().invoke(app, ["render", str(path), "-o", str(out)])
+        assert res.exit_code == 0, res.output
+        assert out.exists() and "FRC" in res.output
+
+
+def test_commands_check_their_outputs_before_working(table_file, tmp_path):
+    path, _ = table_file
+    for args, msg in [
+        (["render", str(path), "-o", str(tmp_path / "a.png"), "--frc", str(tmp_path / "f.xyz")],
+         "--frc"),
+        (["drift", str(path), "-o", str(tmp_path / "d.txt")], "txt"),
+        (["filter", str(path), "-o", str(tmp_path / "f.xyz")], "xyz"),
+    ]:  # fmt: skip
+        res = CliRunner().invoke(app, args)
+        assert res.exit_code == 2 and msg in res.output, res.output
+    assert not list(tmp_path.glob("a.png")) and not list(tmp_path.glob("d.*"))

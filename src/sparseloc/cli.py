@@ -196,6 +196,10 @@ LOCALIZE_DEFAULTS: dict = {
     "offset_map": None,
     "variance_map": None,
     "gain_map": None,
+    "run_dir": None,
+    "chunk_frames": None,
+    "scheduler": None,
+    "overwrite": False,
 }
 
 
@@ -274,7 +278,7 @@ def localize(
     qe: Annotated[float | None, typer.Option(help="Quantum efficiency.")] = None,
     camera: Annotated[str | None, typer.Option(help="ideal, emccd or scmos.")] = None,
     read_noise: Annotated[
-        float | None, typer.Option(help="Read noise (e- rms; sCMOS, or EMCCD before gain).")
+        float | None, typer.Option(help="Read noise (e- rms) of an sCMOS camera.")
     ] = None,
     offset_map: Annotated[
         Path | None, typer.Option(help="sCMOS offset map (ADU): .tif, .npy or .csv.")
@@ -321,9 +325,28 @@ def localize(
         float | None,
         typer.Option(help="Nominal focal plane above the coverslip (nm; with --n-sample)."),
     ] = None,
+    run_dir: Annotated[
+        Path | None,
+        typer.Option(help="Chunked, resumable run: parts + manifest here (default OUT.parts)."),
+    ] = None,
+    chunk_frames: Annotated[
+        int | None, typer.Option(help="Frames per chunk of a chunked run (default 500).", min=1)
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(help="Chunked run on: sync, threads, or a Dask scheduler address."),
+    ] = None,
+    overwrite: Annotated[
+        bool | None, typer.Option(help="Start a chunked run over in a used run folder.")
+    ] = None,
     config: Annotated[Path | None, typer.Option(help="TOML file with the same keys.")] = None,
 ) -> None:
-    """Localize a movie and write the localization table."""
+    """Localize a movie and write the localization table.
+
+    With --run-dir, --chunk-frames or --scheduler the movie is cut into chunks of frames run
+    as tasks (in this process, in threads, on a Dask LocalCluster of --workers processes, or
+    on the scheduler given); each finished chunk is saved in the run folder, so the same
+    command started again after an interruption runs only the missing chunks."""
     from .camera import Camera
     from .io.movie import Movie
     from .io.tables import write_table
@@ -356,6 +379,10 @@ def localize(
         "offset_map": offset_map,
         "variance_map": variance_map,
         "gain_map": gain_map,
+        "run_dir": run_dir,
+        "chunk_frames": chunk_frames,
+        "scheduler": scheduler,
+        "overwrite": overwrite,
     }
     opts = {**LOCALIZE_DEFAULTS, **_load_config(config)}
     opts.update({k: v for k, v in given.items() if v is not None})
@@ -456,6 +483,10 @@ def localize(
         )
         from tqdm import tqdm
 
+        chunked = any(opts[k] is not None for k in ("run_dir", "chunk_frames", "scheduler"))
+        if chunked:
+            _localize_chunked(opts, out, mov, cam, model, params, start, stop, read_var)
+            return
         with tqdm(total=stop - start, unit="frame", disable=not sys.stderr.isatty()) as bar:
             res = _run(
                 run_localize,
@@ -480,6 +511,65 @@ def localize(
             metadata=meta,
         )
     typer.echo(res.summary())
+    typer.echo(f"wrote {out}")
+
+
+def _localize_chunked(opts, out, mov, cam, model, params, start, stop, read_var) -> None:
+    """The chunked path of ``localize``: run, save parts, join, or report what is missing."""
+    from tqdm import tqdm
+
+    from .distributed import CHUNK_FRAMES, CameraFrames, local_cluster, localize_chunked
+    from .io.tables import write_table
+
+    run_dir = Path(opts["run_dir"]) if opts["run_dir"] else out.with_name(out.stem + ".parts")
+    sched = opts["scheduler"]
+    workers = int(opts["workers"])
+    client = None
+    if sched is None:
+        sched = "sync"
+        if workers > 1:
+            client = _run(local_cluster, workers)
+            sched = client
+    try:
+        with tqdm(total=stop - start, unit="frame", disable=not sys.stderr.isatty()) as bar:
+            res = _run(
+                localize_chunked,
+                CameraFrames(mov, cam),
+                model,
+                params,
+                run_dir,
+                start=start,
+                stop=stop,
+                chunk_frames=int(opts["chunk_frames"] or CHUNK_FRAMES),
+                scheduler=sched,
+                threads=max(workers, 2),
+                overwrite=bool(opts["overwrite"]),
+                read_variance=read_var if read_var.ndim == 2 else None,
+                progress=bar.update,
+            )
+    finally:
+        if client is not None:
+            client.close()
+            client.cluster.close()
+    typer.echo(res.summary())
+    if not res.complete:
+        typer.echo(
+            f"error: {len(res.missing)} chunk(s) missing; {out} not written. Run the same "
+            f"command again to retry them (finished chunks are kept in {run_dir}).",
+            err=True,
+        )
+        raise typer.Exit(code=1)
+    meta = {**res.metadata, "movie": [str(p) for p in mov.paths], "camera": cam.to_dict()}
+    _run(
+        write_table,
+        res.table,
+        out,
+        format=opts["format"],
+        pixel_size=opts["pixel_size"],
+        shape=mov.shape,
+        n_frames=len(mov),
+        metadata=meta,
+    )
     typer.echo(f"wrote {out}")
 
 
@@ -635,6 +725,23 @@ def evaluate(
         write_text_atomic(json_out, json.dumps(result.as_dict(), indent=2))
 
 
+_FIGURE_SUFFIXES = (".png", ".pdf", ".svg")
+
+
+def _check_suffix(path: Path, allowed: tuple[str, ...], what: str) -> None:
+    if path.suffix.lower() not in allowed:
+        _fail(f"{what} must be a {' or '.join(allowed)} file, got {path.name!r}")
+
+
+def _table_output(path: Path) -> Path:
+    """An output table path whose folder exists and whose suffix names a format."""
+    from .io.tables import _format_for
+
+    out = _output_path(path)
+    _run(_format_for, out, None)
+    return out
+
+
 def _read_locs(path: Path) -> tuple[Any, dict]:
     """A localization table and its metadata (Parquet files carry the analysis')."""
     from .io.tables import read_parquet, read_table
@@ -687,11 +794,13 @@ def render(
     from .render import frc, plot_frc, plot_projections, render_volume, write_volume_tiff
 
     out = _output_path(output)
-    if out.suffix.lower() != ".png":
-        _fail(f"the image must be a .png file, got {out.name!r}")
-    for extra in (volume, frc_plot):
-        if extra is not None:
-            _output_path(extra)
+    _check_suffix(out, (".png",), "the image")
+    if frc_plot is not None:
+        _check_suffix(_output_path(frc_plot), _FIGURE_SUFFIXES, "--frc")
+    if volume is not None:
+        _check_suffix(_output_path(volume), (".tif", ".tiff"), "--volume")
+    if min(voxel) <= 0:
+        _fail(f"--voxel sizes must be > 0 nm, got {voxel[0]:g} and {voxel[1]:g}")
     table, _ = _read_locs(locs)
     if len(table) == 0:
         _fail(f"{locs.name} holds no localizations")
@@ -703,18 +812,29 @@ def render(
         )
         if not zr[0] < zr[1]:
             _fail(f"--z-min {zr[0]:g} must be below --z-max {zr[1]:g}")
+    # Everything that can fail is computed before anything is written.
+    vol = vmeta = None
+    if volume is not None:
+        vol, vmeta = _run(render_volume, table, px_nm=voxel[0], pz_nm=voxel[1], z_range=zr)
+    # FRC bins: 5 nm, coarser on wide fields so the image stays under ~8000 px a side.
+    span = float(max(np.ptp(table.x_nm), np.ptp(table.y_nm), 1.0))
+    try:
+        res = frc(table, px_nm=max(5.0, span / 8000.0))
+    except ValueError as exc:
+        res, frc_msg = None, f"FRC not computed: {exc}"
+    else:
+        frc_msg = (
+            f"FRC resolution: {res.resolution_nm:.1f} nm"
+            if np.isfinite(res.resolution_nm)
+            else f"FRC resolution: not determined ({res.warning})"
+        )
     _run(plot_projections, table, out, px_nm=px, z_range=zr, title=locs.name)
     typer.echo(f"wrote {out}")
-    res = _run(frc, table)
-    if np.isfinite(res.resolution_nm):
-        typer.echo(f"FRC resolution: {res.resolution_nm:.1f} nm")
-    else:
-        typer.echo("FRC resolution: not determined (the curve never falls below 1/7)")
-    if frc_plot is not None:
+    typer.echo(frc_msg)
+    if frc_plot is not None and res is not None:
         _run(plot_frc, res, frc_plot)
         typer.echo(f"wrote {frc_plot}")
     if volume is not None:
-        vol, vmeta = _run(render_volume, table, px_nm=voxel[0], pz_nm=voxel[1], z_range=zr)
         _run(write_volume_tiff, volume, vol, voxel[0], voxel[1], vmeta["z0_nm"])
         typer.echo(f"wrote {volume} ({vol.shape[0]} planes of {vol.shape[1]}x{vol.shape[2]})")
 
@@ -726,6 +846,8 @@ def drift(
     method: Annotated[str, typer.Option(help="rcc or fiducial.")] = "rcc",
     segments: Annotated[int, typer.Option(help="Time segments (rcc).", min=2)] = 10,
     plot: Annotated[Path | None, typer.Option(help="Drift curve (.png).")] = None,
+    bin_nm: Annotated[float, typer.Option(help="Histogram bin (nm; rcc).")] = 20.0,
+    no_z: Annotated[bool, typer.Option("--no-z", help="Estimate x and y only (rcc).")] = False,
     force: Annotated[
         bool, typer.Option(help="Apply an estimate flagged unreliable anyway.")
     ] = False,
@@ -733,23 +855,27 @@ def drift(
     """Estimate the drift (x, y, z) and write the table with it removed."""
     from .drift import apply_drift, fiducial_drift, plot_drift, rcc_drift
 
-    out = _output_path(output)
+    out = _table_output(output)
     if plot is not None:
-        _output_path(plot)
+        _check_suffix(_output_path(plot), _FIGURE_SUFFIXES, "--plot")
     if method not in ("rcc", "fiducial"):
         _fail(f"--method must be rcc or fiducial, got {method!r}")
+    if bin_nm <= 0:
+        _fail(f"--bin-nm must be > 0, got {bin_nm:g}")
     table, meta = _read_locs(locs)
+    # The estimators log their warnings (shown on stderr).
     if method == "rcc":
-        est = _run(rcc_drift, table, segments=segments)
+        est = _run(rcc_drift, table, segments=segments, bin_nm=bin_nm, estimate_z=not no_z)
     else:
         est = _run(fiducial_drift, table)
-    for w in est.warnings:
-        typer.echo(f"warning: {w}", err=True)
     if plot is not None:
         _run(plot_drift, est, plot)
         typer.echo(f"wrote {plot}")
     if not est.reliable and not force:
-        _fail("the drift estimate is unreliable (see the warnings); --force applies it anyway")
+        _fail(
+            "the drift estimate is unreliable (see the warnings above); the table was not "
+            "written; --force applies it anyway"
+        )
     span = np.ptp(est.drift, axis=0)
     typer.echo(
         f"drift ({est.method}): range x {span[0]:.1f} nm, y {span[1]:.1f} nm, z {span[2]:.1f} nm"
@@ -778,14 +904,20 @@ def filter_cmd(
         bool, typer.Option(help="Merge a molecule's localizations in consecutive frames.")
     ] = False,
     max_distance: Annotated[
-        float | None, typer.Option(help="Merge distance (nm); default 3x the median uncertainty.")
+        float | None,
+        typer.Option(help="Merge distance (nm); default 4 sqrt(2) x the median sigma, >= 20 nm."),
     ] = None,
     max_gap: Annotated[int, typer.Option(help="Dark frames a merged track may skip.")] = 1,
 ) -> None:
     """Filter localizations by photons, uncertainty, fit quality and z; merge blinks."""
     from .postprocess import filter_locs, merge_blinks
 
-    out = _output_path(output)
+    out = _table_output(output)
+    if merge and out.suffix.lower() not in (".parquet", ".pq"):
+        typer.echo(
+            "note: only Parquet keeps the merged rows' n_frames and last_frame columns",
+            err=True,
+        )
     table, meta = _read_locs(locs)
     zr = None
     if z_min is not None or z_max is not None:

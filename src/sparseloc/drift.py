@@ -378,7 +378,7 @@ def rcc_drift(
         sol_z = _solve(n_seg, pairs, d_z, valid_z, floor=z_bin_nm)
         ok_z = _check(sol_z, valid_z, n_seg, max_shift_nm, z_bin_nm, "z", warnings)
         if not ok_z:
-            warnings.append("z: pass estimate_z=False for an xy-only estimate")
+            warnings.append("z: pass estimate_z=False (drift --no-z) for an xy-only estimate")
         reliable &= ok_z
         shifts[:, 2] = sol_z.shifts[:, 0]
         used_z, resid_z = sol_z.used, sol_z.residuals
@@ -616,16 +616,16 @@ def _pair_shifts_z(
     m = min(math.ceil(max_shift_nm / z_bin) + 1, nz - 1)
     mw = min(max(m, math.ceil(NOISE_WINDOW_NM / z_bin) + 1), nz - 1)
     sig = math.sqrt(2) * blur_z / z_bin  # blur of the correlation, bins
-    rows, cols = np.indices((nz, nz))
-    lag = (cols - rows).ravel() + nz - 1  # lag of C[a, b] is b - a, shifted to >= 0
     d = np.full((len(pairs), 1), np.nan)
     contrast = np.zeros(len(pairs))
     valid = np.zeros(len(pairs), dtype=bool)
     if m < 2:
         return d, contrast, valid  # the z range spans fewer than 3 bins
     for p, (i, j) in enumerate(pairs):
-        cmat = (mats[i].T @ mats[j]).toarray()  # (nz, nz): counts at z bins (a in i, b in j)
-        corr = np.bincount(lag, weights=cmat.ravel(), minlength=2 * nz - 1)
+        # Coincidences at z bins (a in i, b in j), kept sparse (one far z outlier must not
+        # make an nz x nz array); the lag of C[a, b] is b - a, shifted to >= 0.
+        cm = (mats[i].T @ mats[j]).tocoo()
+        corr = np.bincount(cm.col - cm.row + nz - 1, weights=cm.data, minlength=2 * nz - 1)
         corr = gaussian_filter1d(corr, sig, mode="constant")
         inner = corr[nz - 1 - m : nz + m]
         r = int(np.argmax(inner))

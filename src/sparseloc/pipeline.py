@@ -39,7 +39,7 @@ from .solvers.refine import refine_solution
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LocalizeParams", "LocalizeResult", "localize", "psf_hash"]
+__all__ = ["LocalizeParams", "LocalizeResult", "localize", "psf_hash", "work_model_for"]
 
 METHODS = ("frame", "hybrid", "mp", "co")
 
@@ -127,6 +127,10 @@ class LocalizeParams:
             raise ValueError(f"noise must be poisson, emccd or scmos; got {self.noise!r}")
         if not (np.isfinite(self.read_variance) and self.read_variance >= 0):
             raise ValueError(f"read_variance must be >= 0 photons^2, got {self.read_variance}")
+        if self.read_variance > 0 and self.noise != "scmos":
+            raise ValueError(
+                f"read_variance applies to noise='scmos', not {self.noise!r} (it would be ignored)"
+            )
         if self.background not in ("auto", "temporal", "spatial"):
             raise ValueError(
                 f"background must be auto, temporal or spatial; got {self.background!r}"
@@ -404,18 +408,14 @@ def localize(
                 f"the read-variance map is {read_variance.shape}, the frames are {tuple(shape)}"
             )
         if p.noise != "scmos" or p.method != "frame":
-            raise ValueError("a read-variance map needs noise='scmos' and method='frame'")
+            raise ValueError(
+                "a per-pixel read-variance map (--variance-map) needs the sCMOS likelihood and "
+                "the frame solver (--method frame); the windowed solvers take a scalar read noise"
+            )
         if not np.all(np.isfinite(read_variance)) or np.any(read_variance < 0):
             raise ValueError("the read-variance map must be finite and >= 0 photons^2")
     t0 = time.perf_counter()
-    work_model = model
-    if p.tabulate and not isinstance(model, SplinePSF):
-        # Every window renders the model thousands of times; a spline table of it renders
-        # ~50x faster than a pupil model at the same precision (RMSE / CRLB 0.94-0.99, bias
-        # < 1 nm on isolated double-helix emitters; see SplinePSF.from_model).
-        # The frame solver's templates reach 20 px from the emitter (frame_templates).
-        roi = 45 if p.method == "frame" else 2 * p.window + 3
-        work_model = SplinePSF.from_model(model, p.pixel_size, roi=roi, z_step=10.0)
+    work_model = work_model_for(model, p)
     parts: list[dict] = []
     inputs = _frames_and_backgrounds(get, n, start, stop, block, p)
     if workers == 1:
@@ -449,6 +449,21 @@ def localize(
             np.ascontiguousarray(read_variance, "<f8").tobytes()
         ).hexdigest()[:16]
     return LocalizeResult(table, stop - start, n_windows, seconds, meta)
+
+
+def work_model_for(model: PSFModel, p: LocalizeParams) -> PSFModel:
+    """The model the solvers render: ``model`` itself, or its spline table (``p.tabulate``).
+
+    Every window renders the model thousands of times; a spline table of it renders ~50x
+    faster than a pupil model at the same precision (RMSE / CRLB 0.94-0.99, bias < 1 nm on
+    isolated double-helix emitters; see :meth:`SplinePSF.from_model`). The frame solver's
+    templates reach 20 px from the emitter (:func:`frame_templates`). Tabulate once and pass
+    the result to :func:`localize` to share it between runs (it is not tabulated again).
+    """
+    if p.tabulate and not isinstance(model, SplinePSF):
+        roi = 45 if p.method == "frame" else 2 * p.window + 3
+        return SplinePSF.from_model(model, p.pixel_size, roi=roi, z_step=10.0)
+    return model
 
 
 def _collect(results, parts: list[dict], renumber: bool, progress) -> int:

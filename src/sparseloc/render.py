@@ -827,7 +827,9 @@ def frc(
             raise ValueError("split='blocks' needs a 'frame' column; use split='random'")
         frames = locs["frame"].to_numpy()[ok].astype(np.int64)
         f0, f1 = int(frames.min()), int(frames.max())
-        block = (frames - f0) * int(n_blocks) // (f1 - f0 + 1)
+        # Fewer frames than blocks: one block per frame (else short tables fall in one half).
+        nb = min(int(n_blocks), f1 - f0 + 1)
+        block = (frames - f0) * nb // (f1 - f0 + 1)
         half = (block % 2).astype(bool)
     else:
         half = np.random.default_rng(seed).permutation(n) % 2 == 1

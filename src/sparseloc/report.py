@@ -108,7 +108,7 @@ def _drift_section(t: pd.DataFrame, n_frames: int) -> tuple[str, str | None]:
     try:
         d = rcc_drift(t)
     except ValueError as exc:
-        return f"Not estimated: {exc}", None
+        return f"Not estimated: {html.escape(str(exc))}", None
     fig = Figure(figsize=(12, 3), layout="constrained")
     ax = fig.subplots()
     for i, (axis, color) in enumerate(zip("xyz", ("C0", "C1", "C2"), strict=True)):

@@ -1,0 +1,479 @@
+"""Chunked, resumable localization of long movies, in-process or on a Dask cluster.
+
+A run cuts the frame range into chunks of consecutive frames. Each chunk is one task: it
+opens the movie itself (movies pickle as their file paths and read lazily), localizes its
+frames with :func:`sparseloc.pipeline.localize` (reading the few frames around the chunk that
+the temporal background needs) and returns its table part. The driver writes every part as
+soon as it arrives, atomically, into a run folder::
+
+    RUN/manifest.json                      what the run is: parameters, movie, chunks
+    RUN/part-000000000-000000500.parquet   one per finished chunk (frames 0..499)
+
+and at the end joins the parts, in frame order, into one table identical to a serial
+:func:`localize` of the same frames (window ids renumbered over the movie), whatever the
+scheduler and the chunk size.
+
+Resuming: a run started again with the same folder and the same analysis skips the chunks
+whose parts exist; a part exists only once complete (temporary name, then rename), so a
+killed run never leaves a half part. A folder written by a different analysis (parameters,
+PSF, movie, camera, frame range or chunk size) is refused unless ``overwrite``.
+
+Faults: on a Dask cluster a chunk whose worker dies is re-run elsewhere by the scheduler,
+and a chunk that raises is retried (``retries``); a chunk that still fails is reported with
+its frame range while the other chunks go on, and the run ends without a joined table.
+
+Schedulers: ``"sync"`` (this process, one chunk after another), ``"threads"`` (a thread
+pool in this process), a :class:`distributed.Client`, or a scheduler address
+(``"tcp://host:8786"``). :func:`local_cluster` starts a ``LocalCluster`` of worker
+processes with one thread each.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from . import __version__
+from .camera import Camera, to_photons
+from .io.atomic import write_text_atomic
+from .io.tables import LOCS_COLUMNS, empty_locs, read_parquet, write_parquet
+from .pipeline import LocalizeParams, localize, psf_hash, work_model_for
+from .psf.base import PSFModel
+
+__all__ = [
+    "CHUNK_FRAMES",
+    "CameraFrames",
+    "RunResult",
+    "join_parts",
+    "local_cluster",
+    "localize_chunked",
+    "plan_chunks",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Default frames per chunk: long enough that the per-task set-up (templates, FFT plans,
+#: reading the background context) is a few per cent of the work, short enough that a lost
+#: chunk costs little and a 10,000-frame movie still keeps 2-8 workers busy.
+CHUNK_FRAMES = 500
+MANIFEST = "manifest.json"
+_PART = "part-{:09d}-{:09d}.parquet"
+
+
+class CameraFrames:
+    """Frames of a movie in photons, converted on demand (picklable when the movie is).
+
+    Parameters
+    ----------
+    movie : Movie or ndarray, shape (n, rows, cols)
+        Camera counts (a :class:`sparseloc.io.movie.Movie` reads lazily).
+    camera : Camera, optional
+        Conversion to photons; ``None`` when the frames already are photons.
+    """
+
+    def __init__(self, movie: Any, camera: Camera | None = None) -> None:
+        self.movie, self.camera = movie, camera
+
+    def __len__(self) -> int:
+        return len(self.movie)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        s = self.movie.shape
+        return (int(s[-2]), int(s[-1]))
+
+    def frames(self, start: int, stop: int) -> NDArray[np.float64]:
+        if hasattr(self.movie, "frames"):
+            raw = self.movie.frames(start, stop)
+        else:
+            raw = np.asarray(self.movie[start:stop])
+        if self.camera is None:
+            return np.asarray(raw, dtype=np.float64)
+        return to_photons(raw, self.camera)
+
+    def identity(self) -> dict:
+        """What identifies the data for resuming: files (size, modification time) or a
+        digest of an in-memory array."""
+        paths = getattr(self.movie, "paths", None)
+        if paths:
+            files = []
+            for p in paths:
+                st = os.stat(p)
+                files.append([str(Path(p).resolve()), st.st_size, int(st.st_mtime)])
+            ident: dict[str, Any] = {"files": files}
+        else:
+            arr = np.ascontiguousarray(self.movie)
+            ident = {"sha256": hashlib.sha256(arr.tobytes()).hexdigest()[:16]}
+        ident["camera"] = self.camera.to_dict() if self.camera is not None else None
+        return ident
+
+
+@dataclass
+class RunResult:
+    """Outcome of :func:`localize_chunked`.
+
+    Attributes
+    ----------
+    table : DataFrame or None
+        The joined table when every chunk is done, else None.
+    chunks : list of (int, int)
+        All chunks ``(start, stop)`` (frames, stop exclusive).
+    done_before : list of (int, int)
+        Chunks already done when the run started (resumed).
+    failed : dict
+        ``(start, stop) -> error message`` for chunks that failed after their retries.
+    seconds : float
+        Wall time of this call.
+    metadata : dict
+        Analysis metadata (as :func:`localize` writes it), for the joined table.
+    run_dir : Path
+    """
+
+    table: pd.DataFrame | None
+    chunks: list[tuple[int, int]]
+    done_before: list[tuple[int, int]]
+    failed: dict[tuple[int, int], str]
+    seconds: float
+    metadata: dict
+    run_dir: Path
+    n_windows: int = 0
+    missing: list[tuple[int, int]] = field(default_factory=list)
+
+    @property
+    def complete(self) -> bool:
+        return self.table is not None
+
+    def summary(self) -> str:
+        """One paragraph: chunks done, resumed, failed (with their frame ranges)."""
+        n = len(self.chunks)
+        done = n - len(self.missing)
+        parts = [f"{done} of {n} chunks done ({len(self.done_before)} from an earlier run)"]
+        if self.table is not None:
+            parts.append(f"{len(self.table):,} localizations in {self.seconds:.1f} s")
+        for (a, b), msg in sorted(self.failed.items()):
+            parts.append(f"frames {a}-{b - 1} failed: {msg}")
+        if self.missing and not self.failed:
+            parts.append("missing frames " + ", ".join(f"{a}-{b - 1}" for a, b in self.missing))
+        return "; ".join(parts)
+
+
+def plan_chunks(start: int, stop: int, chunk_frames: int) -> list[tuple[int, int]]:
+    """Consecutive ``(start, stop)`` frame ranges of at most ``chunk_frames`` frames."""
+    if chunk_frames < 1:
+        raise ValueError(f"chunk_frames must be >= 1, got {chunk_frames}")
+    if not 0 <= start < stop:
+        raise ValueError(f"frame range {start}:{stop} is empty")
+    return [(a, min(a + chunk_frames, stop)) for a in range(start, stop, chunk_frames)]
+
+
+def local_cluster(workers: int, **kwargs: Any):
+    """A ``distributed.Client`` on a new ``LocalCluster``: ``workers`` processes, one thread
+    each (the solvers run single-threaded BLAS; processes share out the cores)."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ValueError(
+            "Dask execution needs the 'dask' extra: pip install 'sparseloc[dask]'"
+        ) from exc
+    kwargs.setdefault("threads_per_worker", 1)
+    kwargs.setdefault("processes", True)
+    kwargs.setdefault("dashboard_address", None)
+    cluster = LocalCluster(n_workers=workers, **kwargs)
+    return Client(cluster)
+
+
+def _solve_chunk(
+    source: CameraFrames,
+    work_model: PSFModel,
+    params: LocalizeParams,
+    start: int,
+    stop: int,
+    read_variance: NDArray | None,
+) -> tuple[pd.DataFrame, int]:
+    """One task: the table part of frames ``start..stop-1`` and its number of windows."""
+    res = localize(source, work_model, params, start=start, stop=stop, read_variance=read_variance)
+    return res.table, res.n_windows
+
+
+def _run_key(
+    source: CameraFrames,
+    model: PSFModel,
+    params: LocalizeParams,
+    frame_range: tuple[int, int],
+    chunk_frames: int,
+    read_variance: NDArray | None,
+) -> tuple[str, dict]:
+    desc = {
+        "params": asdict(params),
+        "psf_hash": psf_hash(model, params.pixel_size),
+        "data": source.identity(),
+        "frames": list(frame_range),
+        "chunk_frames": int(chunk_frames),
+        "read_variance": None
+        if read_variance is None
+        else hashlib.sha256(np.ascontiguousarray(read_variance, "<f8").tobytes()).hexdigest()[:16],
+    }
+    text = json.dumps(desc, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:20], desc
+
+
+def _prepare_run_dir(run_dir: Path, key: str, desc: dict, chunks, overwrite: bool) -> None:
+    if not run_dir.parent.is_dir():
+        raise ValueError(f"the folder {str(run_dir.parent)!r} does not exist")
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ValueError(f"{str(run_dir)!r} exists and is not a folder")
+    run_dir.mkdir(exist_ok=True)
+    man = run_dir / MANIFEST
+    if man.exists():
+        try:
+            old = json.loads(man.read_text())
+        except (ValueError, OSError) as exc:
+            raise ValueError(f"cannot read {str(man)!r}: {exc}") from exc
+        if old.get("key") != key and not overwrite:
+            changed = sorted(
+                k
+                for k in desc
+                if json.dumps(old.get("run", {}).get(k), default=str)
+                != json.dumps(desc[k], default=str)
+            )
+            raise ValueError(
+                f"the run folder {str(run_dir)!r} holds results of a different analysis "
+                f"(changed: {', '.join(changed) or 'unknown'}); pass --overwrite to start over "
+                "or choose another folder"
+            )
+    if overwrite or not man.exists():
+        for p in run_dir.glob("part-*.parquet"):
+            p.unlink()
+    manifest = {
+        "key": key,
+        "sparseloc_version": __version__,
+        "chunks": [list(c) for c in chunks],
+        "run": desc,
+    }
+    write_text_atomic(man, json.dumps(manifest, indent=1, default=str))
+
+
+def _part_path(run_dir: Path, chunk: tuple[int, int]) -> Path:
+    return run_dir / _PART.format(*chunk)
+
+
+def _write_part(run_dir: Path, chunk: tuple[int, int], table: pd.DataFrame, n_windows: int):
+    write_parquet(
+        table,
+        _part_path(run_dir, chunk),
+        metadata={"chunk": list(chunk), "n_windows": int(n_windows)},
+    )
+
+
+def join_parts(run_dir: str | Path, chunks: Sequence[tuple[int, int]]) -> tuple[pd.DataFrame, int]:
+    """Join the parts of ``chunks`` (in order) into one table; window ids become unique over
+    the movie, numbered as a serial run numbers them. Returns the table and its windows."""
+    run_dir = Path(run_dir)
+    tables, offset = [], 0
+    for chunk in chunks:
+        t, meta = read_parquet(_part_path(run_dir, chunk))
+        t = t.copy()
+        t["window_id"] = t["window_id"].to_numpy() + offset
+        offset += int(meta["n_windows"])
+        tables.append(t)
+    nonempty = [t for t in tables if len(t)]
+    if not nonempty:
+        return empty_locs(), offset
+    table = pd.concat(nonempty, ignore_index=True)
+    return table[list(LOCS_COLUMNS)], offset
+
+
+def localize_chunked(
+    frames: CameraFrames | Any,
+    model: PSFModel,
+    params: LocalizeParams,
+    run_dir: str | Path,
+    *,
+    start: int = 0,
+    stop: int | None = None,
+    chunk_frames: int = CHUNK_FRAMES,
+    scheduler: Any = "sync",
+    threads: int = 2,
+    overwrite: bool = False,
+    retries: int = 2,
+    read_variance: NDArray | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> RunResult:
+    """Localize frames ``start..stop-1`` chunk by chunk into ``run_dir`` (see the module).
+
+    Parameters
+    ----------
+    frames : CameraFrames, Movie or ndarray, shape (n, rows, cols)
+        The movie in photons (wrap camera counts in :class:`CameraFrames`). On a cluster it
+        is pickled into every task: a :class:`~sparseloc.io.movie.Movie` travels as its
+        paths, which the workers must be able to read.
+    model : PSFModel
+        PSF model; tabulated once here (``params.tabulate``) and sent to every worker.
+    params : LocalizeParams
+        Analysis parameters (as for :func:`localize`).
+    run_dir : str or Path
+        Folder of the run's parts and manifest (created; its parent must exist).
+    start, stop : int
+        Frame range (stop exclusive; default the whole movie).
+    chunk_frames : int
+        Frames per task.
+    scheduler : "sync", "threads", distributed.Client or str
+        Where the chunks run; a string other than "sync"/"threads" is a scheduler address.
+    threads : int
+        Threads for ``scheduler="threads"``.
+    overwrite : bool
+        Discard the parts of a different earlier analysis in ``run_dir`` instead of refusing.
+    retries : int
+        Extra attempts of a failing chunk on a cluster.
+    read_variance : ndarray, optional
+        sCMOS read-variance map (photons^2), as for :func:`localize`.
+    progress : callable, optional
+        Called with the number of frames of every chunk finished.
+
+    Returns
+    -------
+    RunResult
+
+    Raises
+    ------
+    ValueError
+        Bad parameters, an unusable run folder, or a folder of a different analysis.
+    """
+    t0 = time.perf_counter()
+    source = frames if isinstance(frames, CameraFrames) else CameraFrames(frames)
+    n = len(source)
+    stop = n if stop is None else min(stop, n)
+    chunks = plan_chunks(start, stop, chunk_frames)
+    run_dir = Path(run_dir)
+    key, desc = _run_key(source, model, params, (start, stop), chunk_frames, read_variance)
+    _prepare_run_dir(run_dir, key, desc, chunks, overwrite)
+    done_before = [c for c in chunks if _part_path(run_dir, c).exists()]
+    todo = [c for c in chunks if c not in set(done_before)]
+    if progress is not None and done_before:
+        progress(sum(b - a for a, b in done_before))
+    logger.info(
+        "%d chunks of up to %d frames; %d done before, %d to run",
+        len(chunks),
+        chunk_frames,
+        len(done_before),
+        len(todo),
+    )
+    work_model = work_model_for(model, params) if todo else model
+    failed: dict[tuple[int, int], str] = {}
+
+    def finished(chunk, table, n_windows):
+        _write_part(run_dir, chunk, table, n_windows)
+        if progress is not None:
+            progress(chunk[1] - chunk[0])
+
+    args = (work_model, params)
+    if not todo:
+        pass
+    elif scheduler == "sync":
+        for chunk in todo:
+            try:
+                table, nw = _solve_chunk(source, *args, *chunk, read_variance)
+            except (ValueError, OSError) as exc:
+                failed[chunk] = str(exc)
+                continue
+            finished(chunk, table, nw)
+    elif scheduler == "threads":
+        with ThreadPoolExecutor(max(1, int(threads))) as pool:
+            futs = {
+                pool.submit(_solve_chunk, source, *args, *chunk, read_variance): chunk
+                for chunk in todo
+            }
+            for fut in as_completed(futs):
+                chunk = futs[fut]
+                try:
+                    table, nw = fut.result()
+                except (ValueError, OSError) as exc:
+                    failed[chunk] = str(exc)
+                    continue
+                finished(chunk, table, nw)
+    else:
+        _run_on_cluster(scheduler, source, args, todo, read_variance, retries, failed, finished)
+    missing = [c for c in chunks if not _part_path(run_dir, c).exists()]
+    meta = {
+        "params": asdict(params),
+        "psf": getattr(model, "name", type(model).__name__),
+        "psf_hash": psf_hash(model, params.pixel_size),
+        "sparseloc_version": __version__,
+        "frames": [start, stop],
+        "shape": list(source.shape),
+        "run_dir": str(run_dir),
+        "chunk_frames": int(chunk_frames),
+    }
+    table, n_windows = None, 0
+    if not missing:
+        table, n_windows = join_parts(run_dir, chunks)
+    return RunResult(
+        table=table,
+        chunks=chunks,
+        done_before=done_before,
+        failed=failed,
+        seconds=time.perf_counter() - t0,
+        metadata=meta,
+        run_dir=run_dir,
+        n_windows=n_windows,
+        missing=missing,
+    )
+
+
+def _run_on_cluster(scheduler, source, args, todo, read_variance, retries, failed, finished):
+    """Submit every chunk to a Dask cluster and write parts as they complete."""
+    try:
+        from distributed import Client
+        from distributed import as_completed as dask_completed
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ValueError(
+            "Dask execution needs the 'dask' extra: pip install 'sparseloc[dask]'"
+        ) from exc
+    own = not isinstance(scheduler, Client)
+    try:
+        client = Client(scheduler, timeout="20s") if own else scheduler
+    except OSError as exc:
+        raise ValueError(f"cannot reach the Dask scheduler at {scheduler!r}: {exc}") from exc
+    try:
+        # The tabulated model (tens of MB) goes to every worker once, not with every task.
+        model_f = client.scatter(args[0], broadcast=True, hash=False)
+        rv_f = None if read_variance is None else client.scatter(read_variance, broadcast=True)
+        futs = {}
+        for chunk in todo:
+            fut = client.submit(
+                _solve_chunk,
+                source,
+                model_f,
+                args[1],
+                *chunk,
+                rv_f,
+                retries=retries,
+                pure=False,
+                key=f"sparseloc-chunk-{chunk[0]}-{chunk[1]}-{os.getpid()}-{time.time_ns()}",
+            )
+            futs[fut] = chunk
+        for fut in dask_completed(list(futs)):
+            chunk = futs[fut]
+            try:
+                table, nw = fut.result()
+            except Exception as exc:
+                failed[chunk] = f"{type(exc).__name__}: {exc}"
+                logger.warning("frames %d-%d failed: %s", chunk[0], chunk[1] - 1, exc)
+                continue
+            finished(chunk, table, nw)
+            fut.release()
+    finally:
+        if own:
+            client.close()
