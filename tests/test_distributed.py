@@ -198,3 +198,21 @@ def test_sigkill_then_rerun_gives_the_uninterrupted_table(movie, tmp_path):
     _, stderr = refused.communicate(timeout=300)
     assert refused.returncode == 2 and "different analysis" in stderr
     assert "Traceback" not in stderr
+
+
+def test_a_simulated_movie_is_the_same_however_it_is_read(model):
+    from sparseloc.simulate import SimulatedMovie
+
+    m = SimulatedMovie(model, 30, (24, 24), PX, density=0.6, seed=4)
+    whole = m.frames(5, 11)
+    parts = np.concatenate([m.frames(5, 7), m.frames(7, 8), m.frames(8, 11)])
+    np.testing.assert_array_equal(whole, parts)
+    truth = m.truth(5, 11)
+    assert set(truth.frame) <= set(range(5, 11)) and len(truth) > 5
+    pd.testing.assert_frame_equal(
+        m.truth_of([7, 8]), truth[truth.frame.isin([7, 8])].reset_index(drop=True)
+    )
+    # the emitters are in the frames: a brighter frame holds more light than its background
+    assert whole.mean() > 10.0
+    with pytest.raises(ValueError, match="outside"):
+        m.frames(25, 31)

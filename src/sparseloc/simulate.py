@@ -30,6 +30,7 @@ from .psf.base import PSFModel, check_pixel_size, check_shape
 __all__ = [
     "SCENES",
     "TRUTH_COLUMNS",
+    "SimulatedMovie",
     "Simulation",
     "bead_scan_truth",
     "cluster_scene",
@@ -834,3 +835,94 @@ def write_simulation(sim: Simulation, path_tif: str | Path) -> tuple[Path, Path]
     write_truth_csv(truth_path, sim.truth)
     log.info("wrote %s and %s", p, truth_path)
     return p, truth_path
+
+
+class SimulatedMovie:
+    """A long uniform-scene movie made frame by frame on demand, never stored.
+
+    Frame ``f`` holds emitters drawn by :func:`uniform_scene` from a generator seeded with
+    ``(seed, f)``, rendered and given Poisson noise from the same generator, so every frame is
+    the same whichever frames are asked for together and in whichever process: a worker can
+    make its own chunk of a 20,000-frame movie. Frames are in photons (no camera), so the
+    object can be given straight to :func:`sparseloc.pipeline.localize` or
+    :func:`sparseloc.distributed.localize_chunked`.
+
+    Parameters
+    ----------
+    model : PSFModel
+        PSF model (z of the emitters: ``z_range`` or the model's range).
+    n_frames : int
+    shape : (int, int)
+        Frame shape (rows, cols).
+    pixel_size : float
+        nm.
+    density : float
+        Emitters per um^2 per frame.
+    photons : float or (float, float)
+    background : float
+        Photons per pixel.
+    z_range : (float, float), optional
+    seed : int
+    """
+
+    def __init__(
+        self,
+        model: PSFModel,
+        n_frames: int,
+        shape: tuple[int, int],
+        pixel_size: float,
+        *,
+        density: float = 0.5,
+        photons: PhotonSpec = (1000.0, 5000.0),
+        background: float = 10.0,
+        z_range: tuple[float, float] | None = None,
+        seed: int = 0,
+    ) -> None:
+        self.model = model
+        self.n_frames = _check_n_frames(n_frames)
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.pixel_size = float(pixel_size)
+        self.density = float(density)
+        self.photons = photons
+        self.background = float(background)
+        self.z_range = tuple(model.z_range if z_range is None else z_range)
+        self.seed = int(seed)
+
+    def __len__(self) -> int:
+        return self.n_frames
+
+    def truth(self, start: int = 0, stop: int | None = None) -> pd.DataFrame:
+        """Ground truth of frames ``start..stop-1`` (columns frame, x_nm, y_nm, z_nm, photons)."""
+        stop = self.n_frames if stop is None else stop
+        return self.truth_of(range(start, stop))
+
+    def truth_of(self, frames: Any) -> pd.DataFrame:
+        """Ground truth of the frames listed (0-based indices)."""
+        parts = []
+        for f in frames:
+            f = int(f)
+            t = self._scene(f)[0]
+            t["frame"] = f
+            parts.append(t)
+        return pd.concat(parts, ignore_index=True)
+
+    def frames(self, start: int, stop: int) -> NDArray[np.float64]:
+        """Noisy frames ``start..stop-1`` in photons, shape (stop - start, rows, cols)."""
+        if not 0 <= start <= stop <= self.n_frames:
+            raise ValueError(f"frames {start}:{stop} outside 0:{self.n_frames}")
+        out = np.empty((stop - start, *self.shape))
+        for i, f in enumerate(range(start, stop)):
+            out[i] = self._frame(f)[1]
+        return out
+
+    def _scene(self, f: int) -> tuple[pd.DataFrame, np.random.Generator]:
+        rng = np.random.default_rng([self.seed, f])
+        fov = (self.shape[1] * self.pixel_size, self.shape[0] * self.pixel_size)
+        t = uniform_scene(rng, 1, fov, self.density, self.z_range, self.photons)
+        return t, rng
+
+    def _frame(self, f: int) -> tuple[pd.DataFrame, NDArray[np.float64]]:
+        t, rng = self._scene(f)
+        mu = render_movie(self.model, t, 1, self.shape, self.pixel_size, self.background)[0]
+        t["frame"] = f
+        return t, rng.poisson(mu).astype(np.float64)
