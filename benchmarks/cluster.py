@@ -22,6 +22,7 @@ import json
 import resource
 import shutil
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -38,19 +39,46 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
 
 
+def _rss_mb() -> float:
+    import psutil
+
+    return psutil.Process().memory_info().rss / 2**20
+
+
 def _timed_run(movie, model, params, run_dir, workers, chunk, stop=None):
+    """Run on a fresh LocalCluster; sample every worker's resident memory every 2 s (a
+    worker's ru_maxrss would include what it inherited from this process)."""
     client = local_cluster(workers)
+    peaks: dict[str, float] = {}
+    trace: list[tuple[float, dict]] = []
+    done = threading.Event()
+
+    def sample():
+        t0 = time.perf_counter()
+        while not done.is_set():
+            try:
+                now = client.run(_rss_mb)
+            except Exception:  # a worker restarting: try again
+                now = {}
+            for k, v in now.items():
+                peaks[k] = max(peaks.get(k, 0.0), v)
+            trace.append((time.perf_counter() - t0, now))
+            done.wait(2.0)
+
+    th = threading.Thread(target=sample, daemon=True)
     try:
+        th.start()
         t0 = time.perf_counter()
         res = localize_chunked(
             movie, model, params, run_dir, stop=stop, chunk_frames=chunk, scheduler=client
         )
         secs = time.perf_counter() - t0
-        peaks = client.run(_peak_rss_mb)
     finally:
+        done.set()
+        th.join()
         client.close()
         client.cluster.close()
-    return res, secs, peaks
+    return res, secs, peaks, trace
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -80,15 +108,19 @@ def main(argv: list[str] | None = None) -> dict:
         chunk = max(1, n // 8)
         secs = {}
         for w in (1, 2):
-            _, secs[w], _ = _timed_run(movie, work, params, tmp / f"s{w}", w, chunk, stop=n)
+            _, secs[w], _, _ = _timed_run(movie, work, params, tmp / f"s{w}", w, chunk, stop=n)
             print(f"scaling: {n} frames on {w} worker(s): {secs[w]:.1f} s", flush=True)
         out["scaling"] = {"frames": n, "seconds_1": secs[1], "seconds_2": secs[2]}
         print(f"speed-up 1 -> 2 workers: {secs[1] / secs[2]:.2f}x", flush=True)
         # 2. the long run
         run_dir = args.run_dir or tmp / "long"
-        res, t_long, peaks = _timed_run(
+        res, t_long, peaks, trace = _timed_run(
             movie, work, params, run_dir, args.workers, args.chunk_frames
         )
+        # Memory over the run: the first and the last quarter of the samples.
+        q = max(1, len(trace) // 4)
+        early = max((max(s.values(), default=0.0) for _, s in trace[:q]), default=0.0)
+        late = max((max(s.values(), default=0.0) for _, s in trace[-q:]), default=0.0)
         table = res.table
         print(
             f"{args.frames} frames {shape[0]}x{shape[1]} px on {args.workers} workers, chunks "
@@ -96,7 +128,11 @@ def main(argv: list[str] | None = None) -> dict:
             f"({args.frames / t_long:.1f} frames/s, {len(table) / t_long:.1f} localizations/s)"
         )
         for addr, mb in sorted(peaks.items()):
-            print(f"  worker {addr}: peak resident memory {mb:.0f} MB")
+            print(f"  worker {addr}: peak resident memory {mb:.0f} MB (sampled every 2 s)")
+        print(
+            f"  largest worker memory in the first / last quarter of the run: {early:.0f} / "
+            f"{late:.0f} MB"
+        )
         print(f"  driver: peak resident memory {_peak_rss_mb():.0f} MB")
         # accuracy on a sample of frames spread over the movie
         rng = np.random.default_rng(0)
@@ -112,6 +148,7 @@ def main(argv: list[str] | None = None) -> dict:
                 "seconds": t_long,
                 "n_locs": len(table),
                 "worker_peak_rss_mb": peaks,
+                "worker_rss_first_last_quarter_mb": [early, late],
                 "driver_peak_rss_mb": _peak_rss_mb(),
                 "jaccard": ev.jaccard,
                 "rmse_lateral": ev.rmse_lateral,

@@ -449,12 +449,15 @@ def _run_on_cluster(scheduler, source, args, todo, read_variance, retries, faile
     try:
         # The tabulated model (tens of MB) goes to every worker once, not with every task.
         model_f = client.scatter(args[0], broadcast=True, hash=False)
+        # The frame source too: a Movie is only its paths, but a simulated movie or an
+        # in-memory array would otherwise travel with every task.
+        source_f = client.scatter(source, broadcast=True, hash=False)
         rv_f = None if read_variance is None else client.scatter(read_variance, broadcast=True)
         futs = {}
         for chunk in todo:
             fut = client.submit(
                 _solve_chunk,
-                source,
+                source_f,
                 model_f,
                 args[1],
                 *chunk,
