@@ -349,7 +349,6 @@ def localize(
     command started again after an interruption runs only the missing chunks."""
     from .camera import Camera
     from .io.movie import Movie
-    from .io.tables import write_table
     from .pipeline import LocalizeParams
     from .pipeline import localize as run_localize
     from .psf import make_psf
@@ -499,17 +498,7 @@ def localize(
                 workers=int(opts["workers"]),
                 read_variance=read_var if read_var.ndim == 2 else None,
             )
-        meta = {**res.metadata, "movie": [str(p) for p in mov.paths], "camera": cam.to_dict()}
-        _run(
-            write_table,
-            res.table,
-            out,
-            format=opts["format"],
-            pixel_size=opts["pixel_size"],
-            shape=mov.shape,
-            n_frames=len(mov),
-            metadata=meta,
-        )
+        _write_localized(res, out, opts, mov, cam)
     typer.echo(res.summary())
     typer.echo(f"wrote {out}")
 
@@ -519,7 +508,6 @@ def _localize_chunked(opts, out, mov, cam, model, params, start, stop, read_var)
     from tqdm import tqdm
 
     from .distributed import CHUNK_FRAMES, CameraFrames, local_cluster, localize_chunked
-    from .io.tables import write_table
 
     run_dir = Path(opts["run_dir"]) if opts["run_dir"] else out.with_name(out.stem + ".parts")
     sched = opts["scheduler"]
@@ -559,6 +547,14 @@ def _localize_chunked(opts, out, mov, cam, model, params, start, stop, read_var)
             err=True,
         )
         raise typer.Exit(code=1)
+    _write_localized(res, out, opts, mov, cam)
+    typer.echo(f"wrote {out}")
+
+
+def _write_localized(res, out: Path, opts: dict, mov, cam) -> None:
+    """Write ``localize``'s table with the analysis, movie and camera as metadata."""
+    from .io.tables import write_table
+
     meta = {**res.metadata, "movie": [str(p) for p in mov.paths], "camera": cam.to_dict()}
     _run(
         write_table,
@@ -570,7 +566,6 @@ def _localize_chunked(opts, out, mov, cam, model, params, start, stop, read_var)
         n_frames=len(mov),
         metadata=meta,
     )
-    typer.echo(f"wrote {out}")
 
 
 @app.command()
