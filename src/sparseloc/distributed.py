@@ -187,6 +187,11 @@ def local_cluster(workers: int, **kwargs: Any):
         raise ValueError(
             "Dask execution needs the 'dask' extra: pip install 'sparseloc[dask]'"
         ) from exc
+    # Dask's scheduler and nannies log every start and stop at INFO: keep a user's terminal
+    # for sparseloc's own messages unless they asked for detail.
+    if logging.getLogger().getEffectiveLevel() > logging.INFO:
+        logging.getLogger("distributed").setLevel(logging.WARNING)
+    kwargs.setdefault("silence_logs", logging.WARNING)
     kwargs.setdefault("threads_per_worker", 1)
     kwargs.setdefault("processes", True)
     kwargs.setdefault("dashboard_address", None)
