@@ -142,6 +142,12 @@ def test_a_chunk_that_keeps_failing_is_reported(movie, model, tmp_path, client):
         assert list(res.failed) == [(8, 12)] and res.missing == [(8, 12)]
         assert "frames 8-11 failed" in res.summary() and "corrupt" in res.summary()
         assert len(list(d.glob("part-*.parquet"))) == 3
+    # bad values (NaN) are bad data: reported at once, with localize's own message
+    nan = movie.copy()
+    nan[13, 5, 5] = np.nan
+    res = localize_chunked(nan, model, p, tmp_path / "nan", chunk_frames=4, scheduler=client)
+    assert list(res.failed) == [(12, 16)] and "NaN" in res.failed[(12, 16)]
+    assert len(res.missing) == 1
 
 
 def test_a_different_analysis_is_refused(movie, model, params, tmp_path):

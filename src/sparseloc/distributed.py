@@ -206,9 +206,20 @@ def _solve_chunk(
     start: int,
     stop: int,
     read_variance: NDArray | None,
-) -> tuple[pd.DataFrame, int]:
-    """One task: the table part of frames ``start..stop-1`` and its number of windows."""
-    res = localize(source, work_model, params, start=start, stop=stop, read_variance=read_variance)
+) -> tuple[pd.DataFrame | None, int | str]:
+    """One task: the table part of frames ``start..stop-1`` and its number of windows.
+
+    Bad data (``ValueError``: NaN frames, unreadable values) gives ``(None, message)``
+    instead of raising: running it again cannot help, so the cluster does not retry it.
+    Other errors (a file system that failed to answer, a worker that died) raise and are
+    retried.
+    """
+    try:
+        res = localize(
+            source, work_model, params, start=start, stop=stop, read_variance=read_variance
+        )
+    except ValueError as exc:
+        return None, str(exc)
     return res.table, res.n_windows
 
 
@@ -379,6 +390,10 @@ def localize_chunked(
     failed: dict[tuple[int, int], str] = {}
 
     def finished(chunk, table, n_windows):
+        if table is None:  # bad data in the chunk: n_windows is the message
+            failed[chunk] = str(n_windows)
+            logger.warning("frames %d-%d failed: %s", chunk[0], chunk[1] - 1, n_windows)
+            return
         _write_part(run_dir, chunk, table, n_windows)
         if progress is not None:
             progress(chunk[1] - chunk[0])
@@ -390,7 +405,7 @@ def localize_chunked(
         for chunk in todo:
             try:
                 table, nw = _solve_chunk(source, *args, *chunk, read_variance)
-            except (ValueError, OSError) as exc:
+            except OSError as exc:
                 failed[chunk] = str(exc)
                 continue
             finished(chunk, table, nw)
@@ -404,7 +419,7 @@ def localize_chunked(
                 chunk = futs[fut]
                 try:
                     table, nw = fut.result()
-                except (ValueError, OSError) as exc:
+                except OSError as exc:
                     failed[chunk] = str(exc)
                     continue
                 finished(chunk, table, nw)
