@@ -404,14 +404,19 @@ def test_frame_fit_accepts_read_noise_below_zero(analytic):
     assert abs(out.emitters.x[0] - truth[0, 0]) < 40.0
 
 
-def test_render_image_takes_a_truth_table_with_a_missing_z():
-    from sparseloc.plotting import render_image
+def test_projections_take_a_truth_table_with_a_missing_z(tmp_path):
+    from sparseloc.render import plot_projections
 
     t = pd.DataFrame(
-        {"x_nm": [500.0, 1500.0, 900.0], "y_nm": [500.0, 800.0, 1200.0], "z_nm": [0, np.nan, 300]}
+        {
+            "frame": [0, 0, 1],
+            "x_nm": [500.0, 1500.0, 900.0],
+            "y_nm": [500.0, 800.0, 1200.0],
+            "z_nm": [0.0, np.nan, 300.0],
+        }
     )
-    img = render_image(t, (2000.0, 1600.0), render_px=20.0)
-    assert img.shape == (80, 100, 3) and np.all(np.isfinite(img)) and img.max() > 0.2
+    path = plot_projections(t, tmp_path / "r.png", truth=t, z_range=(-500.0, 500.0))
+    assert path.stat().st_size > 5000
 
 
 def test_table_outside_the_model_range_is_refused(analytic):

@@ -203,21 +203,6 @@ LOCALIZE_DEFAULTS: dict = {
 }
 
 
-class _PhotonFrames:
-    """Frames of a movie converted to photons on demand (lazy)."""
-
-    def __init__(self, movie, camera) -> None:
-        self.movie, self.camera = movie, camera
-
-    def __len__(self) -> int:
-        return len(self.movie)
-
-    def frames(self, start: int, stop: int):
-        from .camera import to_photons
-
-        return to_photons(self.movie.frames(start, stop), self.camera)
-
-
 def _window_for(model, pixel_size: float, window: int | None, margin: int | None):
     """Window and margin (px): the user's, else sized from a measured PSF, else 11 and 3.
 
@@ -348,6 +333,7 @@ def localize(
     on the scheduler given); each finished chunk is saved in the run folder, so the same
     command started again after an interruption runs only the missing chunks."""
     from .camera import Camera
+    from .distributed import CameraFrames
     from .io.movie import Movie
     from .pipeline import LocalizeParams
     from .pipeline import localize as run_localize
@@ -489,7 +475,7 @@ def localize(
         with tqdm(total=stop - start, unit="frame", disable=not sys.stderr.isatty()) as bar:
             res = _run(
                 run_localize,
-                _PhotonFrames(mov, cam),
+                CameraFrames(mov, cam),
                 model,
                 params,
                 start=start,

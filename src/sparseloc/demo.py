@@ -78,8 +78,9 @@ def run_demo(
     from .evaluate import evaluate
     from .io.tables import write_table
     from .pipeline import LocalizeParams, localize
-    from .plotting import plot_psf_montage, plot_render, plot_scene
+    from .plotting import plot_psf_montage, plot_scene
     from .psf import make_psf
+    from .render import plot_projections
     from .simulate import simulate, write_simulation
 
     out = Path(out_dir)
@@ -140,12 +141,10 @@ def run_demo(
             metadata=meta,
         )
     )
-    fov = (shape[1] * pixel_size, shape[0] * pixel_size)
     files.append(
-        plot_render(
+        plot_projections(
             res.table,
             out / "render.png",
-            fov,
             truth=sim.truth,
             z_range=z_range,
             title=f"double-helix filaments, {n_frames} frames at {density:g} emitters/um^2",

@@ -49,7 +49,7 @@ from . import __version__
 from .camera import Camera, to_photons
 from .io.atomic import write_text_atomic
 from .io.tables import LOCS_COLUMNS, empty_locs, read_parquet, write_parquet
-from .pipeline import LocalizeParams, localize, psf_hash, work_model_for
+from .pipeline import LocalizeParams, array_digest, localize, psf_hash, work_model_for
 from .psf.base import PSFModel
 
 __all__ = [
@@ -114,8 +114,7 @@ class CameraFrames:
                 files.append([str(Path(p).resolve()), st.st_size, int(st.st_mtime)])
             ident: dict[str, Any] = {"files": files}
         else:
-            arr = np.ascontiguousarray(self.movie)
-            ident = {"sha256": hashlib.sha256(arr.tobytes()).hexdigest()[:16]}
+            ident = {"sha256": array_digest(np.asarray(self.movie))}
         ident["camera"] = self.camera.to_dict() if self.camera is not None else None
         return ident
 
@@ -237,9 +236,7 @@ def _run_key(
         "data": source.identity(),
         "frames": list(frame_range),
         "chunk_frames": int(chunk_frames),
-        "read_variance": None
-        if read_variance is None
-        else hashlib.sha256(np.ascontiguousarray(read_variance, "<f8").tobytes()).hexdigest()[:16],
+        "read_variance": None if read_variance is None else array_digest(read_variance),
     }
     text = json.dumps(desc, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:20], desc

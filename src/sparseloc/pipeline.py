@@ -171,6 +171,11 @@ class LocalizeResult:
         )
 
 
+def array_digest(a: NDArray) -> str:
+    """Short content hash of an array (as little-endian float64), for run metadata."""
+    return hashlib.sha256(np.ascontiguousarray(a, "<f8").tobytes()).hexdigest()[:16]
+
+
 def psf_hash(model: PSFModel, pixel_size: float) -> str:
     """Content hash of a PSF model: SHA-256 of its images at 5 planes (float32), 16 hex digits."""
     zs = np.linspace(*model.z_range, 5)
@@ -200,7 +205,7 @@ class _Solver:
                 refine=p.refine,
                 noise=p.noise,
                 max_emitters=p.max_emitters,
-                **self._read(),
+                **_read_kwargs(p),
             )
         if p.method == "mp":
             sol = matching_pursuit(
@@ -221,17 +226,17 @@ class _Solver:
                 pixel_size=p.pixel_size,
                 noise=p.noise,
                 max_emitters=p.max_emitters,
-                **self._read(),
+                **_read_kwargs(p),
             )
         return sol
 
-    def _read(self) -> dict:
-        return _read_kwargs(self.p)
 
-
-def _read_kwargs(p: LocalizeParams) -> dict:
-    """The read-noise keyword for the maximum-likelihood stage (sCMOS only)."""
-    return {"read_variance": p.read_variance} if p.noise == "scmos" else {}
+def _read_kwargs(p: LocalizeParams, read_variance: Any = None) -> dict:
+    """The read-noise keyword for the maximum-likelihood stage (sCMOS only): ``read_variance``
+    (a map) or else ``p.read_variance``."""
+    if p.noise != "scmos":
+        return {}
+    return {"read_variance": p.read_variance if read_variance is None else read_variance}
 
 
 #: Largest pad (pixels) of a group's window around its emitters in the frame solver. The pad is
@@ -253,11 +258,7 @@ class _FrameSolver:
     ) -> None:
         self.model = model
         self.p = params
-        self.read_variance = (
-            (params.read_variance if read_variance is None else read_variance)
-            if params.noise == "scmos"
-            else 0.0
-        )
+        self.read_kw = _read_kwargs(params, read_variance)
         zr = params.z_range or model.z_range
         self.templates = frame_templates(
             model, params.pixel_size, dxy=params.coarse[0], dz=params.coarse[1], z_range=zr
@@ -279,7 +280,7 @@ class _FrameSolver:
             self.templates,
             threshold=p.threshold,
             noise_factor=2.0 if p.noise == "emccd" else 1.0,
-            read_variance=self.read_variance,
+            read_variance=self.read_kw.get("read_variance", 0.0),
             correlators=self.correlators,
         )
         return frame_fit(
@@ -294,7 +295,7 @@ class _FrameSolver:
             count_selection=p.refine,
             max_emitters=p.max_emitters,
             noise=p.noise,
-            **({"read_variance": self.read_variance} if p.noise == "scmos" else {}),
+            **self.read_kw,
         )
 
 
@@ -445,9 +446,7 @@ def localize(
         "shape": list(shape),
     }
     if read_variance is not None:
-        meta["read_variance_map_sha256"] = hashlib.sha256(
-            np.ascontiguousarray(read_variance, "<f8").tobytes()
-        ).hexdigest()[:16]
+        meta["read_variance_map_sha256"] = array_digest(read_variance)
     return LocalizeResult(table, stop - start, n_windows, seconds, meta)
 
 

@@ -20,10 +20,8 @@ __all__ = [
     "plot_calibration",
     "plot_crlb",
     "plot_psf_montage",
-    "plot_render",
     "plot_scene",
     "plot_solve",
-    "render_image",
     "save_figure",
 ]
 
@@ -136,115 +134,6 @@ def plot_scene(
     ax.set_title(title or f"{len(truth)} emitters")
     ax.legend(loc="upper right", fontsize=8)
     return save_figure(fig, path)
-
-
-def _median_sigma(locs: pd.DataFrame, default: float = 15.0) -> float:
-    """Median lateral uncertainty (nm) of a table, ``default`` when it has none."""
-    cols = [locs[c].to_numpy(float) for c in ("sigma_x_nm", "sigma_y_nm") if c in locs]
-    sig = np.concatenate(cols) if cols else np.zeros(0)
-    sig = sig[np.isfinite(sig)]
-    return float(np.median(sig)) if sig.size else default
-
-
-def render_image(
-    locs: pd.DataFrame,
-    fov_nm: tuple[float, float],
-    *,
-    render_px: float = 10.0,
-    z_range: tuple[float, float] | None = None,
-    sigma_nm: float | None = None,
-    cmap: str = "turbo",
-) -> NDArray[np.float64]:
-    """RGB super-resolution image of localizations, colour by depth.
-
-    Each localization is a Gaussian spot (``sigma_nm``; default the median of the table's
-    lateral uncertainties, at least one render pixel, 15 nm when it has none). Brightness is
-    the spot density, clipped at its 99.5th percentile; hue is the density-weighted mean z.
-
-    Parameters
-    ----------
-    locs : DataFrame
-        Columns ``x_nm``, ``y_nm``, ``z_nm`` (and optionally ``sigma_x_nm``, ``sigma_y_nm``).
-    fov_nm : (float, float)
-        Field of view ``(width_x, height_y)`` in nm.
-    render_px : float
-        Pixel size of the image (nm).
-    z_range : (float, float), optional
-        Colour scale (nm); default the table's z range.
-
-    Returns
-    -------
-    ndarray, shape (rows, cols, 3)
-        RGB in [0, 1].
-    """
-    from matplotlib import colormaps
-    from scipy import ndimage as ndi
-
-    w, h = fov_nm
-    cols, rows = max(1, int(np.ceil(w / render_px))), max(1, int(np.ceil(h / render_px)))
-    x = locs["x_nm"].to_numpy(float)
-    y = locs["y_nm"].to_numpy(float)
-    z = locs["z_nm"].to_numpy(float)
-    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
-    x, y, z = x[ok], y[ok], z[ok]
-    if sigma_nm is None:
-        sigma_nm = _median_sigma(locs)
-    sigma = max(sigma_nm / render_px, 1.0)
-    lo, hi = (float(z.min()), float(z.max())) if z_range is None and len(z) else z_range or (0, 1)
-    bins = (np.arange(rows + 1) * render_px, np.arange(cols + 1) * render_px)
-    dens, _, _ = np.histogram2d(y, x, bins=bins)
-    zsum, _, _ = np.histogram2d(y, x, bins=bins, weights=z)
-    dens = ndi.gaussian_filter(dens, sigma)
-    zsum = ndi.gaussian_filter(zsum, sigma)
-    zmean = np.where(dens > 1e-12, zsum / np.maximum(dens, 1e-12), lo)
-    top = np.percentile(dens[dens > 0], 99.5) if np.any(dens > 0) else 1.0
-    bright = np.clip(dens / max(top, 1e-12), 0, 1)
-    rgb = colormaps[cmap](np.clip((zmean - lo) / max(hi - lo, 1e-9), 0, 1))[..., :3]
-    return rgb * bright[..., None]
-
-
-def plot_render(
-    locs: pd.DataFrame,
-    path: str | Path,
-    fov_nm: tuple[float, float],
-    *,
-    truth: pd.DataFrame | None = None,
-    render_px: float = 10.0,
-    z_range: tuple[float, float] | None = None,
-    title: str = "",
-) -> Path:
-    """Rendered localizations (and the truth beside them, rendered alike), colour by z with a
-    colour bar in nm and a scale bar."""
-    from matplotlib import colormaps
-    from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize
-    from matplotlib.figure import Figure
-
-    tables = [("localizations", locs)] + ([("ground truth", truth)] if truth is not None else [])
-    if z_range is None:
-        zs = np.concatenate([t["z_nm"].to_numpy(float) for _, t in tables])
-        z_range = (float(zs.min()), float(zs.max())) if zs.size else (0.0, 1.0)
-    w, h = fov_nm
-    fig = Figure(figsize=(5.2 * len(tables) + 1.0, 5.2 * h / w + 0.8), layout="constrained")
-    axes = np.atleast_1d(fig.subplots(1, len(tables)))
-    ext = (0, w / 1000, h / 1000, 0)
-    sigma = None
-    for ax, (label, t) in zip(axes, tables, strict=True):
-        if sigma is None:  # the truth is drawn with the localizations' spot size
-            sigma = _median_sigma(t)
-        img = render_image(t, fov_nm, render_px=render_px, z_range=z_range, sigma_nm=sigma)
-        ax.imshow(img, extent=ext, interpolation="nearest")
-        ax.set_facecolor("black")
-        _scale_bar(ax, ext, "white")
-        ax.set_title(f"{label} ({len(t):,})", fontsize=10)
-        ax.set_xlabel("x (um)")
-    axes[0].set_ylabel("y (um)")
-    sm = ScalarMappable(norm=Normalize(*z_range), cmap=colormaps["turbo"])
-    cb = fig.colorbar(sm, ax=list(axes), shrink=0.8)
-    cb.set_label("z (nm)")
-    if title:
-        fig.suptitle(title, fontsize=10)
-    return save_figure(fig, path, dpi=150)
 
 
 def plot_crlb(z: NDArray, bound: NDArray, path: str | Path, *, title: str = "") -> Path:

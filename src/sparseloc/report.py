@@ -101,21 +101,14 @@ def _drift_section(t: pd.DataFrame, n_frames: int) -> tuple[str, str | None]:
             f"{DRIFT_MIN_LOCS:,} localizations).",
             None,
         )
-    from matplotlib.figure import Figure
-
-    from .drift import rcc_drift
+    from .drift import plot_drift, rcc_drift
 
     try:
         d = rcc_drift(t)
     except ValueError as exc:
         return f"Not estimated: {html.escape(str(exc))}", None
-    fig = Figure(figsize=(12, 3), layout="constrained")
-    ax = fig.subplots()
-    for i, (axis, color) in enumerate(zip("xyz", ("C0", "C1", "C2"), strict=True)):
-        ax.plot(d.frames, d.drift[:, i], color=color, label=f"{axis}")
-    ax.set_xlabel("frame")
-    ax.set_ylabel("drift (nm)")
-    ax.legend(fontsize=8)
+    with tempfile.TemporaryDirectory() as tmp:
+        figure = _png_file(plot_drift(d, Path(tmp) / "drift.png"))
     span = np.ptp(d.drift, axis=0)
     text = (
         f"Redundant cross-correlation: drift range x {span[0]:.0f} nm, y {span[1]:.0f} nm, "
@@ -123,7 +116,7 @@ def _drift_section(t: pd.DataFrame, n_frames: int) -> tuple[str, str | None]:
     )
     if not d.reliable:
         text += " <b>Unreliable:</b> " + html.escape("; ".join(d.warnings))
-    return text, _png(fig)
+    return text, figure
 
 
 def _truth_section(t: pd.DataFrame, truth: pd.DataFrame) -> tuple[str, str]:
@@ -176,8 +169,7 @@ def _truth_section(t: pd.DataFrame, truth: pd.DataFrame) -> tuple[str, str]:
     ax1.set_title("error against depth", fontsize=10)
     ax2.set_xlabel("true z (nm)")
     ax2.set_title("detections against depth", fontsize=10)
-    table = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>" for k, v in rows)
-    return f"<table>{table}</table>", _png(fig)
+    return _rows_html(rows), _png(fig)
 
 
 def build_report(
@@ -288,9 +280,13 @@ def _short(v: Any) -> str:
     return s if len(s) <= 300 else s[:297] + "..."
 
 
-def _table_html(heading: str, rows: list[tuple[str, str]]) -> str:
+def _rows_html(rows: list[tuple[str, str]]) -> str:
     cells = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>" for k, v in rows)
-    return f"<section><h2>{html.escape(heading)}</h2><table>{cells}</table></section>"
+    return f"<table>{cells}</table>"
+
+
+def _table_html(heading: str, rows: list[tuple[str, str]]) -> str:
+    return f"<section><h2>{html.escape(heading)}</h2>{_rows_html(rows)}</section>"
 
 
 def _figure_html(heading: str, b64: str | None, text: str = "") -> str:
