@@ -551,6 +551,7 @@ def frame_fit(
     max_emitters: int = 10,
     z_flip: float = 0.15,
     max_group: int = 8,
+    skip_tolerance: float = 0.1,
     **fit_kwargs,
 ) -> FrameFit:
     """Maximum-likelihood fit of a frame's emitters, group by group.
@@ -586,6 +587,10 @@ def frame_fit(
         from the other end, and the better likelihood is kept: a double helix that turns by
         half a revolution over its range looks alike at both ends, and the fit cannot cross
         from one to the other. 0 disables.
+    skip_tolerance : float
+        A group that a sweep leaves where it was is not refitted in the next sweep while its
+        neighbours' light in its window changes by at most this many times the background's
+        Poisson standard deviation per pixel; 0 refits every group every sweep.
     **fit_kwargs
         ``noise``, ``read_variance`` (a map is cropped to each window), ``plane``.
 
@@ -602,6 +607,11 @@ def frame_fit(
     threshold = ADD_THRESHOLD if threshold is None else float(threshold)
     em = emitters.as_array().reshape(-1, 4)
     info: list[tuple] = [(np.full(4, np.nan), np.nan, np.nan, "ok", -1)] * len(em)
+    # A group whose emitters are exactly the output of its last fit, and whose neighbours'
+    # light changed by less than a small fraction of the noise since then, would be refitted
+    # from its own optimum to the same place: its last result is kept (later sweeps move
+    # few emitters, so most groups are skipped).
+    memo: dict[bytes, tuple] = {}
     for _ in range(max(sweeps, 1)):
         if len(em) == 0:
             break
@@ -638,6 +648,18 @@ def frame_fit(
                 if near.any():
                     o = o[near]
                     offset = model.render(*o.T, shape, px, origin=origin)
+            key = np.ascontiguousarray(em[g]).tobytes()
+            hit = memo.get(key)
+            if (
+                hit is not None
+                and hit[0].shape == offset.shape
+                and hit[4] == origin
+                and np.max(np.abs(hit[0] - offset)) <= hit[1]
+            ):
+                done[g] = True
+                new_em.append(hit[2])
+                new_info.extend((*i[:4], gi) for i in hit[3])
+                continue
             y = f[r0:r1, c0:c1]
             if fit_kwargs.get("noise", "poisson") != "scmos":
                 # Read noise puts some pixels below zero; the Poisson fit needs counts >= 0.
@@ -669,10 +691,14 @@ def frame_fit(
             done[g] = True
             arr = fit.emitters.as_array().reshape(-1, 4)
             new_em.append(arr)
-            for k in range(len(arr)):
-                new_info.append(
-                    (fit.sigma[k], float(fit.background[0]), fit.deviance_per_dof, fit.flags[k], gi)
-                )
+            group_info = [
+                (fit.sigma[k], float(fit.background[0]), fit.deviance_per_dof, fit.flags[k], gi)
+                for k in range(len(arr))
+            ]
+            new_info.extend(group_info)
+            if skip_tolerance > 0 and len(arr):
+                tol = skip_tolerance * np.sqrt(max(kw["background"], 1.0))
+                memo[np.ascontiguousarray(arr).tobytes()] = (offset, tol, arr, group_info, origin)
         prev = em
         em = np.vstack(new_em) if new_em else np.zeros((0, 4))
         info = new_info

@@ -39,6 +39,7 @@ range, where the true z may lie outside), ``"outside"`` (x or y outside the wind
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass, field
 
@@ -284,6 +285,9 @@ def fit_emitters(
     b0 = np.zeros(prob.n_bg)
     b0[0] = background
     theta = prob.clamp(np.concatenate([em0.ravel(), b0]))
+    fast = _compiled_fit(prob, theta, max_iter, tol)
+    if fast is not None:
+        return _result(prob, *fast)
     mu = prob.mu(theta)
     f = prob.nll(mu)
     lam = 1e-3
@@ -320,6 +324,56 @@ def fit_emitters(
             converged = True
             break
     return _result(prob, theta, mu, f, jac, converged, n_iter)
+
+
+def _compiled_fit(prob: _Problem, theta, max_iter: int, tol: float):
+    """The LM loop of :func:`fit_emitters` compiled (numba), for spline models; ``None`` when
+    it does not apply (another model, numba missing or disabled). Same steps as the Python
+    loop; ``tests/test_refine.py`` checks that the two agree."""
+    from ..psf import _spline_kernel
+    from ..psf.spline import _PAD, SplinePSF
+
+    m = prob.model
+    if not (isinstance(m, SplinePSF) and m.compiled and _spline_kernel.available()):
+        return None
+    from ._fit_numba import lm_fit
+
+    m._check_pixel(prob.px)
+    px = prob.px
+    geo = np.array(
+        [
+            m.centre[1] + _PAD,
+            m.centre[0] + _PAD,
+            float(m.oversample),
+            px,
+            prob.origin[0] + 0.5 * px,
+            prob.origin[1] + 0.5 * px,
+            float(m.z[0]),
+            m.z_step,
+            m.stack.shape[0] - 1 - 1e-9,
+        ]
+    )
+    k = (theta.size - prob.n_bg) // 4
+    lo = np.array([prob.xlo, prob.ylo, prob.zlo, _MIN_PHOTONS])
+    hi = np.array([prob.xhi, prob.yhi, prob.zhi, np.inf])
+    base = np.ascontiguousarray(np.broadcast_to(prob.offset, prob.shape), dtype=np.float64)
+    theta, mu, f, jac, converged, n_iter = lm_fit(
+        m._coef,
+        geo,
+        np.ascontiguousarray(prob.yv, dtype=np.float64),
+        np.ascontiguousarray(prob.v, dtype=np.float64),
+        base,
+        np.ascontiguousarray(np.stack(prob.bg_basis), dtype=np.float64),
+        float(prob.weight),
+        np.ascontiguousarray(theta, dtype=np.float64),
+        int(k),
+        lo,
+        hi,
+        _MIN_BG,
+        int(max_iter),
+        float(tol),
+    )
+    return theta, mu, float(f), jac, bool(converged), int(n_iter)
 
 
 def _result(prob: _Problem, theta, mu, f, jac, converged, n_iter) -> FitResult:
@@ -363,6 +417,29 @@ def _result(prob: _Problem, theta, mu, f, jac, converged, n_iter) -> FitResult:
     )
 
 
+@functools.lru_cache(maxsize=32)
+def _candidate_templates(model, rows: int, cols: int, pixel_size: float, n_planes: int):
+    """Spectra of the PSF planes that :func:`_residual_candidates` correlates with a window
+    of this shape (the same for every window of a frame: computed once per shape)."""
+    from scipy import fft as sfft
+
+    canvas = (2 * rows - 1, 2 * cols - 1)
+    zs = np.linspace(*model.z_range, n_planes)
+    cx = (cols - 0.5) * pixel_size  # emitter at the centre of canvas pixel (rows-1, cols-1)
+    cy = (rows - 0.5) * pixel_size
+    tmpl = model.images(np.full(n_planes, cx), np.full(n_planes, cy), zs, canvas, pixel_size)
+    # Valid-mode correlations of every plane with the residual, ones and mu, batched in one
+    # FFT size: [a, b] is an emitter at pixel (rows-1-a, cols-1-b).
+    s = tuple(sfft.next_fast_len(3 * n - 2, real=True) for n in (rows, cols))
+    ft = sfft.rfft2(tmpl, s=s)
+    ft2 = sfft.rfft2(tmpl**2, s=s)
+    ones = sfft.irfft2(ft2 * sfft.rfft2(np.ones((rows, cols)), s=s)[None], s=s)
+    nrm2 = np.maximum(ones[:, rows - 1 : 2 * rows - 1, cols - 1 : 2 * cols - 1], 1e-24)
+    for a in (zs, ft, ft2, nrm2):
+        a.flags.writeable = False
+    return zs, s, ft, ft2, nrm2
+
+
 def _residual_candidates(y, fit: FitResult, model, pixel_size, origin, n_planes=13, n_best=2):
     """Up to ``n_best`` (x, y, z, photons) where the fit's residual correlates best with the
     PSF, at least two pixels apart, best first, and the largest score statistic
@@ -371,24 +448,14 @@ def _residual_candidates(y, fit: FitResult, model, pixel_size, origin, n_planes=
 
     rows, cols = y.shape
     resid = y - fit.model_image
-    canvas = (2 * rows - 1, 2 * cols - 1)
-    zs = np.linspace(*model.z_range, n_planes)
-    cx = (cols - 0.5) * pixel_size  # emitter at the centre of canvas pixel (rows-1, cols-1)
-    cy = (rows - 0.5) * pixel_size
-    tmpl = model.images(np.full(n_planes, cx), np.full(n_planes, cy), zs, canvas, pixel_size)
+    zs, s, ft, ft2, nrm2 = _candidate_templates(model, rows, cols, float(pixel_size), n_planes)
     mu = np.maximum(fit.model_image, 1e-9)
-    # Valid-mode correlations of every plane with the residual, ones and mu, batched in one
-    # FFT size: [a, b] is an emitter at pixel (rows-1-a, cols-1-b).
-    s = tuple(sfft.next_fast_len(3 * n - 2, real=True) for n in (rows, cols))
-    ft = sfft.rfft2(tmpl, s=s)
-    ft2 = sfft.rfft2(tmpl**2, s=s)
 
     def valid(f_tmpl, img):
         full = sfft.irfft2(f_tmpl * sfft.rfft2(img[::-1, ::-1], s=s)[None], s=s)
         return full[:, rows - 1 : 2 * rows - 1, cols - 1 : 2 * cols - 1]
 
     corr = valid(ft, resid)
-    nrm2 = np.maximum(valid(ft2, np.ones_like(resid)), 1e-24)
     var = np.maximum(valid(ft2, mu), 1e-24)
     stat = float(np.max(np.where(corr > 0, corr**2 / var, 0.0)))
     scores, amps = corr / np.sqrt(nrm2), corr / nrm2

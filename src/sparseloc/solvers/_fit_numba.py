@@ -1,0 +1,227 @@
+"""Compiled Levenberg-Marquardt loop of :func:`sparseloc.solvers.refine.fit_emitters` for
+spline PSFs (numba; imported only when used).
+
+The Python loop spends most of its time in per-iteration overhead on small arrays (a frame's
+fits call it thousands of times on windows of a few hundred pixels); this is the same
+algorithm, step for step (same damping rule, same clamps, same acceptance test), with the
+spline images computed by :func:`sparseloc.psf._spline_numba.spline_kernel`.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from ..psf._spline_numba import spline_kernel
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve(a, b, out):  # pragma: no cover - compiled
+    """Gaussian elimination with partial pivoting; False if the matrix is singular."""
+    n = b.shape[0]
+    m = a.copy()
+    r = b.copy()
+    for i in range(n):
+        piv = i
+        best = abs(m[i, i])
+        for j in range(i + 1, n):
+            if abs(m[j, i]) > best:
+                best = abs(m[j, i])
+                piv = j
+        if not (best > 0.0) or not np.isfinite(best):
+            return False
+        if piv != i:
+            for c in range(n):
+                t = m[i, c]
+                m[i, c] = m[piv, c]
+                m[piv, c] = t
+            t = r[i]
+            r[i] = r[piv]
+            r[piv] = t
+        for j in range(i + 1, n):
+            f = m[j, i] / m[i, i]
+            if f != 0.0:
+                for c in range(i, n):
+                    m[j, c] -= f * m[i, c]
+                r[j] -= f * r[i]
+    for i in range(n - 1, -1, -1):
+        s = r[i]
+        for c in range(i + 1, n):
+            s -= m[i, c] * out[c]
+        out[i] = s / m[i, i]
+    for i in range(n):
+        if not np.isfinite(out[i]):
+            return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _node_coords(theta, k, geo, tz, tx, ty):  # pragma: no cover - compiled
+    # geo: cx_node, cy_node, oversample, pixel, x of pixel (0,0) centre, y of it, z0, z_step,
+    # largest tz
+    for i in range(k):
+        x = theta[4 * i]
+        y = theta[4 * i + 1]
+        z = theta[4 * i + 2]
+        t = (z - geo[6]) / geo[7]
+        if t < 0.0:
+            t = 0.0
+        if t > geo[8]:
+            t = geo[8]
+        tz[i] = t
+        tx[i] = geo[0] + (geo[4] - x) * geo[2] / geo[3]
+        ty[i] = geo[1] + (geo[5] - y) * geo[2] / geo[3]
+
+
+@numba.njit(cache=True, nogil=True)
+def _model(coef, geo, theta, k, base, bg_basis, nb, img, der, derivs, mu):  # pragma: no cover
+    rows, cols = mu.shape
+    tz = np.empty(k)
+    tx = np.empty(k)
+    ty = np.empty(k)
+    _node_coords(theta, k, geo, tz, tx, ty)
+    stride = int(geo[2])
+    spline_kernel(coef, tz, tx, ty, rows, cols, stride, img, der, derivs)
+    for r in range(rows):
+        for c in range(cols):
+            s = base[r, c]
+            for j in range(nb):
+                s += theta[4 * k + j] * bg_basis[j, r, c]
+            for i in range(k):
+                s += theta[4 * i + 3] * img[i, r, c]
+            mu[r, c] = s
+
+
+@numba.njit(cache=True, nogil=True)
+def _nll(mu, v, yv, weight):  # pragma: no cover - compiled
+    s = 0.0
+    rows, cols = mu.shape
+    for r in range(rows):
+        for c in range(cols):
+            m = mu[r, c] + v[r, c]
+            if not (m > 0.0) or not np.isfinite(m):
+                return np.inf
+            s += m - yv[r, c] * np.log(m)
+    return weight * s
+
+
+@numba.njit(cache=True, nogil=True)
+def _clamp(theta, k, lo, hi, min_bg):  # pragma: no cover - compiled
+    for i in range(k):
+        for j in range(4):
+            t = theta[4 * i + j]
+            if t < lo[j]:
+                t = lo[j]
+            if t > hi[j]:
+                t = hi[j]
+            theta[4 * i + j] = t
+    if theta[4 * k] < min_bg:
+        theta[4 * k] = min_bg
+
+
+@numba.njit(cache=True, nogil=True)
+def _jacobian(theta, k, img, der, geo, bg_basis, nb, jac):  # pragma: no cover - compiled
+    rows = img.shape[1]
+    cols = img.shape[2]
+    sxy = -geo[2] / geo[3]
+    sz = 1.0 / geo[7]
+    for i in range(k):
+        n = theta[4 * i + 3]
+        for r in range(rows):
+            for c in range(cols):
+                p = r * cols + c
+                jac[4 * i, p] = der[i, 0, r, c] * sxy * n
+                jac[4 * i + 1, p] = der[i, 1, r, c] * sxy * n
+                jac[4 * i + 2, p] = der[i, 2, r, c] * sz * n
+                jac[4 * i + 3, p] = img[i, r, c]
+    for j in range(nb):
+        for r in range(rows):
+            for c in range(cols):
+                jac[4 * k + j, r * cols + c] = bg_basis[j, r, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def lm_fit(
+    coef, geo, y_v, v, base, bg_basis, weight, theta0, k, lo, hi, min_bg, max_iter, tol
+):  # pragma: no cover - compiled
+    """LM with Fisher scoring; returns theta, mu, f, jac, converged, n_iter."""
+    rows, cols = y_v.shape
+    npix = rows * cols
+    nb = bg_basis.shape[0]
+    npar = theta0.shape[0]
+    img = np.empty((max(k, 1), rows, cols))
+    der = np.empty((max(k, 1), 3, rows, cols))
+    theta = theta0.copy()
+    mu = np.empty((rows, cols))
+    _model(coef, geo, theta, k, base, bg_basis, nb, img, der, True, mu)
+    f = _nll(mu, v, y_v, weight)
+    jac = np.empty((npar, npix))
+    _jacobian(theta, k, img, der, geo, bg_basis, nb, jac)
+    lam = 1e-3
+    converged = False
+    n_iter = 0
+    grad = np.empty(npar)
+    fisher = np.empty((npar, npar))
+    a = np.empty((npar, npar))
+    step = np.empty(npar)
+    trial = np.empty(npar)
+    mu_t = np.empty((rows, cols))
+    wj = np.empty((npar, npix))
+    f_t = np.inf
+    for it in range(1, max_iter + 1):
+        n_iter = it
+        for q in range(npar):
+            grad[q] = 0.0
+        for p in range(npix):
+            r = p // cols
+            c = p - r * cols
+            muv = mu[r, c] + v[r, c]
+            g = 1.0 - y_v[r, c] / muv
+            for q in range(npar):
+                grad[q] += jac[q, p] * g
+                wj[q, p] = jac[q, p] / muv
+        for q in range(npar):
+            grad[q] *= weight
+        for q in range(npar):
+            for s in range(q, npar):
+                acc = 0.0
+                for p in range(npix):
+                    acc += wj[q, p] * jac[s, p]
+                fisher[q, s] = weight * acc
+                fisher[s, q] = weight * acc
+        improved = False
+        for _ in range(12):
+            for q in range(npar):
+                for s in range(npar):
+                    a[q, s] = fisher[q, s]
+                d = fisher[q, q]
+                if d < 1e-12:
+                    d = 1e-12
+                a[q, q] += lam * d
+            ok = _solve(a, -grad, step)
+            if not ok:
+                lam *= 10.0
+                continue
+            for q in range(npar):
+                trial[q] = theta[q] + step[q]
+            _clamp(trial, k, lo, hi, min_bg)
+            _model(coef, geo, trial, k, base, bg_basis, nb, img, der, False, mu_t)
+            f_t = _nll(mu_t, v, y_v, weight)
+            if f_t < f:
+                improved = True
+                break
+            lam *= 10.0
+        if not improved:
+            converged = True
+            break
+        rel = (f - f_t) / max(abs(f), 1.0)
+        theta[:] = trial
+        mu[:, :] = mu_t
+        f = f_t
+        lam = max(lam / 10.0, 1e-7)
+        _model(coef, geo, theta, k, base, bg_basis, nb, img, der, True, mu_t)
+        _jacobian(theta, k, img, der, geo, bg_basis, nb, jac)
+        if rel < tol:
+            converged = True
+            break
+    return theta, mu, f, jac, converged, n_iter

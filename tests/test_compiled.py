@@ -1,0 +1,167 @@
+"""The compiled (numba) spline kernel and LM loop against their NumPy reference paths, and
+the frame solver's skipping of groups that a sweep left in place."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sparseloc.psf import _spline_kernel, make_psf
+from sparseloc.psf.spline import SplinePSF
+from sparseloc.solvers.emitters import Emitters
+from sparseloc.solvers.frame import frame_fit, frame_templates
+from sparseloc.solvers.refine import fit_emitters
+
+PX = 100.0
+
+pytestmark = pytest.mark.skipif(not _spline_kernel.available(), reason="numba not available")
+
+
+@pytest.fixture(scope="module")
+def table():
+    # Oversampled table of the cheap analytic double helix: stride 2 in the kernel.
+    return SplinePSF.from_model(make_psf("dh-analytic"), PX, roi=31, z_step=20.0)
+
+
+def _both(model, fn):
+    """fn() with the compiled path, then with the NumPy path."""
+    try:
+        model.compiled = True
+        a = fn()
+        model.compiled = False
+        b = fn()
+    finally:
+        model.compiled = True
+    return a, b
+
+
+@pytest.fixture(scope="module")
+def bead_table():
+    # A stack at the camera's pixels (oversample 1), as a bead calibration gives.
+    m = make_psf("dh-analytic")
+    z = np.arange(-600.0, 601.0, 40.0)
+    imgs = m.images(np.full(z.size, 1350.0), np.full(z.size, 1350.0), z, (27, 27), PX)
+    return SplinePSF(imgs, PX, z)
+
+
+def test_kernel_matches_the_numpy_path_without_oversampling(bead_table):
+    rng = np.random.default_rng(4)
+    x, y = rng.uniform(600, 1500, (2, 5))
+    z = rng.uniform(-550, 550, 5)
+    (img_c, der_c), (img_n, der_n) = _both(
+        bead_table, lambda: bead_table._images(x, y, z, (19, 17), PX, (100.0, 50.0), True)
+    )
+    np.testing.assert_allclose(img_c, img_n, rtol=0, atol=1e-12 * np.abs(img_n).max())
+    np.testing.assert_allclose(der_c, der_n, rtol=0, atol=1e-12 * np.abs(der_n).max())
+
+
+@pytest.mark.parametrize(
+    ("shape", "origin"),
+    [((21, 21), (0.0, 0.0)), ((15, 23), (350.0, -420.0)), ((9, 9), (-3000.0, 0.0))],
+)
+def test_kernel_matches_the_numpy_path(table, shape, origin):
+    rng = np.random.default_rng(3)
+    x = rng.uniform(500, 1600, 6)
+    y = rng.uniform(500, 1600, 6)
+    z = rng.uniform(*table.z_range, 6)
+    (img_c, der_c), (img_n, der_n) = _both(
+        table, lambda: table._images(x, y, z, shape, PX, origin, True)
+    )
+    scale = max(np.abs(img_n).max(), 1e-12)
+    assert np.abs(img_c - img_n).max() <= 1e-12 * scale
+    for i in range(3):
+        s = max(np.abs(der_n[:, i]).max(), 1e-12)
+        assert np.abs(der_c[:, i] - der_n[:, i]).max() <= 1e-12 * s
+    # the far case is all zeros in both
+    if origin[0] < -2000:
+        assert np.all(img_c == 0.0)
+
+
+@pytest.mark.parametrize("noise", ["poisson", "emccd", "scmos"])
+def test_compiled_fit_takes_the_same_steps(table, noise):
+    rng = np.random.default_rng(11)
+    for trial in range(6):
+        k = 1 + trial % 3
+        truth = np.c_[
+            rng.uniform(700, 1400, k),
+            rng.uniform(700, 1400, k),
+            rng.uniform(-500, 500, k),
+            rng.uniform(1000, 4000, k),
+        ]
+        off = table.render([300.0], [1800.0], [100.0], [2000.0], (21, 21), PX)
+        mu = table.render(*truth.T, (21, 21), PX) + 10.0 + off
+        img = rng.poisson(mu).astype(float)
+        start = truth + rng.normal(0, [30, 30, 60, 300], truth.shape)
+        start[:, 2] = np.clip(start[:, 2], *table.z_range)
+        kw = dict(pixel_size=PX, offset=off, noise=noise, plane=trial % 2 == 1)
+        if noise == "scmos":
+            kw["read_variance"] = np.full((21, 21), 3.0)
+        a, b = _both(
+            table,
+            lambda kw=kw, img=img, start=start: fit_emitters(
+                img, table, Emitters.from_array(start), **kw
+            ),
+        )
+        assert a.n_iter == b.n_iter and a.converged == b.converged
+        np.testing.assert_allclose(a.emitters.as_array(), b.emitters.as_array(), atol=1e-6)
+        np.testing.assert_allclose(a.log_likelihood, b.log_likelihood, rtol=1e-10)
+        np.testing.assert_allclose(a.sigma, b.sigma, rtol=1e-6)
+        np.testing.assert_allclose(a.background, b.background, rtol=1e-8, atol=1e-8)
+        assert list(a.flags) == list(b.flags)
+
+
+def test_analytic_models_keep_the_python_loop():
+    # Only spline tables are compiled; other models must still fit (through NumPy).
+    m = make_psf("dh-analytic")
+    mu = m.render([1000.0], [1000.0], [0.0], [3000.0], (21, 21), PX) + 10.0
+    img = np.random.default_rng(0).poisson(mu).astype(float)
+    fit = fit_emitters(img, m, Emitters.from_array([[1020.0, 980.0, 50.0, 2500.0]]), pixel_size=PX)
+    assert np.hypot(fit.emitters.x[0] - 1000.0, fit.emitters.y[0] - 1000.0) < 30.0
+
+
+def test_skipping_settled_groups_changes_little(table):
+    rng = np.random.default_rng(5)
+    n = 14
+    truth = np.c_[
+        rng.uniform(300, 3900, n),
+        rng.uniform(300, 3900, n),
+        rng.uniform(-500, 500, n),
+        rng.uniform(1500, 4000, n),
+    ]
+    shape = (42, 42)
+    frame = rng.poisson(table.render(*truth.T, shape, PX) + 10.0).astype(float)
+    start = truth + rng.normal(0, [40, 40, 80, 300], truth.shape)
+    start[:, 2] = np.clip(start[:, 2], *table.z_range)
+    t = frame_templates(table, PX, dxy=50.0, dz=120.0)
+    kw = dict(
+        pixel_size=PX,
+        background=10.0,
+        group_distance=t.core_radius * PX,
+        pad=int(np.ceil(0.6 * t.core_radius)),
+        reach=0.5 * t.images.shape[-1] * PX,
+    )
+    calls = {"n": 0}
+    import sparseloc.solvers.frame as frame_mod
+
+    real = frame_mod.fit_with_count_selection
+
+    def counting(*a, **k):
+        calls["n"] += 1
+        return real(*a, **k)
+
+    frame_mod.fit_with_count_selection = counting
+    try:
+        full = frame_fit(frame, table, Emitters.from_array(start), skip_tolerance=0.0, **kw)
+        n_full = calls["n"]
+        calls["n"] = 0
+        fast = frame_fit(frame, table, Emitters.from_array(start), **kw)
+        n_fast = calls["n"]
+    finally:
+        frame_mod.fit_with_count_selection = real
+    assert n_fast < n_full  # groups were skipped
+    a = full.emitters.as_array()
+    b = fast.emitters.as_array()
+    assert len(a) == len(b)
+    # same emitters to well within the localization precision
+    d = np.hypot(*(a[:, None, :2] - b[None, :, :2]).transpose(2, 0, 1)).min(axis=1)
+    assert np.all(d < 5.0)
