@@ -5,6 +5,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+#: Let LLVM reorder and fuse sums (vector loops) but keep NaN/inf semantics: the
+#: likelihood and the solver test for non-finite values.
+_FAST = {"reassoc", "contract", "nsz"}
+
 
 @numba.njit(cache=True, inline="always")
 def _weights(f, w, dw):
@@ -19,7 +23,7 @@ def _weights(f, w, dw):
     dw[3] = f**2 / 2.0
 
 
-@numba.njit(cache=True, nogil=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def spline_kernel(coef, tz, tx, ty, rows, cols, stride, out, der, derivatives):  # pragma: no cover
     """Images (K, rows, cols) and raw derivatives (K, 3, rows, cols) of K emitters.
 

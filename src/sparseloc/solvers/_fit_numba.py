@@ -12,10 +12,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ..psf._spline_numba import spline_kernel
+from ..psf._spline_numba import _FAST, spline_kernel
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _solve(a, b, out):  # pragma: no cover - compiled
     """Gaussian elimination with partial pivoting; False if the matrix is singular."""
     n = b.shape[0]
@@ -55,7 +55,7 @@ def _solve(a, b, out):  # pragma: no cover - compiled
     return True
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _node_coords(theta, k, geo, tz, tx, ty):  # pragma: no cover - compiled
     # geo: cx_node, cy_node, oversample, pixel, x of pixel (0,0) centre, y of it, z0, z_step,
     # largest tz
@@ -73,7 +73,7 @@ def _node_coords(theta, k, geo, tz, tx, ty):  # pragma: no cover - compiled
         ty[i] = geo[1] + (geo[5] - y) * geo[2] / geo[3]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _model(coef, geo, theta, k, base, bg_basis, nb, img, der, derivs, mu):  # pragma: no cover
     rows, cols = mu.shape
     tz = np.empty(k)
@@ -92,7 +92,7 @@ def _model(coef, geo, theta, k, base, bg_basis, nb, img, der, derivs, mu):  # pr
             mu[r, c] = s
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _nll(mu, v, yv, weight):  # pragma: no cover - compiled
     s = 0.0
     rows, cols = mu.shape
@@ -105,7 +105,7 @@ def _nll(mu, v, yv, weight):  # pragma: no cover - compiled
     return weight * s
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _clamp(theta, k, lo, hi, min_bg):  # pragma: no cover - compiled
     for i in range(k):
         for j in range(4):
@@ -119,7 +119,7 @@ def _clamp(theta, k, lo, hi, min_bg):  # pragma: no cover - compiled
         theta[4 * k] = min_bg
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _jacobian(theta, k, img, der, geo, bg_basis, nb, jac):  # pragma: no cover - compiled
     rows = img.shape[1]
     cols = img.shape[2]
@@ -140,7 +140,7 @@ def _jacobian(theta, k, img, der, geo, bg_basis, nb, jac):  # pragma: no cover -
                 jac[4 * k + j, r * cols + c] = bg_basis[j, r, c]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def lm_fit(
     coef, geo, y_v, v, base, bg_basis, weight, theta0, k, lo, hi, min_bg, max_iter, tol
 ):  # pragma: no cover - compiled
