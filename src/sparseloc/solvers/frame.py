@@ -164,6 +164,7 @@ class _Correlator:
         self.norm2 = np.empty((t.shape[0], *shape), dtype=np.float32)
         for j0, part in self._batches(np.ones(shape), True):
             self.norm2[j0 : j0 + len(part)] = part
+        self.inv_norm = (1.0 / np.sqrt(np.maximum(self.norm2, 1e-12))).astype(np.float32)
         # One kernel for local means of the variance: the templates' mean square, normalised.
         sq = (self._flipped**2).mean(axis=0)
         self.fw = sfft.rfft2(sq / sq.sum(), s=self.fshape)
@@ -211,8 +212,7 @@ class _Correlator:
         jb = np.zeros(self.shape, dtype=np.intp)
         cb = np.zeros(self.shape)
         for j0, part in self._batches(img, False):
-            n2 = self.norm2[j0 : j0 + len(part)]
-            score = part / np.sqrt(np.maximum(n2, 1e-12))
+            score = part * self.inv_norm[j0 : j0 + len(part)]
             k = np.argmax(score, axis=0)
             s = np.take_along_axis(score, k[None], 0)[0]
             better = s > sb
