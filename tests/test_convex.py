@@ -355,3 +355,104 @@ def test_bad_specific_input():
             solve_constrained(A, y, 1.0, weights=w)
     with pytest.raises(ValueError, match="on_infeasible"):
         solve_constrained(A, y, 1.0, on_infeasible="ignore")
+
+
+# -- working set ---------------------------------------------------------------------------------
+@pytest.fixture
+def tiny_working_set(monkeypatch):
+    """A working set that starts with 4 atoms and grows by 2: many rounds, infeasible ones too."""
+    import sparseloc.solvers.convex as convex
+
+    monkeypatch.setattr(convex, "WORKING_SET_SIZE", 4)
+    monkeypatch.setattr(convex, "WORKING_SET_GROW", 2)
+
+
+def _assert_same_result(ws: ConvexResult, full: ConvexResult) -> None:
+    assert ws.feasible == full.feasible and ws.converged == full.converged
+    assert ws.objective == pytest.approx(full.objective, rel=1e-9, abs=1e-9)
+    assert ws.residual_norm == pytest.approx(full.residual_norm, rel=1e-9)
+    assert ws.background == pytest.approx(full.background, rel=1e-9, abs=1e-9)
+    assert ws.lam == pytest.approx(full.lam, rel=1e-6, abs=1e-12)
+    scale = max(float(full.coef.max()), 1.0)
+    np.testing.assert_allclose(ws.coef, full.coef, atol=1e-6 * scale)
+    # nothing the solution needs is screened out: every atom of the full solution is in it
+    assert set(np.flatnonzero(full.coef > 1e-6 * scale)) <= set(ws.support.tolist())
+
+
+@pytest.mark.parametrize("background", [None, BACKGROUND], ids=["estimated-bg", "fixed-bg"])
+@pytest.mark.parametrize("seed", range(10))
+def test_working_set_same_as_full(A, seed, background, tiny_working_set):
+    y, _ = _window(A, seed)
+    eps = noise_epsilon(y)  # with a fixed background some of these windows are infeasible
+    full = solve_constrained(A, y, eps, background=background, working_set=False)
+    ws = solve_constrained(A, y, eps, background=background, working_set=True)
+    _assert_same_result(ws, full)
+    _assert_kkt(A, y, ws, ws.lam, background)  # over every atom, not only the working set
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_working_set_matches_cvxpy(A, seed, tiny_working_set):
+    y, _ = _window(A, 100 + seed)
+    eps = max(noise_epsilon(y), 1.05 * _nnls_residual(A, y, None))
+    res = solve_constrained(A, y, eps, working_set=True)
+    assert res.converged and res.feasible
+    x_cvx, b_cvx, obj_cvx = _cvx_solve(A, y, None, eps=eps)
+    assert res.objective == pytest.approx(obj_cvx, rel=1e-4)
+    _assert_same_support(res.coef, x_cvx)
+    assert res.background == pytest.approx(b_cvx, rel=1e-4, abs=1e-4)
+
+
+def test_working_set_edge_cases(A, tiny_working_set):
+    y, _ = _window(A, 9)
+    # infeasible (fixed background, eps below the NNLS residual): the same NNLS fit
+    eps = 0.5 * _nnls_residual(A, y, BACKGROUND)
+    full = solve_constrained(A, y, eps, background=BACKGROUND, working_set=False)
+    ws = solve_constrained(A, y, eps, background=BACKGROUND, working_set=True)
+    assert not ws.feasible
+    _assert_same_result(ws, full)
+    _assert_kkt(A, y, ws, 0.0, BACKGROUND)
+    # the background alone fits
+    eps = float(np.linalg.norm(y - y.mean())) * 1.01
+    assert solve_constrained(A, y, eps, working_set=True).support.size == 0
+    # weights
+    w = np.random.default_rng(3).uniform(0.5, 2.0, A.shape[1])
+    eps = noise_epsilon(y)
+    full = solve_constrained(A, y, eps, weights=w, working_set=False)
+    ws = solve_constrained(A, y, eps, weights=w, working_set=True)
+    _assert_same_result(ws, full)
+    _assert_kkt(A, y, ws, ws.lam * w, None)
+    # a dictionary with one atom (the working set is the whole of it at once)
+    j = int(np.argmax(A.T @ (y - y.mean())))
+    one = A[:, [j]]
+    _assert_same_result(
+        solve_constrained(one, y, eps, working_set=True),
+        solve_constrained(one, y, eps, working_set=False),
+    )
+
+
+def test_working_set_by_default_on_large_dictionaries(dh_model):
+    """Above ``WORKING_SET_MIN_ATOMS`` the default path is the working set; same answer."""
+    import sparseloc.solvers.convex as convex
+
+    big = Dictionary(dh_model, 7, 160.0, 40.0, 150.0, (-300, 300)).dense()  # 3920 atoms
+    assert big.shape[1] > convex.WORKING_SET_MIN_ATOMS
+    for seed in range(3):
+        y, _ = _window(big, 200 + seed)
+        eps = noise_epsilon(y)
+        auto = solve_constrained(big, y, eps)
+        _assert_same_result(auto, solve_constrained(big, y, eps, working_set=False))
+        _assert_kkt(big, y, auto, auto.lam, None)
+
+
+def test_matrix_check_fast_path():
+    """Huge finite entries (their sum overflows) pass; NaN and inf anywhere are refused."""
+    from sparseloc.solvers.convex import _check_matrix
+
+    huge = np.full((4, 3), 1e308)
+    assert _check_matrix(huge) is not None  # no ValueError though the sum is inf
+    y = np.ones(4)
+    for bad in (np.inf, -np.inf, np.nan):
+        A = np.ones((4, 3))
+        A[2, 1] = bad
+        with pytest.raises(ValueError, match="A contains"):
+            solve_constrained(A, y, 1.0)
