@@ -5,6 +5,7 @@ Every solver takes one window (photons) and returns a :class:`WindowSolution`.
 
 from .convex import ConvexResult, noise_epsilon, solve_constrained, solve_penalized
 from .emitters import Emitters, WindowSolution, group_by_boxes, group_coefficients
+from .fast_mp import matching_pursuit_batch
 from .hybrid import convex_solve, hybrid_solve
 from .mp import estimate_background, matching_pursuit
 
@@ -18,6 +19,7 @@ __all__ = [
     "group_coefficients",
     "hybrid_solve",
     "matching_pursuit",
+    "matching_pursuit_batch",
     "noise_epsilon",
     "solve_constrained",
     "solve_penalized",

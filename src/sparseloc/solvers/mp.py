@@ -111,6 +111,7 @@ def matching_pursuit(
     max_iter: int | None = None,
     min_norm_fraction: float = 0.3,
     link: float = 1.5,
+    fast: bool = False,
 ) -> WindowSolution:
     """Find the emitters in one window by non-negative matching pursuit.
 
@@ -150,6 +151,11 @@ def matching_pursuit(
         never selected: their normalised correlation is unreliable.
     link : float
         Grouping distance in grid steps (see :func:`group_coefficients`).
+    fast : bool
+        Find each best atom with :class:`~sparseloc.solvers.fast_mp.AtomSearch` (a proven
+        argmax, built once per dictionary) instead of correlating with every atom: the
+        selections of the dense float64 reference, much faster on large structured
+        dictionaries (see :func:`~sparseloc.solvers.fast_mp.matching_pursuit_batch`).
 
     Returns
     -------
@@ -164,6 +170,25 @@ def matching_pursuit(
         raise ValueError(f"max_emitters must be >= 1, got {max_emitters}")
     if min_photons < 0 or chi2_sigma < 0 or noise_factor <= 0:
         raise ValueError("min_photons and chi2_sigma must be >= 0 and noise_factor > 0")
+    if fast:
+        from .fast_mp import matching_pursuit_batch
+
+        return matching_pursuit_batch(
+            y,
+            dictionary,
+            background=background,
+            orthogonal=orthogonal,
+            max_emitters=max_emitters,
+            min_photons=min_photons,
+            chi2_sigma=chi2_sigma,
+            noise_factor=noise_factor,
+            model_error=model_error,
+            min_snr=min_snr,
+            replace_sweeps=replace_sweeps,
+            max_iter=max_iter,
+            min_norm_fraction=min_norm_fraction,
+            link=link,
+        )[0]
     max_iter = 4 * max_emitters if max_iter is None else int(max_iter)
     if model_error is None:
         model_error = float(getattr(dictionary, "quantization_error", 0.0))
