@@ -144,7 +144,20 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--co-windows", type=int, default=30)
     ap.add_argument("--fit-windows", type=int, default=500)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/speed.json"))
+    ap.add_argument(
+        "--print-json", type=Path, default=None, help="print the tables of a saved run and stop"
+    )
     args = ap.parse_args(argv)
+    if args.print_json is not None:
+        import speed_co
+        import speed_fit
+        import speed_mp
+
+        saved = json.loads(args.print_json.read_text())
+        for key, mod in (("mp", speed_mp), ("co", speed_co), ("fit", speed_fit)):
+            if key in saved:
+                mod.print_table(saved[key])
+        return saved
     sections = [s.strip() for s in args.sections.split(",") if s.strip()]
     out: dict = {
         "machine": platform.platform(),
@@ -156,16 +169,19 @@ def main(argv: list[str] | None = None) -> dict:
 
         print("== matching pursuit, fine dictionary ==", flush=True)
         out["mp"] = speed_mp.run(n_windows=args.mp_windows)
+        speed_mp.print_table(out["mp"])
     if "co" in sections:
         import speed_co
 
         print("== convex recovery against CVXPY; MP+CO with refinement ==", flush=True)
         out["co"] = speed_co.run(n_windows=args.co_windows)
+        speed_co.print_table(out["co"])
     if "fit" in sections:
         import speed_fit
 
         print("== maximum-likelihood fits ==", flush=True)
         out["fit"] = speed_fit.run(n_windows=args.fit_windows)
+        speed_fit.print_table(out["fit"])
     if "pipeline" in sections:
         print("== whole pipeline ==", flush=True)
         counts = [int(v) for v in args.frames.split(",")]

@@ -302,6 +302,14 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     out = run(args.windows, args.seed)
+    print_table(out)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=2))
+    print(f"\nwrote {args.out}")
+
+
+def print_table(out: dict) -> None:
+    """The timings and agreement table of a :func:`run` result."""
     print(f"{out['meta']['n_windows']} windows, {out['meta']['n_emitters']} emitters, 1 thread")
     print(
         f"{'path':<24}{'seconds':>9}{'windows/s':>11}{'emitters/s':>12}{'vs loop':>9}"
@@ -323,9 +331,6 @@ def main() -> None:
             f"{a['max_nll_rel']:>12.2e}{a['max_sigma_rel']:>11.2e}"
             f"{a['same_iterations_fraction']:>10.2f}"
         )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=2))
-    print(f"\nwrote {args.out}")
 
 
 if __name__ == "__main__":

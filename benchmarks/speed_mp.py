@@ -270,6 +270,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args(argv)
     res = run(args.windows, args.seed, ref_windows=args.ref_windows, dense32=not args.no_dense32)
+    print_table(res)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(res, indent=1))
+    print(f"\nwrote {args.out}")
+    return 0
+
+
+def print_table(res: dict) -> None:
+    """The table of a :func:`run` result."""
     ms = res["ms_per_window"]
     n = res["windows_timed"]
     print(
@@ -309,10 +318,6 @@ def main(argv: list[str] | None = None) -> int:
         f"mean MP iterations {res['mean_iterations']:.2f}; stops {res['stops']}; "
         f"fallback searches {100 * res['fallback_fraction']:.1f} %"
     )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(res, indent=1))
-    print(f"\nwrote {args.out}")
-    return 0
 
 
 if __name__ == "__main__":
