@@ -222,3 +222,37 @@ def test_a_simulated_movie_is_the_same_however_it_is_read(model):
     assert whole.mean() > 10.0
     with pytest.raises(ValueError, match="outside"):
         m.frames(25, 31)
+
+
+def test_a_simulated_movie_resumes_and_another_seed_is_refused(model, params, tmp_path):
+    # The run key of a movie made on demand is its parameters (not an object's address).
+    from sparseloc.simulate import SimulatedMovie
+
+    m = SimulatedMovie(model, 8, (32, 32), PX, density=0.4, seed=4)
+    first = localize_chunked(m, model, params, tmp_path / "run", chunk_frames=4, stop=4)
+    assert first.chunks == [(0, 4)] and first.complete
+    again = localize_chunked(
+        SimulatedMovie(model, 8, (32, 32), PX, density=0.4, seed=4),
+        model,
+        params,
+        tmp_path / "run",
+        chunk_frames=4,
+        stop=4,
+    )
+    assert again.done_before == [(0, 4)]
+    pd.testing.assert_frame_equal(again.table, first.table)
+    other = SimulatedMovie(model, 8, (32, 32), PX, density=0.4, seed=5)
+    with pytest.raises(ValueError, match="different analysis"):
+        localize_chunked(other, model, params, tmp_path / "run", chunk_frames=4, stop=4)
+
+
+def test_a_frame_source_without_identity_is_refused(model, params, movie, tmp_path):
+    class Frames:
+        def __len__(self):
+            return len(movie)
+
+        def frames(self, start, stop):
+            return movie[start:stop]
+
+    with pytest.raises(ValueError, match="identity"):
+        localize_chunked(Frames(), model, params, tmp_path / "run", chunk_frames=8)

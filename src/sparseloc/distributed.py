@@ -104,15 +104,23 @@ class CameraFrames:
         return to_photons(raw, self.camera)
 
     def identity(self) -> dict:
-        """What identifies the data for resuming: files (size, modification time) or a
-        digest of an in-memory array."""
+        """What identifies the data for resuming: the source's own ``identity()``, its files
+        (size, modification time) or a digest of an in-memory array."""
         paths = getattr(self.movie, "paths", None)
-        if paths:
+        own = getattr(self.movie, "identity", None)
+        if callable(own):  # e.g. a SimulatedMovie: its generating parameters
+            ident: dict[str, Any] = dict(own())
+        elif paths:
             files = []
             for p in paths:
                 st = os.stat(p)
                 files.append([str(Path(p).resolve()), st.st_size, int(st.st_mtime)])
-            ident: dict[str, Any] = {"files": files}
+            ident = {"files": files}
+        elif hasattr(self.movie, "frames"):
+            raise ValueError(
+                f"cannot tell whether a {type(self.movie).__name__} is the same data when a run "
+                "resumes: give it file paths (.paths) or an identity() method"
+            )
         else:
             ident = {"sha256": array_digest(np.asarray(self.movie))}
         ident["camera"] = self.camera.to_dict() if self.camera is not None else None

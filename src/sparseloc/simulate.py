@@ -891,6 +891,24 @@ class SimulatedMovie:
     def __len__(self) -> int:
         return self.n_frames
 
+    def identity(self) -> dict:
+        """What makes the movie (for resuming runs): its parameters and the model's images."""
+        from .pipeline import psf_hash
+
+        return {
+            "simulated": {
+                "psf_hash": psf_hash(self.model, self.pixel_size),
+                "n_frames": self.n_frames,
+                "shape": list(self.shape),
+                "pixel_size": self.pixel_size,
+                "density": self.density,
+                "photons": np.atleast_1d(np.asarray(self.photons, dtype=float)).tolist(),
+                "background": self.background,
+                "z_range": [float(v) for v in self.z_range],
+                "seed": self.seed,
+            }
+        }
+
     def truth(self, start: int = 0, stop: int | None = None) -> pd.DataFrame:
         """Ground truth of frames ``start..stop-1`` (columns frame, x_nm, y_nm, z_nm, photons)."""
         stop = self.n_frames if stop is None else stop
