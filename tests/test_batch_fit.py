@@ -112,7 +112,7 @@ def loop(spline, d, read_variance=None, **kw):
     return out
 
 
-def assert_same_fits(ref, res: BatchFitResult, pos_nm=0.5, photons=1e-3, nll=1e-6, sd=1e-2):
+def assert_same_fits(ref, res: BatchFitResult, pos_nm=1e-6, photons=1e-8, nll=1e-10, sd=1e-6):
     for b, r in enumerate(ref):
         k = len(r.emitters)
         assert res.n_emitters[b] == k
@@ -126,6 +126,7 @@ def assert_same_fits(ref, res: BatchFitResult, pos_nm=0.5, photons=1e-3, nll=1e-
         np.testing.assert_allclose(res.deviance_per_dof[b], r.deviance_per_dof, rtol=1e-6)
         assert list(res.flags[b, :k]) == list(r.flags)
         assert res.converged[b] == r.converged
+        assert res.n_iter[b] == r.n_iter  # the same steps
         assert np.all(np.isnan(res.theta[b, k:])) and np.all(res.flags[b, k:] == "")
 
 

@@ -165,3 +165,14 @@ def test_skipping_settled_groups_changes_little(table):
     # same emitters to well within the localization precision
     d = np.hypot(*(a[:, None, :2] - b[None, :, :2]).transpose(2, 0, 1)).min(axis=1)
     assert np.all(d < 5.0)
+
+
+@pytest.mark.parametrize("bad", [(2, np.nan), (0, np.nan), (3, np.nan)])
+def test_a_non_finite_start_is_refused_as_in_numpy(table, bad):
+    # The compiled loop has no bounds checks: a NaN must never reach it.
+    col, value = bad
+    img = np.full((15, 15), 10.0)
+    start = np.array([[700.0, 700.0, 0.0, 2000.0]])
+    start[0, col] = value
+    with pytest.raises(ValueError, match="finite"):
+        fit_emitters(img, table, Emitters.from_array(start), pixel_size=PX, background=10.0)

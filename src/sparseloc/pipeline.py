@@ -570,6 +570,12 @@ def _in_processes(inputs, workers: int, init_args: tuple):
     from collections import deque
     from concurrent.futures import ProcessPoolExecutor
 
+    if isinstance(init_args[0], SplinePSF):
+        # Compile (or load) the numba kernels here once: forked workers inherit them, and
+        # spawned ones find numba's cache filled instead of all compiling at the same time.
+        from .psf import _spline_kernel
+
+        _spline_kernel.available()
     # The platform's default: fork on Linux (no re-import of the caller's script), spawn
     # elsewhere (scripts then need the usual ``if __name__ == "__main__":`` guard).
     ctx = multiprocessing.get_context()

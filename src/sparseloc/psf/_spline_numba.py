@@ -5,22 +5,22 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from .spline import bspline_terms
+
 #: Let LLVM reorder and fuse sums (vector loops) but keep NaN/inf semantics: the
 #: likelihood and the solver test for non-finite values.
 _FAST = {"reassoc", "contract", "nsz"}
 
 
+_terms = numba.njit(cache=True, inline="always")(bspline_terms)
+
+
 @numba.njit(cache=True, inline="always")
 def _weights(f, w, dw):
-    g = 1.0 - f
-    w[0] = g * g * g / 6.0
-    w[1] = (3 * f**3 - 6 * f**2 + 4) / 6.0
-    w[2] = (-3 * f**3 + 3 * f**2 + 3 * f + 1) / 6.0
-    w[3] = f**3 / 6.0
-    dw[0] = -(g * g) / 2.0
-    dw[1] = (3 * f**2 - 4 * f) / 2.0
-    dw[2] = (-3 * f**2 + 2 * f + 1) / 2.0
-    dw[3] = f**2 / 2.0
+    t = _terms(f)
+    for m in range(4):
+        w[m] = t[m]
+        dw[m] = t[4 + m]
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
@@ -49,6 +49,8 @@ def spline_kernel(coef, tz, tx, ty, rows, cols, stride, out, der, derivatives): 
     a_z = np.empty((fy, cols))
     for k in range(tz.shape[0]):
         iz = int(np.floor(tz[k]))
+        # no bounds checks in compiled code: keep the four planes inside the table
+        iz = min(max(iz, 0), coef.shape[0] - 4)
         _weights(tz[k] - iz, wz, dwz)
         i0x = np.floor(tx[k])
         _weights(tx[k] - i0x, wx, dwx)

@@ -26,11 +26,32 @@ from numpy.typing import ArrayLike, NDArray
 from . import _spline_kernel
 from .base import PSFBase, check_pixel_size, energy_radius, pixel_centres
 
-__all__ = ["SplinePSF", "bspline_weights"]
+__all__ = ["SplinePSF", "bspline_terms", "bspline_weights"]
 
 _TABLE_PLANES = 16  # planes rendered at once by SplinePSF.from_model
 _Z_EXTRA = 3  # planes tabulated beyond a model's z range (see SplinePSF.from_model)
 _PAD = 3  # zero pixels around the stack so the spline falls smoothly to zero at the ROI edge
+
+
+def bspline_terms(f):
+    """The eight numbers of :func:`bspline_weights` (four weights, four derivatives) at ``f``.
+
+    Arithmetic only, so the same source serves NumPy arrays, PyTorch tensors and numba
+    scalars (:mod:`sparseloc.psf._spline_numba` compiles it): one definition of the spline.
+    """
+    g = 1.0 - f
+    f2 = f * f
+    f3 = f2 * f
+    return (
+        g * g * g / 6.0,
+        (3.0 * f3 - 6.0 * f2 + 4.0) / 6.0,
+        (-3.0 * f3 + 3.0 * f2 + 3.0 * f + 1.0) / 6.0,
+        f3 / 6.0,
+        -(g * g) / 2.0,
+        (3.0 * f2 - 4.0 * f) / 2.0,
+        (-3.0 * f2 + 2.0 * f + 1.0) / 2.0,
+        f2 / 2.0,
+    )
 
 
 def bspline_weights(f: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -46,22 +67,8 @@ def bspline_weights(f: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArra
     w, dw : ndarray, shape (K, 4)
         Weights and their derivatives with respect to ``f``.
     """
-    f = np.asarray(f, dtype=np.float64)
-    g = 1.0 - f
-    w = np.stack(
-        [
-            g**3 / 6.0,
-            (3 * f**3 - 6 * f**2 + 4) / 6.0,
-            (-3 * f**3 + 3 * f**2 + 3 * f + 1) / 6.0,
-            f**3 / 6.0,
-        ],
-        axis=-1,
-    )
-    dw = np.stack(
-        [-(g**2) / 2.0, (3 * f**2 - 4 * f) / 2.0, (-3 * f**2 + 2 * f + 1) / 2.0, f**2 / 2.0],
-        axis=-1,
-    )
-    return w, dw
+    t = bspline_terms(np.asarray(f, dtype=np.float64))
+    return np.stack(t[:4], axis=-1), np.stack(t[4:], axis=-1)
 
 
 class SplinePSF(PSFBase):

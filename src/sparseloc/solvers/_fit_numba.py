@@ -64,7 +64,7 @@ def _node_coords(theta, k, geo, tz, tx, ty):  # pragma: no cover - compiled
         y = theta[4 * i + 1]
         z = theta[4 * i + 2]
         t = (z - geo[6]) / geo[7]
-        if t < 0.0:
+        if not (t >= 0.0):  # also NaN
             t = 0.0
         if t > geo[8]:
             t = geo[8]
@@ -110,12 +110,12 @@ def _clamp(theta, k, lo, hi, min_bg):  # pragma: no cover - compiled
     for i in range(k):
         for j in range(4):
             t = theta[4 * i + j]
-            if t < lo[j]:
+            if not (t >= lo[j]):  # also NaN
                 t = lo[j]
             if t > hi[j]:
                 t = hi[j]
             theta[4 * i + j] = t
-    if theta[4 * k] < min_bg:
+    if not (theta[4 * k] >= min_bg):
         theta[4 * k] = min_bg
 
 

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..psf.spline import _PAD, SplinePSF
+from ..psf.spline import _PAD, SplinePSF, bspline_terms
 from .emitters import Emitters
 from .refine import _MIN_BG, _MIN_PHOTONS, NOISE_MODELS, FitResult
 
@@ -404,21 +404,8 @@ def _table(spline: SplinePSF, ops: _NumpyOps | _TorchOps, dtype: Any) -> _Table:
 
 def _bspline(f: Any, ops: _NumpyOps | _TorchOps) -> tuple[Any, Any]:
     """Cubic B-spline weights (N, 4) and their derivatives, as ``bspline_weights``."""
-    g = 1.0 - f
-    w = ops.stack(
-        [
-            g**3 / 6.0,
-            (3 * f**3 - 6 * f**2 + 4) / 6.0,
-            (-3 * f**3 + 3 * f**2 + 3 * f + 1) / 6.0,
-            f**3 / 6.0,
-        ],
-        axis=-1,
-    )
-    dw = ops.stack(
-        [-(g**2) / 2.0, (3 * f**2 - 4 * f) / 2.0, (-3 * f**2 + 2 * f + 1) / 2.0, f**2 / 2.0],
-        axis=-1,
-    )
-    return w, dw
+    t = bspline_terms(f)
+    return ops.stack(list(t[:4]), axis=-1), ops.stack(list(t[4:]), axis=-1)
 
 
 def _axis(ops, t: Any) -> tuple[Any, Any, Any]:

@@ -807,7 +807,7 @@ def get_search(
     """The search for a dictionary: a cached :class:`AtomSearch` for a structured
     :class:`Dictionary`, else a :class:`ReferenceSearch` (dense or any ``rmatvec``).
 
-    ``kwargs`` go to :class:`AtomSearch` (``block``, ``degree``, ...).
+    ``kwargs`` go to :class:`AtomSearch` (``block``, ``degrees``, ...).
     """
     if not isinstance(dictionary, Dictionary):
         return ReferenceSearch(

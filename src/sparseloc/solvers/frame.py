@@ -196,7 +196,8 @@ class _Correlator:
 
     def correlate(self, img: NDArray, squared: bool = False) -> NDArray[np.float64]:
         """(J, rows, cols): sum over the template of ``img`` times the template (or its
-        square), the template centred on each pixel; pixels outside the frame count zero."""
+        square), the template centred on each pixel; pixels outside the frame count zero.
+        Computed in single precision (returned as float64) except for the squares."""
         out = np.empty((self.ft.shape[0], *self.shape))
         for j0, part in self._batches(img, squared):
             out[j0 : j0 + len(part)] = part

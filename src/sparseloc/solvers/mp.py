@@ -155,7 +155,9 @@ def matching_pursuit(
         Find each best atom with :class:`~sparseloc.solvers.fast_mp.AtomSearch` (a proven
         argmax, built once per dictionary) instead of correlating with every atom: the
         selections of the dense float64 reference, much faster on large structured
-        dictionaries (see :func:`~sparseloc.solvers.fast_mp.matching_pursuit_batch`).
+        dictionaries (see :func:`~sparseloc.solvers.fast_mp.matching_pursuit_batch`). The
+        reference is the dense matrix (its atom norms), not the FFT path of ``fast=False``:
+        on a near tie the two may pick different atoms.
 
     Returns
     -------

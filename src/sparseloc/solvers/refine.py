@@ -39,8 +39,8 @@ range, where the true z may lie outside), ``"outside"`` (x or y outside the wind
 
 from __future__ import annotations
 
-import functools
 import logging
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -306,6 +306,9 @@ def fit_emitters(
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
+            if not np.all(np.isfinite(step)):  # as the compiled solver: a rejected step
+                lam *= 10
+                continue
             trial = prob.clamp(theta + step)
             mu_t = prob.mu(trial)
             f_t = prob.nll(mu_t)
@@ -328,14 +331,16 @@ def fit_emitters(
 
 def _compiled_fit(prob: _Problem, theta, max_iter: int, tol: float):
     """The LM loop of :func:`fit_emitters` compiled (numba), for spline models; ``None`` when
-    it does not apply (another model, numba missing or disabled). Same steps as the Python
-    loop; ``tests/test_refine.py`` checks that the two agree."""
+    it does not apply (another model, numba missing or disabled, non-finite start). Same steps
+    as the Python loop; ``tests/test_compiled.py`` checks that the two agree."""
     from ..psf import _spline_kernel
     from ..psf.spline import _PAD, SplinePSF
 
     m = prob.model
     if not (isinstance(m, SplinePSF) and m.compiled and _spline_kernel.available()):
         return None
+    if not np.all(np.isfinite(theta)):
+        return None  # the NumPy path raises its clear error
     from ._fit_numba import lm_fit
 
     m._check_pixel(prob.px)
@@ -417,12 +422,24 @@ def _result(prob: _Problem, theta, mu, f, jac, converged, n_iter) -> FitResult:
     )
 
 
-@functools.lru_cache(maxsize=32)
+#: Spectra of :func:`_candidate_templates` per model (weakly held: a model dropped by the
+#: caller frees its entries), then per (rows, cols, pixel size, planes).
+_CANDIDATE_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
 def _candidate_templates(model, rows: int, cols: int, pixel_size: float, n_planes: int):
     """Spectra of the PSF planes that :func:`_residual_candidates` correlates with a window
     of this shape (the same for every window of a frame: computed once per shape)."""
     from scipy import fft as sfft
 
+    key = (rows, cols, pixel_size, n_planes)
+    try:
+        per_model = _CANDIDATE_CACHE.setdefault(model, {})
+    except TypeError:  # a model that cannot be weakly referenced or hashed: no cache
+        per_model = {}
+    hit = per_model.get(key)
+    if hit is not None:
+        return hit
     canvas = (2 * rows - 1, 2 * cols - 1)
     zs = np.linspace(*model.z_range, n_planes)
     cx = (cols - 0.5) * pixel_size  # emitter at the centre of canvas pixel (rows-1, cols-1)
@@ -437,7 +454,10 @@ def _candidate_templates(model, rows: int, cols: int, pixel_size: float, n_plane
     nrm2 = np.maximum(ones[:, rows - 1 : 2 * rows - 1, cols - 1 : 2 * cols - 1], 1e-24)
     for a in (zs, ft, ft2, nrm2):
         a.flags.writeable = False
-    return zs, s, ft, ft2, nrm2
+    if len(per_model) >= 64:  # window shapes vary: keep the most recent few
+        per_model.pop(next(iter(per_model)))
+    per_model[key] = out = (zs, s, ft, ft2, nrm2)
+    return out
 
 
 def _residual_candidates(y, fit: FitResult, model, pixel_size, origin, n_planes=13, n_best=2):

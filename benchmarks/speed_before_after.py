@@ -1,0 +1,64 @@
+"""The same frames through whichever sparseloc is imported: compare two versions of the code.
+
+Localizes ``N`` simulated 128 x 128 double-helix frames (1 emitter/um^2, seed 3) in one process
+and prints one JSON line (seconds, localizations, Jaccard, RMSE). Run it once with this
+checkout and once with an older one first on the path, back to back::
+
+    git worktree add /tmp/old 633c58a
+    PYTHONPATH=/tmp/old/src python benchmarks/speed_before_after.py 4
+    python benchmarks/speed_before_after.py 4
+"""
+
+import json
+import sys
+import time
+
+import numpy as np
+
+import sparseloc
+from sparseloc.evaluate import evaluate
+from sparseloc.pipeline import LocalizeParams, localize, work_model_for
+from sparseloc.psf import make_psf
+from sparseloc.simulate import simulate
+
+
+def main() -> None:
+    n = int(sys.argv[1]) if len(sys.argv) > 1 else 4
+    model = make_psf("dh")
+    p = LocalizeParams(pixel_size=100.0)
+    work = work_model_for(model, p)
+    sim = simulate(
+        model,
+        scene="uniform",
+        n_frames=n,
+        shape=(128, 128),
+        pixel_size=100.0,
+        density=1.0,
+        photons=(1000.0, 5000.0),
+        background=10.0,
+        seed=3,
+    )
+    frames = sim.movie.astype(np.float64) - sim.camera.offset
+    localize(frames[:1], work, p)
+    t = time.perf_counter()
+    r = localize(frames, work, p)
+    dt = time.perf_counter() - t
+    ev = evaluate(r.table, sim.truth)
+    print(
+        json.dumps(
+            {
+                "code": sparseloc.__file__,
+                "frames": n,
+                "seconds": dt,
+                "locs": len(r.table),
+                "locs_per_s": len(r.table) / dt,
+                "jaccard": ev.jaccard,
+                "rmse_lat": ev.rmse_lateral,
+                "rmse_ax": ev.rmse_axial,
+            }
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()
