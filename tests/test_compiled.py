@@ -117,6 +117,14 @@ def test_analytic_models_keep_the_python_loop():
     img = np.random.default_rng(0).poisson(mu).astype(float)
     fit = fit_emitters(img, m, Emitters.from_array([[1020.0, 980.0, 50.0, 2500.0]]), pixel_size=PX)
     assert np.hypot(fit.emitters.x[0] - 1000.0, fit.emitters.y[0] - 1000.0) < 30.0
+    from sparseloc.solvers.refine import _compiled_fit, _Problem
+
+    theta = np.array([1020.0, 980.0, 50.0, 2500.0, 10.0])
+    prob = _Problem(img, m, PX, (0.0, 0.0), "poisson", None, False, 1.0)
+    assert _compiled_fit(prob, theta, 60, 1e-6) is None
+    table = SplinePSF.from_model(m, PX, roi=31, z_step=20.0)
+    prob = _Problem(img, table, PX, (0.0, 0.0), "poisson", None, False, 1.0)
+    assert _compiled_fit(prob, theta, 60, 1e-6) is not None
 
 
 def test_skipping_settled_groups_changes_little(table):

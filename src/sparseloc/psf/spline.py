@@ -24,9 +24,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _spline_kernel
-from .base import PSFBase, check_pixel_size, energy_radius, pixel_centres
+from .base import PSFBase, check_pixel_size, energy_radius
 
-__all__ = ["SplinePSF", "bspline_terms", "bspline_weights"]
+__all__ = ["SplinePSF", "bspline_terms", "bspline_weights", "table_coords"]
 
 _TABLE_PLANES = 16  # planes rendered at once by SplinePSF.from_model
 _Z_EXTRA = 3  # planes tabulated beyond a model's z range (see SplinePSF.from_model)
@@ -69,6 +69,17 @@ def bspline_weights(f: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArra
     """
     t = bspline_terms(np.asarray(f, dtype=np.float64))
     return np.stack(t[:4], axis=-1), np.stack(t[4:], axis=-1)
+
+
+def table_coords(geo, x, y, z, ox=0.0, oy=0.0):
+    """Fractional plane index ``tz`` and the position ``(tx, ty)`` of pixel (0, 0)'s centre in
+    padded-stack nodes, from :meth:`SplinePSF.node_geometry` (window corners ``ox, oy`` nm
+    added to the geometry's own). Arithmetic and ``clip`` only: NumPy arrays and PyTorch
+    tensors both work, and the compiled fit repeats the same expressions."""
+    tz = ((z - geo[6]) / geo[7]).clip(0.0, geo[8])
+    tx = geo[0] + ((ox + geo[4]) - x) * geo[2] / geo[3]
+    ty = geo[1] + ((oy + geo[5]) - y) * geo[2] / geo[3]
+    return tz, tx, ty
 
 
 class SplinePSF(PSFBase):
@@ -305,19 +316,42 @@ class SplinePSF(PSFBase):
         idx = np.where((idx >= 0) & (idx < nodes), idx, length - 1)
         return idx, w, dw
 
+    def node_geometry(self, origin: tuple[float, float], pixel_size: float) -> NDArray[np.float64]:
+        """Where a window sits in the coefficient table: the nine numbers
+        ``(col of the stack centre, its row, oversample, pixel size, x and y (nm) of pixel
+        (0, 0)'s centre, z of plane 0, plane step, largest plane index)``.
+
+        :meth:`node_coords` turns them into table coordinates; the compiled fit
+        (:mod:`sparseloc.solvers._fit_numba`) reads the same array.
+        """
+        p = float(pixel_size)
+        return np.array(
+            [
+                self.centre[1] + _PAD,
+                self.centre[0] + _PAD,
+                float(self.oversample),
+                p,
+                float(origin[0]) + 0.5 * p,
+                float(origin[1]) + 0.5 * p,
+                float(self.z[0]),
+                self.z_step,
+                self.stack.shape[0] - 1 - 1e-9,
+            ]
+        )
+
+    def node_coords(self, x, y, z, origin: tuple[float, float], pixel_size: float):
+        """Table coordinates ``(tz, tx, ty)`` of K emitters on a window (see
+        :func:`table_coords`)."""
+        return table_coords(self.node_geometry(origin, pixel_size), x, y, z)
+
     def _images(self, x, y, z, shape, pixel_size, origin, derivatives):
         self._check_pixel(pixel_size)
         rows, cols = shape
         p = pixel_size
         k = len(x)
         # z: fractional plane index; the coefficient array has one mirrored plane in front.
-        tz = np.clip((z - self.z[0]) / self.z_step, 0.0, self.stack.shape[0] - 1 - 1e-9)
-        iz = np.floor(tz).astype(np.int64)
-        wz, dwz = bspline_weights(tz - iz)
-        # Position of pixel (0, 0)'s centre in padded-stack coordinates, per emitter.
+        tz, tx, ty = self.node_coords(x, y, z, origin, p)
         os_ = self.oversample
-        tx = self.centre[1] + _PAD + (pixel_centres(1, p, origin[0])[0] - x) * os_ / p
-        ty = self.centre[0] + _PAD + (pixel_centres(1, p, origin[1])[0] - y) * os_ / p
         if self.compiled and _spline_kernel.available():
             out, raw = _spline_kernel.spline_images(
                 self._coef, tz, tx, ty, (rows, cols), os_, derivatives
@@ -327,6 +361,8 @@ class SplinePSF(PSFBase):
             raw[:, :2] *= -os_ / p
             raw[:, 2] /= self.z_step
             return out, raw
+        iz = np.floor(tz).astype(np.int64)
+        wz, dwz = bspline_weights(tz - iz)
         ix, wx, dwx = self._axis(tx, cols, self._nx + 1, self._nx, os_)
         iy, wy, dwy = self._axis(ty, rows, self._ny + 1, self._ny, os_)
         out = np.empty((k, rows, cols))

@@ -57,8 +57,7 @@ def _solve(a, b, out):  # pragma: no cover - compiled
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _node_coords(theta, k, geo, tz, tx, ty):  # pragma: no cover - compiled
-    # geo: cx_node, cy_node, oversample, pixel, x of pixel (0,0) centre, y of it, z0, z_step,
-    # largest tz
+    # geo: SplinePSF.node_geometry; the expressions of sparseloc.psf.spline.table_coords
     for i in range(k):
         x = theta[4 * i]
         y = theta[4 * i + 1]

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..psf.spline import _PAD, SplinePSF, bspline_terms
+from ..psf.spline import SplinePSF, bspline_terms, table_coords
 from .emitters import Emitters
 from .refine import _MIN_BG, _MIN_PHOTONS, NOISE_MODELS, FitResult
 
@@ -351,6 +351,7 @@ class _Table:
         self.z0 = float(spline.z[0])
         self.z_step = float(spline.z_step)
         self.pixel_size = float(spline.pixel_size)
+        self.geometry = spline.node_geometry((0.0, 0.0), self.pixel_size)
         self._views: dict[tuple[int, int], Any] = {}
 
     def view(self, lx: int, ly: int) -> Any:
@@ -441,11 +442,9 @@ def _render(
     if n == 0:
         return (out, der) if derivatives else out
     # The arithmetic of SplinePSF._images (in float64 up to the weights).
-    tz = ((z - tab.z0) / tab.z_step).clip(0.0, tab.n_planes - 1 - 1e-9)
+    tz, tx, ty = table_coords(tab.geometry, x, y, z, ox, oy)
     tzf, iz = ops.floor_int(tz)
     wz, dwz = _bspline(tz - tzf, ops)
-    tx = (tab.cx + _PAD) + ((ox + 0.5 * p) - x) * os_ / p
-    ty = (tab.cy + _PAD) + ((oy + 0.5 * p) - y) * os_ / p
     sx, wx, dwx = _axis(ops, tx)
     sy, wy, dwy = _axis(ops, ty)
     wzs = ops.stack([wz, dwz], axis=1) if derivatives else wz[:, None, :]

@@ -334,7 +334,7 @@ def _compiled_fit(prob: _Problem, theta, max_iter: int, tol: float):
     it does not apply (another model, numba missing or disabled, non-finite start). Same steps
     as the Python loop; ``tests/test_compiled.py`` checks that the two agree."""
     from ..psf import _spline_kernel
-    from ..psf.spline import _PAD, SplinePSF
+    from ..psf.spline import SplinePSF
 
     m = prob.model
     if not (isinstance(m, SplinePSF) and m.compiled and _spline_kernel.available()):
@@ -344,20 +344,7 @@ def _compiled_fit(prob: _Problem, theta, max_iter: int, tol: float):
     from ._fit_numba import lm_fit
 
     m._check_pixel(prob.px)
-    px = prob.px
-    geo = np.array(
-        [
-            m.centre[1] + _PAD,
-            m.centre[0] + _PAD,
-            float(m.oversample),
-            px,
-            prob.origin[0] + 0.5 * px,
-            prob.origin[1] + 0.5 * px,
-            float(m.z[0]),
-            m.z_step,
-            m.stack.shape[0] - 1 - 1e-9,
-        ]
-    )
+    geo = m.node_geometry(prob.origin, prob.px)
     k = (theta.size - prob.n_bg) // 4
     lo = np.array([prob.xlo, prob.ylo, prob.zlo, _MIN_PHOTONS])
     hi = np.array([prob.xhi, prob.yhi, prob.zhi, np.inf])
