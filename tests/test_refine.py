@@ -135,3 +135,36 @@ def test_bad_arguments(analytic):
         fit_emitters(img, analytic, start, pixel_size=PX, noise="scmos")
     with pytest.raises(ValueError, match="negative photon"):
         fit_emitters(img - 50, analytic, start, pixel_size=PX)
+
+
+@pytest.mark.parametrize("shape", [(17, 17), (14, 23)])
+def test_residual_candidates_score_equals_direct_correlation(analytic, shape):
+    """The FFT correlations behind the candidate search equal sums over the window."""
+    from types import SimpleNamespace
+
+    from sparseloc.solvers.refine import _residual_candidates
+
+    rows, cols = shape
+    rng = np.random.default_rng(5)
+    truth = np.array([[700.0, 650.0, 200.0, 2500.0], [1100.0, 900.0, -300.0, 2000.0]])
+    origin, n_planes = (300.0, -200.0), 5
+    # the fit missed the second emitter
+    mu = analytic.render(*truth[:1].T, shape, PX, origin=origin) + 10.0
+    y = rng.poisson(analytic.render(*truth.T, shape, PX, origin=origin) + 10.0).astype(float)
+    cands, stat = _residual_candidates(
+        y, SimpleNamespace(model_image=mu), analytic, PX, origin, n_planes=n_planes
+    )
+    zs = np.linspace(*analytic.z_range, n_planes)
+    best = 0.0
+    for r in range(rows):
+        for c in range(cols):
+            x0, y0 = origin[0] + (c + 0.5) * PX, origin[1] + (r + 0.5) * PX
+            ims = analytic.images(
+                np.full(n_planes, x0), np.full(n_planes, y0), zs, shape, PX, origin=origin
+            )
+            corr = np.sum(ims * (y - mu), axis=(1, 2))
+            var = np.sum(ims**2 * mu, axis=(1, 2))
+            best = max(best, float(np.max(np.where(corr > 0, corr**2 / var, 0.0))))
+    assert stat == pytest.approx(best, rel=1e-9)
+    # the best candidate is the missing emitter (within a pixel laterally)
+    assert np.hypot(cands[0][0] - truth[1, 0], cands[0][1] - truth[1, 1]) < PX

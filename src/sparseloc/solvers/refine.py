@@ -433,8 +433,10 @@ def _candidate_templates(model, rows: int, cols: int, pixel_size: float, n_plane
     cy = (rows - 0.5) * pixel_size
     tmpl = model.images(np.full(n_planes, cx), np.full(n_planes, cy), zs, canvas, pixel_size)
     # Valid-mode correlations of every plane with the residual, ones and mu, batched in one
-    # FFT size: [a, b] is an emitter at pixel (rows-1-a, cols-1-b).
-    s = tuple(sfft.next_fast_len(3 * n - 2, real=True) for n in (rows, cols))
+    # FFT size: [a, b] is an emitter at pixel (rows-1-a, cols-1-b). The full linear
+    # correlation is 3n-2 long, but a circular one of length >= 2n-1 wraps only its first
+    # n-1 outputs onto its tail, never onto the n valid ones: 2.25x fewer points.
+    s = tuple(sfft.next_fast_len(2 * n - 1, real=True) for n in (rows, cols))
     ft = sfft.rfft2(tmpl, s=s)
     ft2 = sfft.rfft2(tmpl**2, s=s)
     ones = sfft.irfft2(ft2 * sfft.rfft2(np.ones((rows, cols)), s=s)[None], s=s)
