@@ -251,6 +251,29 @@ def test_fit_with_a_neighbour_as_offset_matches_the_joint_fit(analytic):
     assert np.hypot(*(blind.emitters.as_array()[0, :2] - truth[0, :2])) > 50.0
 
 
+def test_linear_response_predicts_the_refit_after_a_neighbour_moves(analytic):
+    """frame_fit skips a group when F^-1 J' (d / mu) says its emitters would not move."""
+    from sparseloc.solvers.frame import _response
+
+    w = 17
+    a = np.array([[800.0, 850.0, 100.0, 2500.0]])
+    b = np.array([[1250.0, 1000.0, -200.0, 3000.0]])
+    img = poisson_frame(analytic, np.vstack([a, b]), (w, w), seed=4)
+    kw = dict(pixel_size=PX, origin=(0.0, 0.0), tol=1e-14)
+    off0 = analytic.render(*b.T, (w, w), PX)
+    fit0 = fit_emitters(img, analytic, Emitters.from_array(a), offset=off0, **kw)
+    resp = _response(analytic, fit0, {**kw, "background": 10.0}, scmos=False)
+    assert resp.shape == (3, w * w)
+    for move in ([10.0, 0.0, 0.0], [0.0, -8.0, 20.0]):
+        moved = b + np.array([[*move, 0.0]])
+        off1 = analytic.render(*moved.T, (w, w), PX)
+        fit1 = fit_emitters(img, analytic, fit0.emitters, offset=off1, **kw)
+        actual = fit1.emitters.as_array()[0, :3] - fit0.emitters.as_array()[0, :3]
+        predicted = resp @ (off1 - off0).ravel()
+        assert np.max(np.abs(actual)) > 0.3  # the neighbour's move matters
+        assert np.all(np.abs(predicted - actual) < 0.25 * np.max(np.abs(actual)) + 0.02)
+
+
 # --- frame fit ---------------------------------------------------------------------------
 
 

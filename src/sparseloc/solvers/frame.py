@@ -524,6 +524,73 @@ def _try_z_flips(y, model, fit, kw, fraction):
     return fit
 
 
+#: Largest change of the neighbours' light (background standard deviations per pixel) for
+#: which the linear response decides whether a group must be refitted (see ``frame_fit``).
+SHIFT_CAP = 1.0
+#: Default ``shift_tolerance`` of :func:`frame_fit` (nm).
+SHIFT_TOLERANCE = 1.0
+
+
+def _response(model: PSFModel, fit, kw: dict, scmos: bool) -> NDArray[np.float64]:
+    """Rows x, y, z of ``-F^-1 J' diag(1/mu)`` at a group's fit, shape (3 K, pixels).
+
+    At the optimum the gradient of ``-log L`` is zero; a small change ``d`` of the known
+    offset (photons/pixel) moves the optimum by about ``-F^-1 J' (d / mu)`` (nm): more known
+    light on one side pushes the emitters away from it. Poisson and EMCCD alike (the weight
+    cancels); for sCMOS ``mu`` includes the read variance. None if ``F`` is singular.
+    """
+    arr = fit.emitters.as_array().reshape(-1, 4)
+    shape = fit.model_image.shape
+    g = model.gradients(*arr.T, shape, kw["pixel_size"], origin=kw["origin"])
+    k = len(arr)
+    rows = [g.reshape(4 * k, -1)]
+    n_bg = len(fit.background)
+    rows.append(np.ones((1, g.shape[-2] * g.shape[-1])))
+    if n_bg == 3:  # tilted plane: the basis of refine._Problem
+        r, c = shape
+        u = (np.arange(c) - (c - 1) / 2) / max(c / 2, 1)
+        v = (np.arange(r) - (r - 1) / 2) / max(r / 2, 1)
+        rows += [
+            np.broadcast_to(u[None, :], shape).ravel()[None],
+            np.broadcast_to(v[:, None], shape).ravel()[None],
+        ]
+    jac = np.concatenate(rows, axis=0)
+    mu = fit.model_image
+    if scmos:
+        mu = mu + kw["read_variance"]
+    wj = jac / np.maximum(mu, 1e-9).ravel()
+    fisher = wj @ jac.T
+    try:
+        resp = -np.linalg.solve(fisher, wj)
+    except np.linalg.LinAlgError:
+        return None
+    pos = np.concatenate([np.arange(4 * i, 4 * i + 3) for i in range(k)])
+    return resp[pos]
+
+
+def _unmoved(hit: tuple, offset: NDArray, origin: tuple, shift_tolerance: float) -> bool:
+    """Whether a memo entry's group would stay where it is with this offset (``hit``: the
+    entry; its response slot holds a function until first used, then the matrix)."""
+    old, tol, _, _, old_origin, slot, cap = hit
+    if old.shape != offset.shape or old_origin != origin:
+        return False
+    d = offset - old
+    m = float(np.max(np.abs(d))) if d.size else 0.0
+    if m <= tol:
+        return True
+    if shift_tolerance <= 0 or m > cap:
+        return False
+    if callable(slot[0]):  # computed once, on first use
+        slot[0] = slot[0]()
+    resp = slot[0]
+    if resp is None:
+        return False
+    shift = np.abs(resp @ d.ravel()).reshape(-1, 3)
+    return bool(
+        np.all(shift[:, :2] <= shift_tolerance) and np.all(shift[:, 2] <= 2 * shift_tolerance)
+    )
+
+
 def _settled(prev: NDArray, em: NDArray, xy_tol: float = 2.0, z_tol: float = 5.0) -> bool:
     """Whether a sweep left the emitters where they were (same count; nm tolerances)."""
     if prev.shape != em.shape or len(em) == 0:
@@ -556,6 +623,7 @@ def frame_fit(
     z_flip: float = 0.15,
     max_group: int = 8,
     skip_tolerance: float = 0.1,
+    shift_tolerance: float = SHIFT_TOLERANCE,
     **fit_kwargs,
 ) -> FrameFit:
     """Maximum-likelihood fit of a frame's emitters, group by group.
@@ -595,6 +663,11 @@ def frame_fit(
         A group that a sweep leaves where it was is not refitted in the next sweep while its
         neighbours' light in its window changes by at most this many times the background's
         Poisson standard deviation per pixel; 0 refits every group every sweep.
+    shift_tolerance : float
+        Such a group is also not refitted when its neighbours' change, carried through the
+        fit's linear response (``-F^-1 J' diag(1/mu)``), would move none of its emitters by
+        more than this (nm) laterally or twice this axially, and changes no pixel by more
+        than :data:`SHIFT_CAP` standard deviations; 0 turns this test off.
     **fit_kwargs
         ``noise``, ``read_variance`` (a map is cropped to each window), ``plane``.
 
@@ -654,12 +727,7 @@ def frame_fit(
                     offset = model.render(*o.T, shape, px, origin=origin)
             key = np.ascontiguousarray(em[g]).tobytes()
             hit = memo.get(key)
-            if (
-                hit is not None
-                and hit[0].shape == offset.shape
-                and hit[4] == origin
-                and np.max(np.abs(hit[0] - offset)) <= hit[1]
-            ):
+            if hit is not None and _unmoved(hit, offset, origin, shift_tolerance):
                 done[g] = True
                 new_em.append(hit[2])
                 new_info.extend((*i[:4], gi) for i in hit[3])
@@ -701,8 +769,18 @@ def frame_fit(
             ]
             new_info.extend(group_info)
             if skip_tolerance > 0 and len(arr):
-                tol = skip_tolerance * np.sqrt(max(kw["background"], 1.0))
-                memo[np.ascontiguousarray(arr).tobytes()] = (offset, tol, arr, group_info, origin)
+                sd = np.sqrt(max(kw["background"], 1.0))
+                # the linear response is computed when first needed (most entries never are)
+                resp = [lambda fit=fit, kw=kw: _response(model, fit, kw, rv is not None)]
+                memo[np.ascontiguousarray(arr).tobytes()] = (
+                    offset,
+                    skip_tolerance * sd,
+                    arr,
+                    group_info,
+                    origin,
+                    resp,
+                    SHIFT_CAP * sd,
+                )
         prev = em
         em = np.vstack(new_em) if new_em else np.zeros((0, 4))
         info = new_info
