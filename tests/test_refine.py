@@ -165,6 +165,6 @@ def test_residual_candidates_score_equals_direct_correlation(analytic, shape):
             corr = np.sum(ims * (y - mu), axis=(1, 2))
             var = np.sum(ims**2 * mu, axis=(1, 2))
             best = max(best, float(np.max(np.where(corr > 0, corr**2 / var, 0.0))))
-    assert stat == pytest.approx(best, rel=1e-9)
+    assert stat == pytest.approx(best, rel=1e-4)  # single-precision FFTs
     # the best candidate is the missing emitter (within a pixel laterally)
     assert np.hypot(cands[0][0] - truth[1, 0], cands[0][1] - truth[1, 1]) < PX

@@ -414,58 +414,84 @@ def _result(prob: _Problem, theta, mu, f, jac, converged, n_iter) -> FitResult:
 _CANDIDATE_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
+#: Windows are padded to a multiple of this many pixels for the candidate search, so that
+#: the few padded shapes of a frame share their cached spectra.
+_CANDIDATE_BLOCK = 8
+
+
 def _candidate_templates(model, rows: int, cols: int, pixel_size: float, n_planes: int):
     """Spectra of the PSF planes that :func:`_residual_candidates` correlates with a window
-    of this shape (the same for every window of a frame: computed once per shape)."""
+    of this shape, padded to a multiple of :data:`_CANDIDATE_BLOCK` pixels (computed once
+    per padded shape), and the planes' squared norms over the real window.
+
+    Returns ``(zs, fft size, spectra, spectra of the squares, norms^2, padded shape)``; the
+    spectra are single precision (complex64).
+    """
     from scipy import fft as sfft
 
-    key = (rows, cols, pixel_size, n_planes)
+    pr, pc = (-(-n // _CANDIDATE_BLOCK) * _CANDIDATE_BLOCK for n in (rows, cols))
+    key = (pr, pc, pixel_size, n_planes)
     try:
         per_model = _CANDIDATE_CACHE.setdefault(model, {})
     except TypeError:  # a model that cannot be weakly referenced or hashed: no cache
         per_model = {}
     hit = per_model.get(key)
-    if hit is not None:
-        return hit
-    canvas = (2 * rows - 1, 2 * cols - 1)
-    zs = np.linspace(*model.z_range, n_planes)
-    cx = (cols - 0.5) * pixel_size  # emitter at the centre of canvas pixel (rows-1, cols-1)
-    cy = (rows - 0.5) * pixel_size
-    tmpl = model.images(np.full(n_planes, cx), np.full(n_planes, cy), zs, canvas, pixel_size)
-    # Valid-mode correlations of every plane with the residual, ones and mu, batched in one
-    # FFT size: [a, b] is an emitter at pixel (rows-1-a, cols-1-b). The full linear
-    # correlation is 3n-2 long, but a circular one of length >= 2n-1 wraps only its first
-    # n-1 outputs onto its tail, never onto the n valid ones: 2.25x fewer points.
-    s = tuple(sfft.next_fast_len(2 * n - 1, real=True) for n in (rows, cols))
-    ft = sfft.rfft2(tmpl, s=s)
-    ft2 = sfft.rfft2(tmpl**2, s=s)
-    ones = sfft.irfft2(ft2 * sfft.rfft2(np.ones((rows, cols)), s=s)[None], s=s)
-    nrm2 = np.maximum(ones[:, rows - 1 : 2 * rows - 1, cols - 1 : 2 * cols - 1], 1e-24)
-    for a in (zs, ft, ft2, nrm2):
-        a.flags.writeable = False
-    if len(per_model) >= 64:  # window shapes vary: keep the most recent few
-        per_model.pop(next(iter(per_model)))
-    per_model[key] = out = (zs, s, ft, ft2, nrm2)
-    return out
+    if hit is None:
+        canvas = (2 * pr - 1, 2 * pc - 1)
+        zs = np.linspace(*model.z_range, n_planes)
+        cx = (pc - 0.5) * pixel_size  # emitter at the centre of canvas pixel (pr-1, pc-1)
+        cy = (pr - 0.5) * pixel_size
+        tmpl = model.images(np.full(n_planes, cx), np.full(n_planes, cy), zs, canvas, pixel_size)
+        # Valid-mode correlations of every plane with the residual, ones and mu, batched in
+        # one FFT size: [a, b] is an emitter at pixel (pr-1-a, pc-1-b). The full linear
+        # correlation is 3n-2 long, but a circular one of length >= 2n-1 wraps only its
+        # first n-1 outputs onto its tail, never onto the n valid ones: 2.25x fewer points.
+        s = tuple(sfft.next_fast_len(2 * n - 1, real=True) for n in (pr, pc))
+        ft = sfft.rfft2(tmpl.astype(np.float32), s=s)
+        ft2 = sfft.rfft2((tmpl**2).astype(np.float32), s=s)
+        for a in (zs, ft, ft2):
+            a.flags.writeable = False
+        if len(per_model) >= 128:  # window shapes vary: keep the most recent
+            per_model.pop(next(iter(per_model)))
+        per_model[key] = hit = (zs, s, ft, ft2, {})
+    zs, s, ft, ft2, norms = hit
+    nrm2 = norms.get((rows, cols))
+    if nrm2 is None:
+        ones = np.zeros((pr, pc), np.float32)
+        ones[:rows, :cols] = 1.0
+        nrm2 = np.maximum(_valid(ft2, ones, s, rows, cols), 1e-24)
+        nrm2.flags.writeable = False
+        norms[(rows, cols)] = nrm2
+    return zs, s, ft, ft2, nrm2, (pr, pc)
+
+
+def _valid(f_tmpl, padded, s, rows: int, cols: int):
+    """Correlations of every plane with a padded window, at the real window's pixels:
+    ``[k, a, b]`` is an emitter at pixel (rows-1-a, cols-1-b)."""
+    from scipy import fft as sfft
+
+    pr, pc = padded.shape
+    full = sfft.irfft2(f_tmpl * sfft.rfft2(padded[::-1, ::-1], s=s)[None], s=s)
+    return full[:, 2 * pr - 1 - rows : 2 * pr - 1, 2 * pc - 1 - cols : 2 * pc - 1]
 
 
 def _residual_candidates(y, fit: FitResult, model, pixel_size, origin, n_planes=13, n_best=2):
     """Up to ``n_best`` (x, y, z, photons) where the fit's residual correlates best with the
     PSF, at least two pixels apart, best first, and the largest score statistic
-    ``corr^2 / var(corr)`` (Poisson variance from the fit) of an emitter on the grid."""
-    from scipy import fft as sfft
+    ``corr^2 / var(corr)`` (Poisson variance from the fit) of an emitter on the grid.
 
+    The correlations run in single precision (about 1e-6 relative: the statistic is compared
+    with a threshold, the candidates only start fits)."""
     rows, cols = y.shape
-    resid = y - fit.model_image
-    zs, s, ft, ft2, nrm2 = _candidate_templates(model, rows, cols, float(pixel_size), n_planes)
-    mu = np.maximum(fit.model_image, 1e-9)
-
-    def valid(f_tmpl, img):
-        full = sfft.irfft2(f_tmpl * sfft.rfft2(img[::-1, ::-1], s=s)[None], s=s)
-        return full[:, rows - 1 : 2 * rows - 1, cols - 1 : 2 * cols - 1]
-
-    corr = valid(ft, resid)
-    var = np.maximum(valid(ft2, mu), 1e-24)
+    zs, s, ft, ft2, nrm2, padded = _candidate_templates(
+        model, rows, cols, float(pixel_size), n_planes
+    )
+    resid = np.zeros(padded, np.float32)
+    resid[:rows, :cols] = y - fit.model_image
+    mu = np.zeros(padded, np.float32)
+    mu[:rows, :cols] = np.maximum(fit.model_image, 1e-9)
+    corr = _valid(ft, resid, s, rows, cols).astype(np.float64)
+    var = np.maximum(_valid(ft2, mu, s, rows, cols), 1e-24)
     stat = float(np.max(np.where(corr > 0, corr**2 / var, 0.0)))
     scores, amps = corr / np.sqrt(nrm2), corr / nrm2
     best_plane = np.argmax(scores, axis=0)
