@@ -150,6 +150,12 @@ def lm_fit(
     npar = theta0.shape[0]
     img = np.empty((max(k, 1), rows, cols))
     der = np.empty((max(k, 1), 3, rows, cols))
+    # The trial steps are rendered with their derivatives into a second pair of buffers: an
+    # accepted step (most are) then needs no second rendering, the buffers are swapped.
+    img_t = np.empty((max(k, 1), rows, cols))
+    der_t = np.empty((max(k, 1), 3, rows, cols))
+    inv_mu = np.empty(npix)
+    g_pix = np.empty(npix)
     theta = theta0.copy()
     mu = np.empty((rows, cols))
     _model(coef, geo, theta, k, base, bg_basis, nb, img, der, True, mu)
@@ -169,18 +175,19 @@ def lm_fit(
     f_t = np.inf
     for it in range(1, max_iter + 1):
         n_iter = it
-        for q in range(npar):
-            grad[q] = 0.0
         for p in range(npix):
             r = p // cols
             c = p - r * cols
             muv = mu[r, c] + v[r, c]
-            g = 1.0 - y_v[r, c] / muv
-            for q in range(npar):
-                grad[q] += jac[q, p] * g
-                wj[q, p] = jac[q, p] / muv
+            inv_mu[p] = 1.0 / muv
+            g_pix[p] = 1.0 - y_v[r, c] / muv
+        # parameter-major loops: contiguous rows of jac (vectorised)
         for q in range(npar):
-            grad[q] *= weight
+            acc = 0.0
+            for p in range(npix):
+                acc += jac[q, p] * g_pix[p]
+                wj[q, p] = jac[q, p] * inv_mu[p]
+            grad[q] = weight * acc
         for q in range(npar):
             for s in range(q, npar):
                 acc = 0.0
@@ -204,7 +211,7 @@ def lm_fit(
             for q in range(npar):
                 trial[q] = theta[q] + step[q]
             _clamp(trial, k, lo, hi, min_bg)
-            _model(coef, geo, trial, k, base, bg_basis, nb, img, der, False, mu_t)
+            _model(coef, geo, trial, k, base, bg_basis, nb, img_t, der_t, True, mu_t)
             f_t = _nll(mu_t, v, y_v, weight)
             if f_t < f:
                 improved = True
@@ -218,7 +225,8 @@ def lm_fit(
         mu[:, :] = mu_t
         f = f_t
         lam = max(lam / 10.0, 1e-7)
-        _model(coef, geo, theta, k, base, bg_basis, nb, img, der, True, mu_t)
+        img, img_t = img_t, img
+        der, der_t = der_t, der
         _jacobian(theta, k, img, der, geo, bg_basis, nb, jac)
         if rel < tol:
             converged = True
