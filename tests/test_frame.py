@@ -337,6 +337,37 @@ def test_z_flip_reaches_the_other_end_of_the_range(dh_table):
     assert abs(flipped.emitters.z[0] - (-900.0)) < 60.0
 
 
+def test_a_failed_z_flip_is_not_tried_again_nearby(dh_table, monkeypatch):
+    import sparseloc.solvers.frame as frame_mod
+
+    truth = np.array([[2030.0, 1970.0, -900.0, 3000.0]])  # truly near the low end
+    frame = poisson_frame(dh_table, truth, (40, 40), seed=0)
+    kw = dict(pixel_size=PX, origin=(0.0, 0.0), background=10.0)
+    fit = fit_emitters(frame, dh_table, Emitters.from_array(truth), **kw)
+    calls = {"n": 0}
+    real = frame_mod.fit_emitters
+
+    def counting(*a, **k):
+        calls["n"] += 1
+        return real(*a, **k)
+
+    monkeypatch.setattr(frame_mod, "fit_emitters", counting)
+    failed: list = []
+    same = frame_mod._try_z_flips(frame, dh_table, fit, kw, 0.15, failed)
+    assert same is fit and calls["n"] == 1 and len(failed) == 1  # tried, lost, remembered
+    # 10 nm away laterally, 20 nm in z: not tried again
+    near = fit.emitters.as_array() + np.array([[10.0, 0.0, 20.0, 0.0]])
+    moved = replace(fit, emitters=Emitters.from_array(near))
+    assert frame_mod._try_z_flips(frame, dh_table, moved, kw, 0.15, failed) is moved
+    assert calls["n"] == 1
+    # 100 nm away: tried
+    far = fit.emitters.as_array() + np.array([[100.0, 0.0, 0.0, 0.0]])
+    frame_mod._try_z_flips(
+        frame, dh_table, replace(fit, emitters=Emitters.from_array(far)), kw, 0.15, failed
+    )
+    assert calls["n"] == 2
+
+
 # --- pipeline ----------------------------------------------------------------------------
 
 

@@ -484,12 +484,20 @@ def _groups(xy: NDArray, distance: float, max_size: int = 8) -> list[NDArray[np.
     return out
 
 
-def _try_z_flips(y, model, fit, kw, fraction):
+#: A z flip that failed is not tried again for an emitter within these distances (nm,
+#: lateral and axial) of where it failed, in the later sweeps over the same frame.
+FLIP_MEMORY_NM = (20.0, 50.0)
+
+
+def _try_z_flips(y, model, fit, kw, fraction, failed: list | None = None):
     """Refit from the other end of the z range each emitter near an end; keep what fits best.
 
     Each trial fits the one emitter with the rest of the group held fixed (cheap); if any
     trial beats the group's likelihood, the group is refitted jointly from the flipped start
-    and kept if its likelihood is higher.
+    and kept if its likelihood is higher. ``failed`` (x, y, z of emitters whose trial lost)
+    is consulted and extended: an emitter near one of them is not tried again (the later
+    sweeps of a frame move emitters by a few nm; 1 in 70 trials wins, nearly all in the
+    first sweep).
     """
     lo, hi = model.z_range
     span = hi - lo
@@ -502,6 +510,14 @@ def _try_z_flips(y, model, fit, kw, fraction):
     px, origin = kw["pixel_size"], kw["origin"]
     flipped = False
     for k in near:
+        if failed:
+            f = np.asarray(failed)
+            lat, ax = FLIP_MEMORY_NM
+            if np.any(
+                (np.hypot(f[:, 0] - arr[k, 0], f[:, 1] - arr[k, 1]) <= lat)
+                & (np.abs(f[:, 2] - arr[k, 2]) <= ax)
+            ):
+                continue
         others = np.delete(arr, k, axis=0)
         off = base + (model.render(*others.T, y.shape, px, origin=origin) if len(others) else 0.0)
         alt = arr[k].copy()
@@ -515,6 +531,8 @@ def _try_z_flips(y, model, fit, kw, fraction):
         if one.log_likelihood > fit.log_likelihood and len(one.emitters) == 1:
             arr[k] = one.emitters.as_array()[0]
             flipped = True
+        elif failed is not None:
+            failed.append(arr[k, :3].copy())
     if not flipped:
         return fit
     trial = fit_emitters(y, model, Emitters.from_array(arr), **kw)
@@ -689,6 +707,7 @@ def frame_fit(
     # from its own optimum to the same place: its last result is kept (later sweeps move
     # few emitters, so most groups are skipped).
     memo: dict[bytes, tuple] = {}
+    failed_flips: list[NDArray] = []
     for _ in range(max(sweeps, 1)):
         if len(em) == 0:
             break
@@ -759,7 +778,7 @@ def frame_fit(
             else:
                 fit = fit_emitters(y, model, start, **kw)
             if z_flip:
-                fit = _try_z_flips(y, model, fit, kw, z_flip)
+                fit = _try_z_flips(y, model, fit, kw, z_flip, failed_flips)
             done[g] = True
             arr = fit.emitters.as_array().reshape(-1, 4)
             new_em.append(arr)
