@@ -35,7 +35,7 @@ from scipy.optimize import nnls
 
 from ..psf.base import PSFModel, energy_radius
 from .emitters import Emitters
-from .refine import fit_emitters, fit_with_count_selection
+from .refine import background_basis, fit_emitters, fit_with_count_selection
 
 log = logging.getLogger(__name__)
 
@@ -562,16 +562,7 @@ def _response(model: PSFModel, fit, kw: dict, scmos: bool) -> NDArray[np.float64
     g = model.gradients(*arr.T, shape, kw["pixel_size"], origin=kw["origin"])
     k = len(arr)
     rows = [g.reshape(4 * k, -1)]
-    n_bg = len(fit.background)
-    rows.append(np.ones((1, g.shape[-2] * g.shape[-1])))
-    if n_bg == 3:  # tilted plane: the basis of refine._Problem
-        r, c = shape
-        u = (np.arange(c) - (c - 1) / 2) / max(c / 2, 1)
-        v = (np.arange(r) - (r - 1) / 2) / max(r / 2, 1)
-        rows += [
-            np.broadcast_to(u[None, :], shape).ravel()[None],
-            np.broadcast_to(v[:, None], shape).ravel()[None],
-        ]
+    rows += [b.ravel()[None] for b in background_basis(shape, len(fit.background) == 3)]
     jac = np.concatenate(rows, axis=0)
     mu = fit.model_image
     if scmos:
