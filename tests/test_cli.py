@@ -174,12 +174,20 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
 
     table, meta = read_parquet(out)
     assert len(table) >= 8 and meta["params"]["pixel_size"] == 160.0
+    # the batched fits on NumPy (the GPU path's code) through the command line
+    out_b = tmp_path / "locs_b.parquet"
+    res = run("localize", movie, "-o", out_b, "--config", cfg, "--device", "numpy")
+    assert res.exit_code == 0, res.output
+    table_b, meta_b = read_parquet(out_b)
+    assert meta_b["params"]["device"] == "numpy" and abs(len(table_b) - len(table)) <= 2
     # bad input: wrong pixel size, offset above the data, missing folder, unknown config key
     for args, msg in [
         (["--config", cfg, "--pixel-size", "100"], "differs from the movie"),
         (["--config", cfg, "--offset", "5000"], "offset"),
         (["--config", cfg, "--n-sample", "1.33"], "apply to pupil models"),
         (["--config", cfg, "--psf", "dh", "--focal-depth", "500"], "needs --n-sample"),
+        (["--config", cfg, "--device", "tpu"], "device must be numpy, cpu, cuda"),
+        (["--config", cfg, "--device", "numpy", "--workers", "2"], "use one worker"),
     ]:
         res = run("localize", movie, "-o", tmp_path / "x.csv", *args)
         assert res.exit_code == 2 and msg in res.output, res.output

@@ -190,6 +190,7 @@ LOCALIZE_DEFAULTS: dict = {
     "frames": None,
     "format": None,
     "workers": 1,
+    "device": None,
     "n_sample": None,
     "focal_depth": None,
     "read_noise": 0.0,
@@ -302,6 +303,13 @@ def localize(
     workers: Annotated[
         int | None, typer.Option(help="Processes solving frames (default 1).", min=1)
     ] = None,
+    device: Annotated[
+        str | None,
+        typer.Option(
+            help="Batch the frame solver's fits on numpy, cpu or cuda[:N] (PyTorch; for a "
+            "GPU). Default: the compiled per-group loop."
+        ),
+    ] = None,
     n_sample: Annotated[
         float | None,
         typer.Option(help="Sample refractive index (pupil models; e.g. 1.33 for water)."),
@@ -358,6 +366,7 @@ def localize(
         "frames": frames,
         "format": fmt,
         "workers": workers,
+        "device": device,
         "n_sample": n_sample,
         "focal_depth": focal_depth,
         "read_noise": read_noise,
@@ -465,6 +474,7 @@ def localize(
             background=opts["background"],
             noise={"emccd": "emccd", "scmos": "scmos"}.get(opts["camera"], "poisson"),
             read_variance=float(read_var) if read_var.ndim == 0 else 0.0,
+            device=opts["device"],
         )
         from tqdm import tqdm
 

@@ -94,6 +94,13 @@ class LocalizeParams:
         detection threshold and the likelihood (Huang et al. 2013).
     max_emitters : int
         Cap per window.
+    device : str, optional
+        Backend of the frame solver's maximum-likelihood fits. ``None`` (default): each
+        frame's groups one after another in the compiled loop (fastest on a CPU). ``"numpy"``,
+        ``"cpu"``, ``"cuda"``, ``"cuda:N"``: the frames of each block solved in lockstep, the
+        fits of all their groups batched (:func:`~sparseloc.solvers.frame_batch.
+        frame_fit_batch`) on NumPy or PyTorch on that device (for a GPU; on a CPU it is
+        several times slower than the default).
     """
 
     pixel_size: float
@@ -113,6 +120,7 @@ class LocalizeParams:
     noise: str = "poisson"
     max_emitters: int = 10
     read_variance: float = 0.0
+    device: str | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -131,6 +139,16 @@ class LocalizeParams:
             raise ValueError(
                 f"read_variance applies to noise='scmos', not {self.noise!r} (it would be ignored)"
             )
+        if self.device is not None:
+            if self.method != "frame":
+                raise ValueError(
+                    f"device {self.device!r} applies to the frame solver (method 'frame'), "
+                    f"not to {self.method!r}"
+                )
+            if not isinstance(self.device, str) or not (
+                self.device in ("numpy", "cpu", "cuda") or self.device.startswith("cuda:")
+            ):
+                raise ValueError(f"device must be numpy, cpu, cuda or cuda:N; got {self.device!r}")
         if self.background not in ("auto", "temporal", "spatial"):
             raise ValueError(
                 f"background must be auto, temporal or spatial; got {self.background!r}"
@@ -272,9 +290,10 @@ class _FrameSolver:
         self.pad = int(np.ceil(min(self.templates.radius90, PAD_CAP)))
         self.reach = 0.5 * self.templates.images.shape[-1] * params.pixel_size
 
-    def __call__(self, frame: NDArray, background: NDArray) -> FrameFit:
+    def start(self, frame: NDArray, background: NDArray):
+        """The pursuit's emitters of one frame (the fits' starting point)."""
         p = self.p
-        start = tiled_pursuit(
+        return tiled_pursuit(
             frame,
             background,
             self.templates,
@@ -283,12 +302,12 @@ class _FrameSolver:
             read_variance=self.read_kw.get("read_variance", 0.0),
             correlators=self.correlators,
         )
-        return frame_fit(
-            frame,
-            self.model,
-            start,
+
+    def fit_kwargs(self) -> dict:
+        """Keywords of :func:`frame_fit` (and :func:`frame_fit_batch`) but the frame's own."""
+        p = self.p
+        return dict(
             pixel_size=p.pixel_size,
-            background=background,
             group_distance=self.group_distance,
             pad=self.pad,
             reach=self.reach,
@@ -296,6 +315,24 @@ class _FrameSolver:
             max_emitters=p.max_emitters,
             noise=p.noise,
             **self.read_kw,
+        )
+
+    def __call__(self, frame: NDArray, background: NDArray) -> FrameFit:
+        start = self.start(frame, background)
+        return frame_fit(frame, self.model, start, background=background, **self.fit_kwargs())
+
+    def solve_block(self, frames: list[NDArray], backgrounds: list[NDArray]) -> list[FrameFit]:
+        """Several frames in lockstep, their fits batched on ``params.device``."""
+        from .solvers.frame_batch import frame_fit_batch
+
+        starts = [self.start(f, b) for f, b in zip(frames, backgrounds, strict=True)]
+        return frame_fit_batch(
+            frames,
+            self.model,
+            starts,
+            background=backgrounds,
+            device=self.p.device,
+            **self.fit_kwargs(),
         )
 
 
@@ -402,6 +439,13 @@ def localize(
     tiles(shape, p.window, p.margin)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    if p.device is not None:
+        if workers > 1:
+            raise ValueError(
+                f"device {p.device!r} solves the frames in this process (its fits are batched); "
+                "use one worker"
+            )
+        check_device(p.device)
     if read_variance is not None:
         read_variance = np.asarray(read_variance, dtype=np.float64)
         if read_variance.shape != tuple(shape):
@@ -419,7 +463,10 @@ def localize(
     work_model = work_model_for(model, p)
     parts: list[dict] = []
     inputs = _frames_and_backgrounds(get, n, start, stop, block, p)
-    if workers == 1:
+    if p.device is not None:
+        work = _FrameWork(work_model, p, shape, read_variance)
+        n_windows = _collect(_in_blocks(inputs, work, block), parts, True, progress)
+    elif workers == 1:
         from threadpoolctl import threadpool_limits
 
         # One BLAS thread, as in the worker processes: the matrices are small (no gain from
@@ -517,6 +564,40 @@ class _FrameWork:
             window_id = f * len(self.tiling) + tile.index
             parts.append(_rows(sol, tile, f, window_id, p.pixel_size))
         return parts, len(todo)
+
+
+def check_device(device: str) -> None:
+    """A clear error when a batched-fit device cannot be used here (PyTorch, CUDA)."""
+    if device == "numpy":
+        return
+    try:
+        import torch
+    except ImportError:
+        raise ValueError(
+            f"device {device!r} needs PyTorch: pip install 'sparseloc[cpu]' (CPU build) or a "
+            "CUDA build of torch"
+        ) from None
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r}: PyTorch sees no CUDA GPU on this machine")
+
+
+def _in_blocks(inputs, work: _FrameWork, block: int):
+    """Solve ``block`` frames at a time in lockstep (the batched path of ``params.device``);
+    yield each frame's table parts and window count in frame order."""
+    items: list = []
+    for item in inputs:
+        items.append(item)
+        if len(items) == block:
+            yield from _solve_block(items, work)
+            items = []
+    if items:
+        yield from _solve_block(items, work)
+
+
+def _solve_block(items: list, work: _FrameWork):
+    fits = work.solver.solve_block([fr for _, fr, _ in items], [bg for _, _, bg in items])
+    for (f, _, _), fit in zip(items, fits, strict=True):
+        yield [_frame_rows(fit, f, 0)], int(fit.group.max() + 1) if len(fit.group) else 0
 
 
 def _frames_and_backgrounds(get, n: int, start: int, stop: int, block: int, p: LocalizeParams):

@@ -600,6 +600,18 @@ def _unmoved(hit: tuple, offset: NDArray, origin: tuple, shift_tolerance: float)
     )
 
 
+def _box(em: NDArray[np.float64], rows: int, cols: int, px: float, pad: int) -> tuple:
+    """Window (r0, r1, c0, c1) of a group's emitters (K, 4 in nm): their pixels and ``pad``
+    more each way, inside the frame."""
+    pr = em[:, 1] / px
+    pc = em[:, 0] / px
+    r0 = int(np.clip(np.floor(pr.min()) - pad, 0, rows - 1))
+    r1 = int(np.clip(np.ceil(pr.max()) + pad + 1, r0 + 1, rows))
+    c0 = int(np.clip(np.floor(pc.min()) - pad, 0, cols - 1))
+    c1 = int(np.clip(np.ceil(pc.max()) + pad + 1, c0 + 1, cols))
+    return r0, r1, c0, c1
+
+
 def _settled(prev: NDArray, em: NDArray, xy_tol: float = 2.0, z_tol: float = 5.0) -> bool:
     """Whether a sweep left the emitters where they were (same count; nm tolerances)."""
     if prev.shape != em.shape or len(em) == 0:
@@ -709,12 +721,7 @@ def frame_fit(
         new_info: list[tuple] = []
         done = np.zeros(len(em), bool)
         for gi, g in enumerate(groups):
-            pr = em[g, 1] / px
-            pc = em[g, 0] / px
-            r0 = int(np.clip(np.floor(pr.min()) - pad, 0, rows - 1))
-            r1 = int(np.clip(np.ceil(pr.max()) + pad + 1, r0 + 1, rows))
-            c0 = int(np.clip(np.floor(pc.min()) - pad, 0, cols - 1))
-            c1 = int(np.clip(np.ceil(pc.max()) + pad + 1, c0 + 1, cols))
+            r0, r1, c0, c1 = _box(em[g], rows, cols, px, pad)
             origin = (c0 * px, r0 * px)
             shape = (r1 - r0, c1 - c0)
             # others: groups already refitted in this sweep (new_em), the rest as they were
