@@ -188,6 +188,10 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
         (["--config", cfg, "--psf", "dh", "--focal-depth", "500"], "needs --n-sample"),
         (["--config", cfg, "--device", "tpu"], "device must be numpy, cpu, cuda"),
         (["--config", cfg, "--device", "numpy", "--workers", "2"], "use one worker"),
+        (
+            ["--config", cfg, "--device", "numpy", "--workers", "2", "--chunk-frames", "1"],
+            "drop --workers",
+        ),
     ]:
         res = run("localize", movie, "-o", tmp_path / "x.csv", *args)
         assert res.exit_code == 2 and msg in res.output, res.output

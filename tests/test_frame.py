@@ -337,6 +337,36 @@ def test_z_flip_reaches_the_other_end_of_the_range(dh_table):
     assert abs(flipped.emitters.z[0] - (-900.0)) < 60.0
 
 
+def test_memo_entries_are_reused_only_when_nothing_would_move():
+    from sparseloc.solvers.frame import _unmoved
+
+    shape, origin = (4, 5), (100.0, 200.0)
+    old = np.zeros(shape)
+    resp = np.zeros((3, 20))
+    resp[0, 7] = 2.0  # x moves 2 nm per photon added at pixel 7
+    entry = (old, 0.1, None, None, origin, [resp], 1.0)
+    small = np.zeros(shape)
+    small.flat[3] = 0.05
+    assert _unmoved(entry, small, origin, 1.0)  # within the plain tolerance
+    assert not _unmoved(entry, small, (0.0, 0.0), 1.0)  # another window
+    assert not _unmoved(entry, np.zeros((5, 5)), origin, 1.0)
+    d = np.zeros(shape)
+    d.flat[3] = 0.8  # above the tolerance, below the cap, no response there: skipped
+    assert _unmoved(entry, d, origin, 1.0)
+    assert not _unmoved(entry, d, origin, 0.0)  # the response test switched off
+    d.flat[7] = 0.6  # predicted shift 1.2 nm > 1 nm: refitted
+    assert not _unmoved(entry, d, origin, 1.0)
+    assert _unmoved(entry, d, origin, 1.5)
+    assert not _unmoved(entry, d * 2.0, origin, 5.0)  # above the cap
+    calls = []
+    lazy = (old, 0.1, None, None, origin, [lambda: calls.append(1) or resp], 1.0)
+    assert _unmoved(lazy, small, origin, 1.0) and not calls  # not computed when not needed
+    assert not _unmoved(lazy, d, origin, 1.0) and _unmoved(lazy, d, origin, 1.5)
+    assert calls == [1]  # computed once
+    singular = (old, 0.1, None, None, origin, [None], 1.0)
+    assert not _unmoved(singular, d, origin, 1.0)
+
+
 def test_a_failed_z_flip_is_not_tried_again_nearby(dh_table, monkeypatch):
     import sparseloc.solvers.frame as frame_mod
 

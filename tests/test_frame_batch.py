@@ -347,18 +347,39 @@ def test_localize_on_a_batched_device_finds_what_the_default_finds(spline):
     assert batched.metadata["params"]["device"] == "numpy"
 
 
-def test_batched_device_arguments_are_checked(spline, monkeypatch):
+def test_batched_device_arguments_are_checked(spline, monkeypatch, tmp_path):
     import sys
 
     from sparseloc.pipeline import LocalizeParams, localize
 
     with pytest.raises(ValueError, match="frame solver"):
         LocalizeParams(pixel_size=PX, method="hybrid", device="cpu")
-    with pytest.raises(ValueError, match="numpy, cpu, cuda"):
-        LocalizeParams(pixel_size=PX, device="tpu")
+    for bad in ("tpu", "cuda:", "cuda:abc", "cuda:-1", "cuda:1 "):
+        with pytest.raises(ValueError, match="numpy, cpu, cuda"):
+            LocalizeParams(pixel_size=PX, device=bad)
     frames = np.full((2, 40, 40), 10.0)
     with pytest.raises(ValueError, match="one worker"):
         localize(frames, spline, LocalizeParams(pixel_size=PX, device="numpy"), workers=2)
+    from sparseloc.distributed import localize_chunked
+
+    with pytest.raises(ValueError, match="one after another"):
+        localize_chunked(
+            frames,
+            spline,
+            LocalizeParams(pixel_size=PX, device="numpy"),
+            tmp_path / "run",
+            scheduler="threads",
+        )
     monkeypatch.setitem(sys.modules, "torch", None)  # as if PyTorch were not installed
     with pytest.raises(ValueError, match="needs PyTorch"):
         localize(frames, spline, LocalizeParams(pixel_size=PX, device="cpu"))
+
+
+def test_a_cuda_device_without_a_gpu_is_refused():
+    torch = pytest.importorskip("torch")
+    if torch.cuda.is_available():
+        pytest.skip("a CUDA GPU is present")
+    from sparseloc.pipeline import check_device
+
+    with pytest.raises(ValueError, match="no CUDA GPU"):
+        check_device("cuda:0")

@@ -307,7 +307,7 @@ def localize(
         str | None,
         typer.Option(
             help="Batch the frame solver's fits on numpy, cpu or cuda[:N] (PyTorch; for a "
-            "GPU). Default: the compiled per-group loop."
+            "GPU); none: the compiled per-group loop (default)."
         ),
     ] = None,
     n_sample: Annotated[
@@ -474,7 +474,7 @@ def localize(
             background=opts["background"],
             noise={"emccd": "emccd", "scmos": "scmos"}.get(opts["camera"], "poisson"),
             read_variance=float(read_var) if read_var.ndim == 0 else 0.0,
-            device=opts["device"],
+            device=None if opts["device"] in (None, "none") else opts["device"],
         )
         from tqdm import tqdm
 
@@ -508,6 +508,11 @@ def _localize_chunked(opts, out, mov, cam, model, params, start, stop, read_var)
     run_dir = Path(opts["run_dir"]) if opts["run_dir"] else out.with_name(out.stem + ".parts")
     sched = opts["scheduler"]
     workers = int(opts["workers"])
+    if params.device is not None and (workers > 1 or sched not in (None, "sync")):
+        _fail(
+            f"--device {params.device} runs the chunks one after another in this process; "
+            "drop --workers and --scheduler"
+        )
     client = None
     if sched is None:
         sched = "sync"

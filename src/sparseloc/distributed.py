@@ -49,7 +49,14 @@ from . import __version__
 from .camera import Camera, to_photons
 from .io.atomic import write_text_atomic
 from .io.tables import LOCS_COLUMNS, empty_locs, read_parquet, write_parquet
-from .pipeline import LocalizeParams, array_digest, localize, psf_hash, work_model_for
+from .pipeline import (
+    LocalizeParams,
+    array_digest,
+    check_device,
+    localize,
+    psf_hash,
+    work_model_for,
+)
 from .psf.base import PSFModel
 
 __all__ = [
@@ -373,6 +380,14 @@ def localize_chunked(
         Bad parameters, an unusable run folder, or a folder of a different analysis.
     """
     t0 = time.perf_counter()
+    if params.device is not None:
+        # the batched path drives one device from one process: no parallel chunks
+        check_device(params.device)
+        if scheduler != "sync":
+            raise ValueError(
+                f"device {params.device!r} runs the chunks one after another in this process "
+                "(scheduler 'sync', one worker)"
+            )
     source = frames if isinstance(frames, CameraFrames) else CameraFrames(frames)
     n = len(source)
     stop = n if stop is None else min(stop, n)

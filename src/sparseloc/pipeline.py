@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import re
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -145,8 +146,8 @@ class LocalizeParams:
                     f"device {self.device!r} applies to the frame solver (method 'frame'), "
                     f"not to {self.method!r}"
                 )
-            if not isinstance(self.device, str) or not (
-                self.device in ("numpy", "cpu", "cuda") or self.device.startswith("cuda:")
+            if not isinstance(self.device, str) or not re.fullmatch(
+                r"numpy|cpu|cuda(:\d+)?", self.device
             ):
                 raise ValueError(f"device must be numpy, cpu, cuda or cuda:N; got {self.device!r}")
         if self.background not in ("auto", "temporal", "spatial"):
@@ -577,8 +578,15 @@ def check_device(device: str) -> None:
             f"device {device!r} needs PyTorch: pip install 'sparseloc[cpu]' (CPU build) or a "
             "CUDA build of torch"
         ) from None
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device {device!r}: PyTorch sees no CUDA GPU on this machine")
+    if device.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {device!r}: PyTorch sees no CUDA GPU on this machine")
+        index = int(device.partition(":")[2] or 0)
+        if index >= torch.cuda.device_count():
+            raise ValueError(
+                f"device {device!r}: PyTorch sees {torch.cuda.device_count()} CUDA GPU(s), "
+                f"numbered from 0"
+            )
 
 
 def _in_blocks(inputs, work: _FrameWork, block: int):
