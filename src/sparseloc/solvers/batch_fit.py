@@ -352,18 +352,28 @@ class _Table:
         self.z_step = float(spline.z_step)
         self.pixel_size = float(spline.pixel_size)
         self.geometry = spline.node_geometry((0.0, 0.0), self.pixel_size)
+        # One zero-padded copy of the table, x before y, padded by (pad_x, pad_y) nodes on
+        # each side: every block size up to the padding is a view of it. It is rebuilt (with
+        # room to spare) only when a larger block is asked for, so windows of many shapes
+        # share one copy instead of each copying the table.
+        self.pad_x = self.pad_y = 0
+        self._padded: Any = None
         self._views: dict[tuple[int, int], Any] = {}
 
     def view(self, lx: int, ly: int) -> Any:
-        """Sliding-window view (planes, nx + lx + 1, ny + ly + 1, lx, ly) of the padded table
-        with x before y: ``view[p, sx + lx, sy + ly]`` is the block whose first node is
-        (sy, sx), x-major."""
+        """Sliding-window view (planes, nx + 2 pad_x - lx + 1, ny + 2 pad_y - ly + 1, lx, ly)
+        of the padded table with x before y: ``view[p, sx + pad_x, sy + pad_y]`` is the block
+        whose first node is (sy, sx), x-major."""
         key = (lx, ly)
+        if lx > self.pad_x or ly > self.pad_y or self._padded is None:
+            self.pad_x = max(self.pad_x, -(-lx // 16) * 16)
+            self.pad_y = max(self.pad_y, -(-ly // 16) * 16)
+            px_, py_ = self.pad_x, self.pad_y
+            padded = np.pad(self._coef, ((0, 0), (py_, py_), (px_, px_))).transpose(0, 2, 1)
+            self._padded = self.ops.asarray(np.ascontiguousarray(padded), dtype=self.dtype)
+            self._views.clear()
         if key not in self._views:
-            if len(self._views) >= 4:
-                self._views.clear()
-            padded = np.pad(self._coef, ((0, 0), (ly, ly), (lx, lx))).transpose(0, 2, 1)
-            t = self.ops.asarray(np.ascontiguousarray(padded), dtype=self.dtype)
+            t = self._padded
             if self.ops.kind == "numpy":
                 from numpy.lib.stride_tricks import sliding_window_view
 
@@ -379,8 +389,8 @@ class _Table:
         ops = self.ops
         v = self.view(lx, ly)
         # Blocks wholly outside the stack are all zeros: keep their start in the padding.
-        sy = (sy.clip(-ly, self.ny) + ly)[:, None]
-        sx = (sx.clip(-lx, self.nx) + lx)[:, None]
+        sy = (sy.clip(-ly, self.ny) + self.pad_y)[:, None]
+        sx = (sx.clip(-lx, self.nx) + self.pad_x)[:, None]
         out = v[planes, sx, sy]
         return out if ops.kind == "numpy" else out.contiguous()
 
