@@ -262,7 +262,7 @@ def test_linear_response_predicts_the_refit_after_a_neighbour_moves(analytic):
     kw = dict(pixel_size=PX, origin=(0.0, 0.0), tol=1e-14)
     off0 = analytic.render(*b.T, (w, w), PX)
     fit0 = fit_emitters(img, analytic, Emitters.from_array(a), offset=off0, **kw)
-    resp = _response(analytic, fit0, {**kw, "background": 10.0}, scmos=False)
+    resp = _response(analytic, img, fit0, {**kw, "offset": off0})
     assert resp.shape == (3, w * w)
     for move in ([10.0, 0.0, 0.0], [0.0, -8.0, 20.0]):
         moved = b + np.array([[*move, 0.0]])
@@ -338,13 +338,13 @@ def test_z_flip_reaches_the_other_end_of_the_range(dh_table):
 
 
 def test_memo_entries_are_reused_only_when_nothing_would_move():
-    from sparseloc.solvers.frame import _unmoved
+    from sparseloc.solvers.frame import _Memo, _unmoved
 
     shape, origin = (4, 5), (100.0, 200.0)
     old = np.zeros(shape)
     resp = np.zeros((3, 20))
     resp[0, 7] = 2.0  # x moves 2 nm per photon added at pixel 7
-    entry = (old, 0.1, None, None, origin, [resp], 1.0)
+    entry = _Memo(old, 0.1, None, None, origin, [resp], 1.0)
     small = np.zeros(shape)
     small.flat[3] = 0.05
     assert _unmoved(entry, small, origin, 1.0)  # within the plain tolerance
@@ -359,11 +359,11 @@ def test_memo_entries_are_reused_only_when_nothing_would_move():
     assert _unmoved(entry, d, origin, 1.5)
     assert not _unmoved(entry, d * 2.0, origin, 5.0)  # above the cap
     calls = []
-    lazy = (old, 0.1, None, None, origin, [lambda: calls.append(1) or resp], 1.0)
+    lazy = _Memo(old, 0.1, None, None, origin, [lambda: calls.append(1) or resp], 1.0)
     assert _unmoved(lazy, small, origin, 1.0) and not calls  # not computed when not needed
     assert not _unmoved(lazy, d, origin, 1.0) and _unmoved(lazy, d, origin, 1.5)
     assert calls == [1]  # computed once
-    singular = (old, 0.1, None, None, origin, [None], 1.0)
+    singular = _Memo(old, 0.1, None, None, origin, [None], 1.0)
     assert not _unmoved(singular, d, origin, 1.0)
 
 

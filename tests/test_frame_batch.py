@@ -228,7 +228,9 @@ def test_lost_z_flips_are_not_tried_again(spline, templates, monkeypatch):
     (with_memory,) = frame_fit_batch([frame], spline, [start], sweeps=3, **kw)
     n_with = sum(fitted)
     fitted.clear()
-    monkeypatch.setattr(fb, "FLIP_MEMORY_NM", (-1.0, -1.0))
+    import sparseloc.solvers.frame as frame_mod
+
+    monkeypatch.setattr(frame_mod, "FLIP_MEMORY_NM", (-1.0, -1.0))
     (without,) = frame_fit_batch([frame], spline, [start], sweeps=3, **kw)
     assert_same(with_memory, without, 1e-6)
     assert n_with < sum(fitted)
@@ -338,7 +340,7 @@ def test_localize_on_a_batched_device_finds_what_the_default_finds(spline):
     default = localize(frames, spline, LocalizeParams(pixel_size=PX, background="spatial"))
     assert sum(done) == 3
     assert list(batched.table.columns) == list(default.table.columns)
-    assert batched.table["window_id"].groupby(batched.table["frame"]).nunique().min() >= 1
+    assert set(batched.table["frame"]) == {0, 1, 2}  # both blocks were solved
     assert batched.table.groupby("window_id")["frame"].nunique().max() == 1
     ev_b, ev_d = evaluate(batched.table, truth), evaluate(default.table, truth)
     assert ev_b.recall >= 0.9 and ev_b.precision >= 0.9

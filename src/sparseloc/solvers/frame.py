@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,7 +36,7 @@ from scipy.optimize import nnls
 
 from ..psf.base import PSFModel, energy_radius
 from .emitters import Emitters
-from .refine import background_basis, fit_emitters, fit_with_count_selection
+from .refine import _Problem, fit_emitters, fit_with_count_selection
 
 log = logging.getLogger(__name__)
 
@@ -489,6 +490,48 @@ def _groups(xy: NDArray, distance: float, max_size: int = 8) -> list[NDArray[np.
 FLIP_MEMORY_NM = (20.0, 50.0)
 
 
+def _lost_flip_near(failed: list[NDArray] | None, xyz: NDArray) -> bool:
+    """Whether an emitter (x, y, z in nm) is within :data:`FLIP_MEMORY_NM` of a position where
+    a z flip lost."""
+    if not failed:
+        return False
+    f = np.asarray(failed)
+    lat, ax = FLIP_MEMORY_NM
+    return bool(
+        np.any(
+            (np.hypot(f[:, 0] - xyz[0], f[:, 1] - xyz[1]) <= lat) & (np.abs(f[:, 2] - xyz[2]) <= ax)
+        )
+    )
+
+
+def _near_ends(arr: NDArray, z_range: tuple[float, float], fraction: float) -> list[int]:
+    """Indices of the emitters (K, 4) within ``fraction`` of the z range from either end."""
+    lo, hi = z_range
+    return [
+        k for k in range(len(arr)) if min(arr[k, 2] - lo, hi - arr[k, 2]) <= fraction * (hi - lo)
+    ]
+
+
+def _flipped(row: NDArray, z_range: tuple[float, float]) -> NDArray:
+    """A copy of one emitter (4,) started from the other end of the z range."""
+    lo, hi = z_range
+    alt = row.copy()
+    alt[2] = np.clip(alt[2] - (hi - lo) if alt[2] > (lo + hi) / 2 else alt[2] + (hi - lo), lo, hi)
+    return alt
+
+
+def _near(xy: NDArray[np.float64], box: tuple[int, int, int, int], px: float, reach: float):
+    """Which points (N, 2+; nm) lie within ``reach`` (nm, per axis) of a window (r0, r1, c0,
+    c1 in pixels): the emitters whose light goes into the window's offset."""
+    r0, r1, c0, c1 = box
+    return (
+        (xy[:, 0] > c0 * px - reach)
+        & (xy[:, 0] < c1 * px + reach)
+        & (xy[:, 1] > r0 * px - reach)
+        & (xy[:, 1] < r1 * px + reach)
+    )
+
+
 def _try_z_flips(y, model, fit, kw, fraction, failed: list | None = None):
     """Refit from the other end of the z range each emitter near an end; keep what fits best.
 
@@ -499,10 +542,8 @@ def _try_z_flips(y, model, fit, kw, fraction, failed: list | None = None):
     sweeps of a frame move emitters by a few nm; 1 in 70 trials wins, nearly all in the
     first sweep).
     """
-    lo, hi = model.z_range
-    span = hi - lo
     arr = fit.emitters.as_array().reshape(-1, 4).copy()
-    near = [k for k in range(len(arr)) if min(arr[k, 2] - lo, hi - arr[k, 2]) <= fraction * span]
+    near = _near_ends(arr, model.z_range, fraction)
     if not near:
         return fit
     base = kw.get("offset")
@@ -510,18 +551,11 @@ def _try_z_flips(y, model, fit, kw, fraction, failed: list | None = None):
     px, origin = kw["pixel_size"], kw["origin"]
     flipped = False
     for k in near:
-        if failed:
-            f = np.asarray(failed)
-            lat, ax = FLIP_MEMORY_NM
-            if np.any(
-                (np.hypot(f[:, 0] - arr[k, 0], f[:, 1] - arr[k, 1]) <= lat)
-                & (np.abs(f[:, 2] - arr[k, 2]) <= ax)
-            ):
-                continue
+        if _lost_flip_near(failed, arr[k]):
+            continue
         others = np.delete(arr, k, axis=0)
         off = base + (model.render(*others.T, y.shape, px, origin=origin) if len(others) else 0.0)
-        alt = arr[k].copy()
-        alt[2] = np.clip(alt[2] - span if alt[2] > (lo + hi) / 2 else alt[2] + span, lo, hi)
+        alt = _flipped(arr[k], model.z_range)
         one = fit_emitters(
             y,
             model,
@@ -549,46 +583,60 @@ SHIFT_CAP = 1.0
 SHIFT_TOLERANCE = 1.0
 
 
-def _response(model: PSFModel, fit, kw: dict, scmos: bool) -> NDArray[np.float64]:
-    """Rows x, y, z of ``-F^-1 J' diag(1/mu)`` at a group's fit, shape (3 K, pixels).
+def _response(model: PSFModel, y: NDArray, fit, kw: dict) -> NDArray[np.float64] | None:
+    """Rows x, y, z of ``-F^-1 J' diag(w/mu)`` at a group's fit, shape (3 K, pixels).
 
     At the optimum the gradient of ``-log L`` is zero; a small change ``d`` of the known
-    offset (photons/pixel) moves the optimum by about ``-F^-1 J' (d / mu)`` (nm): more known
-    light on one side pushes the emitters away from it. Poisson and EMCCD alike (the weight
-    cancels); for sCMOS ``mu`` includes the read variance. None if ``F`` is singular.
+    offset (photons/pixel) moves the optimum by about ``-F^-1 J' (w d / mu)`` (nm): more known
+    light on one side pushes the emitters away from it. ``J``, ``F``, the weight ``w`` and
+    ``mu`` (with the sCMOS read variance) are the fit's own (:class:`refine._Problem`). None
+    if ``F`` is singular.
     """
-    arr = fit.emitters.as_array().reshape(-1, 4)
-    shape = fit.model_image.shape
-    g = model.gradients(*arr.T, shape, kw["pixel_size"], origin=kw["origin"])
-    k = len(arr)
-    rows = [g.reshape(4 * k, -1)]
-    rows += [b.ravel()[None] for b in background_basis(shape, len(fit.background) == 3)]
-    jac = np.concatenate(rows, axis=0)
-    mu = fit.model_image
-    if scmos:
-        mu = mu + kw["read_variance"]
-    wj = jac / np.maximum(mu, 1e-9).ravel()
-    fisher = wj @ jac.T
+    prob = _Problem(
+        y,
+        model,
+        kw["pixel_size"],
+        kw["origin"],
+        kw.get("noise", "poisson"),
+        kw.get("read_variance"),
+        kw.get("plane", False),
+        1.0,
+        kw.get("offset"),
+    )
+    theta = np.concatenate([fit.emitters.as_array().ravel(), fit.background])
+    jac = prob.jacobian(theta)
+    wj = prob.weight * jac / (fit.model_image + prob.v).ravel()
     try:
-        resp = -np.linalg.solve(fisher, wj)
+        resp = -np.linalg.solve(prob.fisher(jac, fit.model_image), wj)
     except np.linalg.LinAlgError:
         return None
-    pos = np.concatenate([np.arange(4 * i, 4 * i + 3) for i in range(k)])
-    return resp[pos]
+    k = len(fit.emitters)
+    return resp[[4 * i + j for i in range(k) for j in range(3)]]
 
 
-def _unmoved(hit: tuple, offset: NDArray, origin: tuple, shift_tolerance: float) -> bool:
-    """Whether a memo entry's group would stay where it is with this offset (``hit``: the
-    entry; its response slot holds a function until first used, then the matrix)."""
-    old, tol, _, _, old_origin, slot, cap = hit
-    if old.shape != offset.shape or old_origin != origin:
+class _Memo(NamedTuple):
+    """A group's last fit in :func:`frame_fit`, kept for the next sweep."""
+
+    offset: NDArray  # the neighbours' light it was fitted with (photons/pixel)
+    tol: float  # change of that light below which it is reused outright
+    emitters: NDArray  # (K, 4) the fit's emitters
+    info: list  # per emitter: sigma, background, gof, flag, group
+    origin: tuple  # the window's corner (nm)
+    response: list  # [function, then the matrix of _response]: computed on first use
+    cap: float  # change above which it is refitted whatever the response says
+
+
+def _unmoved(hit: _Memo, offset: NDArray, origin: tuple, shift_tolerance: float) -> bool:
+    """Whether a memo entry's group would stay where it is with this offset."""
+    if hit.offset.shape != offset.shape or hit.origin != origin:
         return False
-    d = offset - old
+    d = offset - hit.offset
     m = float(np.max(np.abs(d))) if d.size else 0.0
-    if m <= tol:
+    if m <= hit.tol:
         return True
-    if shift_tolerance <= 0 or m > cap:
+    if shift_tolerance <= 0 or m > hit.cap:
         return False
+    slot = hit.response
     if callable(slot[0]):  # computed once, on first use
         slot[0] = slot[0]()
     resp = slot[0]
@@ -709,7 +757,7 @@ def frame_fit(
     # light changed by less than a small fraction of the noise since then, would be refitted
     # from its own optimum to the same place: its last result is kept (later sweeps move
     # few emitters, so most groups are skipped).
-    memo: dict[bytes, tuple] = {}
+    memo: dict[bytes, _Memo] = {}
     failed_flips: list[NDArray] = []
     for _ in range(max(sweeps, 1)):
         if len(em) == 0:
@@ -733,12 +781,7 @@ def frame_fit(
             offset = np.zeros(shape)
             if others:
                 o = np.vstack(others)
-                near = (
-                    (o[:, 0] > origin[0] - reach)
-                    & (o[:, 0] < c1 * px + reach)
-                    & (o[:, 1] > origin[1] - reach)
-                    & (o[:, 1] < r1 * px + reach)
-                )
+                near = _near(o, (r0, r1, c0, c1), px, reach)
                 if near.any():
                     o = o[near]
                     offset = model.render(*o.T, shape, px, origin=origin)
@@ -746,8 +789,8 @@ def frame_fit(
             hit = memo.get(key)
             if hit is not None and _unmoved(hit, offset, origin, shift_tolerance):
                 done[g] = True
-                new_em.append(hit[2])
-                new_info.extend((*i[:4], gi) for i in hit[3])
+                new_em.append(hit.emitters)
+                new_info.extend((*i[:4], gi) for i in hit.info)
                 continue
             y = f[r0:r1, c0:c1]
             if fit_kwargs.get("noise", "poisson") != "scmos":
@@ -788,15 +831,9 @@ def frame_fit(
             if skip_tolerance > 0 and len(arr):
                 sd = np.sqrt(max(kw["background"], 1.0))
                 # the linear response is computed when first needed (most entries never are)
-                resp = [lambda fit=fit, kw=kw: _response(model, fit, kw, rv is not None)]
-                memo[np.ascontiguousarray(arr).tobytes()] = (
-                    offset,
-                    skip_tolerance * sd,
-                    arr,
-                    group_info,
-                    origin,
-                    resp,
-                    SHIFT_CAP * sd,
+                resp = [lambda y=y, fit=fit, kw=kw: _response(model, y, fit, kw)]
+                memo[np.ascontiguousarray(arr).tobytes()] = _Memo(
+                    offset, skip_tolerance * sd, arr, group_info, origin, resp, SHIFT_CAP * sd
                 )
         prev = em
         em = np.vstack(new_em) if new_em else np.zeros((0, 4))

@@ -43,7 +43,17 @@ from numpy.typing import ArrayLike, NDArray
 from ..psf.spline import SplinePSF
 from .batch_fit import fit_batch
 from .emitters import Emitters
-from .frame import ADD_THRESHOLD, FLIP_MEMORY_NM, FrameFit, _box, _groups, _settled
+from .frame import (
+    ADD_THRESHOLD,
+    FrameFit,
+    _box,
+    _flipped,
+    _groups,
+    _lost_flip_near,
+    _near,
+    _near_ends,
+    _settled,
+)
 from .refine import SKIP_FACTOR, FitResult, _residual_candidates
 
 log = logging.getLogger(__name__)
@@ -186,18 +196,6 @@ class _Fitter:
             fit.model_image = fit.model_image[:r, :c].copy()
             out.append(fit)
         return out
-
-
-def _near(xy: NDArray[np.float64], box: tuple[int, int, int, int], px: float, reach: float):
-    """Which points (N, 2+) lie within ``reach`` (nm, per axis) of a window: the emitters whose
-    light :func:`frame_fit` puts in the window's offset."""
-    r0, r1, c0, c1 = box
-    return (
-        (xy[:, 0] > c0 * px - reach)
-        & (xy[:, 0] < c1 * px + reach)
-        & (xy[:, 1] > r0 * px - reach)
-        & (xy[:, 1] < r1 * px + reach)
-    )
 
 
 #: How far (pixels) a fit may move an emitter beyond its window (``fit_batch``'s default
@@ -349,20 +347,6 @@ def _count_selection(
     return best
 
 
-def _excluded(failed: list[NDArray], xyz: NDArray) -> bool:
-    """Whether an emitter (x, y, z in nm) is near a position where a z flip lost (within
-    :data:`~sparseloc.solvers.frame.FLIP_MEMORY_NM`), as :func:`_try_z_flips` decides."""
-    if not failed:
-        return False
-    f = np.asarray(failed)
-    lat, ax = FLIP_MEMORY_NM
-    return bool(
-        np.any(
-            (np.hypot(f[:, 0] - xyz[0], f[:, 1] - xyz[1]) <= lat) & (np.abs(f[:, 2] - xyz[2]) <= ax)
-        )
-    )
-
-
 def _z_flips(
     fit: _Fitter,
     windows: list[_Window],
@@ -382,14 +366,9 @@ def _z_flips(
     order; the windows of one colour are too far apart to share a failed position.
     """
     model, px = fit.model, fit.px
-    lo, hi = model.z_range
-    span = hi - lo
     n = len(windows)
     arrs = [b.emitters.as_array().reshape(-1, 4).copy() for b in best]
-    near = [
-        [k for k in range(len(a)) if min(a[k, 2] - lo, hi - a[k, 2]) <= fraction * span]
-        for a in arrs
-    ]
+    near = [_near_ends(a, model.z_range, fraction) for a in arrs]
     pos = [0] * n
     flipped = [False] * n
     while True:
@@ -399,14 +378,13 @@ def _z_flips(
             w = windows[j]
             arr = arrs[j]
             for k in near[j][pos[j] :]:
-                if _excluded(failed[j], arr[k]):
+                if _lost_flip_near(failed[j], arr[k]):
                     continue
                 others = np.delete(arr, k, axis=0)
                 off = w.offset
                 if len(others):
                     off = off + model.render(*others.T, w.shape, px, origin=w.origin)
-                alt = arr[k].copy()
-                alt[2] = np.clip(alt[2] - span if alt[2] > (lo + hi) / 2 else alt[2] + span, lo, hi)
+                alt = _flipped(arr[k], model.z_range)
                 trials[(j, k)] = len(reqs)
                 reqs.append(_Request(w, alt[None], off, float(best[j].background[0])))
         if not reqs:
@@ -416,7 +394,7 @@ def _z_flips(
             for k in near[j][pos[j] :]:
                 pos[j] += 1
                 # decided in order, as _try_z_flips: a loss just recorded may exclude k
-                if _excluded(failed[j], arrs[j][k]):
+                if _lost_flip_near(failed[j], arrs[j][k]):
                     continue
                 one = ones[trials[(j, k)]]
                 if one.log_likelihood > best[j].log_likelihood and len(one.emitters) == 1:

@@ -56,7 +56,6 @@ __all__ = [
     "LR_THRESHOLD",
     "NOISE_MODELS",
     "FitResult",
-    "background_basis",
     "fit_emitters",
     "fit_with_count_selection",
     "refine_solution",
@@ -115,18 +114,6 @@ class FitResult:
         return 4 * len(self.emitters) + self.background.size
 
 
-def background_basis(shape: tuple[int, int], plane: bool) -> list[NDArray[np.float64]]:
-    """Images of the background parameters: ones, and for a tilted plane ``u`` and ``v``
-    (pixel offsets from the window centre over half the window size), each ``shape``."""
-    rows, cols = shape
-    basis = [np.ones(shape)]
-    if plane:
-        u = (np.arange(cols) - (cols - 1) / 2) / max(cols / 2, 1)
-        v = (np.arange(rows) - (rows - 1) / 2) / max(rows / 2, 1)
-        basis += [np.broadcast_to(u[None, :], shape), np.broadcast_to(v[:, None], shape)]
-    return basis
-
-
 class _Problem:
     """The window, the PSF and the noise model: likelihood, gradient and Fisher matrix."""
 
@@ -157,7 +144,14 @@ class _Problem:
         rows, cols = y.shape
         self.plane = plane
         self.n_bg = 3 if plane else 1
-        self.bg_basis = background_basis(y.shape, plane)
+        u = (np.arange(cols) - (cols - 1) / 2) / max(cols / 2, 1)
+        v = (np.arange(rows) - (rows - 1) / 2) / max(rows / 2, 1)
+        self.bg_basis = [np.ones(y.shape)]
+        if plane:
+            self.bg_basis += [
+                np.broadcast_to(u[None, :], y.shape),
+                np.broadcast_to(v[:, None], y.shape),
+            ]
         self.zlo, self.zhi = model.z_range
         m = xy_margin * self.px
         self.xlo = self.origin[0] - m
