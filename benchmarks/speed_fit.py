@@ -8,7 +8,8 @@ NumPy, on PyTorch's CPU backend and, where available, on CUDA, all in float64 (p
 float32-rendering run), with one thread for BLAS and torch so that the ratios compare the
 code and not the cores. Agreement is measured against the loop.
 
-Usage: ``python benchmarks/speed_fit.py [--windows 500] [--seed 0] [--out FILE]``.
+Usage: ``python benchmarks/speed_fit.py [--windows 500] [--seed 0] [--out FILE]``;
+``--scaling 1000,10000,100000 --device cuda`` times ``fit_batch`` alone against the batch size.
 """
 
 from __future__ import annotations
@@ -294,13 +295,83 @@ def run(
     return {"meta": meta, "timings": timings, "agreement": agree}
 
 
+def scaling(
+    sizes: list[int],
+    device: str | None,
+    seed: int = 0,
+    *,
+    precision: str = "float64",
+    chunk: int | None = None,
+    spline: SplinePSF | None = None,
+) -> dict:
+    """Throughput of ``fit_batch`` against the number of windows fitted in one call.
+
+    Up to 5,000 distinct windows are simulated and repeated to fill the larger batches (the
+    iterations each window needs stay those of the distinct set). Each size is timed once
+    after a warm-up of 8 windows; the results come back as NumPy arrays, so a GPU's work is
+    complete when the clock stops.
+
+    Returns
+    -------
+    dict
+        ``rows``: windows, emitters, seconds, windows/s and emitters/s per size.
+    """
+    spline = make_spline() if spline is None else spline
+    base = make_windows(spline, min(max(sizes), 5000), seed)
+    batch_fit(spline, {k: v[:8] for k, v in base.items()}, device=device, precision=precision)
+    rows = []
+    for n in sizes:
+        reps = -(-n // len(base["windows"]))
+        data = {k: np.concatenate([v] * reps)[:n] for k, v in base.items()}
+        sec, _ = _timed(
+            lambda d=data: batch_fit(spline, d, device=device, precision=precision, chunk=chunk)
+        )
+        ne = int(data["n_emitters"].sum())
+        rows.append(
+            {
+                "windows": n,
+                "emitters": ne,
+                "seconds": sec,
+                "windows_per_s": n / sec,
+                "emitters_per_s": ne / sec,
+            }
+        )
+        print(
+            f"{n:>9} windows {ne:>9} emitters {sec:9.3f} s {n / sec:>11.0f} windows/s "
+            f"{ne / sec:>11.0f} emitters/s",
+            flush=True,
+        )
+    return {
+        "device": device or "numpy",
+        "precision": precision,
+        "chunk": chunk,
+        "machine": platform.platform(),
+        "rows": rows,
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--windows", type=int, default=500)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument(
+        "--scaling",
+        default=None,
+        help="comma-separated batch sizes: time fit_batch alone against the batch size",
+    )
+    ap.add_argument("--device", default=None, help="fit_batch's device for --scaling")
+    ap.add_argument("--precision", default="float64", help="for --scaling")
+    ap.add_argument("--chunk", type=int, default=None, help="for --scaling")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.scaling:
+        sizes = [int(v) for v in args.scaling.split(",")]
+        out = scaling(sizes, args.device, args.seed, precision=args.precision, chunk=args.chunk)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(out, indent=2))
+        print(f"wrote {args.out}")
+        return
     out = run(args.windows, args.seed)
     print_table(out)
     args.out.parent.mkdir(parents=True, exist_ok=True)

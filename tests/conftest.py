@@ -29,3 +29,13 @@ def dh_model():
 @pytest.fixture(scope="session")
 def astig_model():
     return make_psf("astig")
+
+
+@pytest.fixture(params=["cpu", "cuda"])
+def torch_device(request) -> str:
+    """A PyTorch device for the backend tests: the CPU always, a CUDA GPU where one is present
+    (skipped elsewhere); skipped without PyTorch."""
+    torch = pytest.importorskip("torch")
+    if request.param == "cuda" and not torch.cuda.is_available():
+        pytest.skip("no CUDA GPU")
+    return request.param

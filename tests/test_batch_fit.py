@@ -183,15 +183,20 @@ def test_renderer_float32_is_close(spline):
     assert np.abs(single - ref).max() < 1e-6 * np.abs(ref).max()
 
 
-def test_renderer_torch_matches_numpy(spline):
-    torch = pytest.importorskip("torch")
+def test_renderer_torch_matches_numpy(spline, torch_device):
+    import torch
+
     rng = np.random.default_rng(2)
     x, y, z, origins = random_emitters(rng, 5, 3, (W, W))
     ref, dref = spline_images(spline, x, y, z, (W, W), origins, derivatives=True)
-    img, der = spline_images(spline, x, y, z, (W, W), origins, derivatives=True, device="cpu")
+    img, der = spline_images(
+        spline, x, y, z, (W, W), origins, derivatives=True, device=torch_device
+    )
     assert isinstance(img, torch.Tensor) and img.dtype == torch.float64
-    np.testing.assert_allclose(img.numpy(), ref, rtol=0, atol=1e-12 * np.abs(ref).max())
-    np.testing.assert_allclose(der.numpy(), dref, rtol=0, atol=1e-12 * np.abs(dref).max())
+    assert img.device.type == torch_device
+    img, der = img.cpu().numpy(), der.cpu().numpy()
+    np.testing.assert_allclose(img, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    np.testing.assert_allclose(der, dref, rtol=0, atol=1e-12 * np.abs(dref).max())
 
 
 # -- the fit against fit_emitters ----------------------------------------------------------------
@@ -223,17 +228,18 @@ def test_batch_options_equal_fit_emitters(spline):
     assert res.background_params.shape == (8, 3)
 
 
-def test_torch_cpu_equals_numpy(spline):
-    torch = pytest.importorskip("torch")
+def test_torch_equals_numpy(spline, torch_device):
+    import torch
+
     d = simulate(spline, 12, seed=8, offsets=True)
     ref = batch(spline, d, background=10.0)
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
-        res = batch(spline, d, background=10.0, device="cpu")
+        res = batch(spline, d, background=10.0, device=torch_device)
     finally:
         torch.set_num_threads(threads)
-    assert res.device == "cpu" and ref.device == "numpy"
+    assert res.device == torch_device and ref.device == "numpy"
     real = np.isfinite(ref.theta)
     np.testing.assert_allclose(res.theta[real], ref.theta[real], rtol=1e-8)
     np.testing.assert_allclose(res.log_likelihood, ref.log_likelihood, rtol=1e-10)

@@ -188,17 +188,16 @@ def test_bad_input(small):
         AtomSearch(object())  # type: ignore[arg-type]
 
 
-def test_torch_path_matches_numpy(dh_model, small, search):
-    pytest.importorskip("torch")
+def test_torch_path_matches_numpy(dh_model, small, search, torch_device):
     r = random_residuals(small, 80, seed=9)
     a = search.best(r)
-    b = search.best(r, device="cpu")
+    b = search.best(r, device=torch_device)
     np.testing.assert_array_equal(a[0], b[0])
     np.testing.assert_allclose(a[2], b[2], rtol=1e-12)
     ys = fig2_windows(dh_model, 10, seed=10)
     for f, g in zip(
         matching_pursuit_batch(ys, small),
-        matching_pursuit_batch(ys, small, device="cpu"),
+        matching_pursuit_batch(ys, small, device=torch_device),
         strict=True,
     ):
         assert same_selection(f, g)

@@ -260,14 +260,15 @@ def test_frames_in_lockstep_do_not_mix(spline, templates, crowded):
     assert np.all(matched_errors(alone_b.emitters.as_array(), truth_b) < 60.0)
 
 
-def test_torch_on_the_cpu_equals_numpy(spline, templates, crowded):
-    torch = pytest.importorskip("torch")
+def test_torch_equals_numpy(spline, templates, crowded, torch_device):
+    import torch
+
     frame, start = crowded
     kw = fit_kwargs(templates)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # small tensors: threads only add overhead on a shared machine
     try:
-        (got,) = frame_fit_batch([frame], spline, [start], device="cpu", **kw)
+        (got,) = frame_fit_batch([frame], spline, [start], device=torch_device, **kw)
     finally:
         torch.set_num_threads(threads)
     (ref,) = frame_fit_batch([frame], spline, [start], **kw)
