@@ -29,9 +29,12 @@ Formats, each written atomically (temporary file in the destination folder, then
 
 from __future__ import annotations
 
+import functools
+import io
 import json
 import logging
 import math
+import warnings
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -174,11 +177,9 @@ PICASSO_DTYPE = np.dtype(
 _PARQUET_KEY = b"sparseloc"
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 _PARQUET_MAGIC = b"PAR1"
-# pandas < 3 parses floats with a fast but inexact converter unless asked for round trips;
-# pandas >= 3 is exact by default and deprecates the argument.
-_CSV_KW: dict[str, Any] = (
-    {"float_precision": "round_trip"} if int(pd.__version__.split(".")[0]) < 3 else {}
-)
+# Values pandas' default CSV float converter has been seen to read one unit in the last place
+# off (pandas 2 and some pandas 3 builds; pandas 3.1 reads them exactly).
+_ROUND_TRIP_PROBES = ("226.99794465914354", "3896.1569467578365", "1469.7349595836233")
 _LENGTH_UNITS = {"nm": 1.0, "um": 1000.0, "µm": 1000.0}
 
 
@@ -391,9 +392,22 @@ def _csv_cells(frame: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
+@functools.cache
+def _csv_kw() -> dict[str, Any]:
+    """``read_csv`` arguments that read floats exactly: the default converter where it round-
+    trips the probes, else the round-trip converter (deprecated where the default is exact)."""
+    text = "a\n" + "\n".join(_ROUND_TRIP_PROBES) + "\n"
+    got = pd.read_csv(io.StringIO(text))["a"].to_numpy()
+    if np.array_equal(got, [float(v) for v in _ROUND_TRIP_PROBES]):
+        return {}
+    return {"float_precision": "round_trip"}
+
+
 def _read_csv(path: Path) -> pd.DataFrame:
     try:
-        df = pd.read_csv(path, skipinitialspace=True, **_CSV_KW)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*float_precision.*")
+            df = pd.read_csv(path, skipinitialspace=True, **_csv_kw())
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
         raise ValueError(f"{str(path)!r} is not a readable CSV table ({exc})") from exc
     df.columns = [str(c).strip().strip("\"'`").strip() for c in df.columns]
