@@ -375,3 +375,20 @@ def test_module_imports_without_torch():
         "assert 'torch' not in sys.modules, 'torch imported'"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@pytest.mark.parametrize("noise", ["poisson", "emccd", "scmos"])
+def test_batch_equals_fit_emitters_with_a_quantum_efficiency(spline, noise):
+    d = simulate(spline, 10, seed=11, offsets=True)
+    rv = 2.0 if noise == "scmos" else None
+    res = batch(spline, d, noise=noise, read_variance=rv, background=10.0, qe=0.7)
+    ref = loop(spline, d, read_variance=rv, noise=noise, background=10.0, qe=0.7)
+    assert_same_fits(ref, res)
+    if noise == "poisson":
+        # the same optimum; the Fisher information scaled by qe
+        plain = batch(spline, d, background=10.0)
+        real = np.isfinite(plain.sigma)
+        np.testing.assert_allclose(res.theta[real], plain.theta[real], atol=1e-5)
+        np.testing.assert_allclose(res.sigma[real], plain.sigma[real] / np.sqrt(0.7), rtol=1e-5)
+    with pytest.raises(ValueError, match="qe"):
+        batch(spline, d, qe=0.0)

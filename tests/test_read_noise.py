@@ -216,4 +216,6 @@ def test_cli_converts_the_variance_map_with_gain_and_qe(tmp_path):
     from sparseloc.io.tables import read_parquet
 
     # 16 ADU^2 x (0.5 e-/ADU)^2 / 0.8^2 = 6.25 photons^2
-    assert read_parquet(out)[1]["params"]["read_variance"] == pytest.approx(6.25)
+    params = read_parquet(out)[1]["params"]
+    assert params["read_variance"] == pytest.approx(6.25)
+    assert params["qe"] == 0.8  # the likelihood's quantum efficiency is the camera's

@@ -168,3 +168,66 @@ def test_residual_candidates_score_equals_direct_correlation(analytic, shape):
     assert stat == pytest.approx(best, rel=1e-4)  # single-precision FFTs
     # the best candidate is the missing emitter (within a pixel laterally)
     assert np.hypot(cands[0][0] - truth[1, 0], cands[0][1] - truth[1, 1]) < PX
+
+
+# -- quantum efficiency --------------------------------------------------------------------------
+@pytest.mark.parametrize("noise", ["poisson", "emccd", "scmos"])
+def test_qe_fits_photons_as_their_photoelectrons(analytic, noise):
+    """A frame in photons holds photoelectrons / qe: fitting it with ``qe`` is fitting the
+    photoelectrons themselves (same positions and position errors, photons scaled by qe,
+    same deviance)."""
+    q, v_e = 0.6, 4.0
+    truth = np.array([[800.0, 900.0, 150.0, 2500.0], [1000.0, 700.0, -300.0, 1500.0]])
+    t = truth.T
+    mu = analytic.render(t[0], t[1], t[2], t[3], (W, W), PX) + 10.0
+    rng = np.random.default_rng(21)
+    electrons = rng.poisson(q * mu).astype(float)
+    if noise == "scmos":
+        electrons = electrons + rng.normal(0.0, np.sqrt(v_e), electrons.shape)
+    start = truth + np.array([[30.0, -20.0, 60.0, 200.0], [-25.0, 30.0, -50.0, -150.0]])
+    kw = dict(pixel_size=PX, noise=noise)
+    rv_e = {"read_variance": v_e} if noise == "scmos" else {}
+    rv_ph = {"read_variance": v_e / q**2} if noise == "scmos" else {}
+    scale = np.array([1.0, 1.0, 1.0, q])
+    ref = fit_emitters(electrons, analytic, Emitters.from_array(start * scale), **kw, **rv_e)
+    got = fit_emitters(electrons / q, analytic, Emitters.from_array(start), **kw, **rv_ph, qe=q)
+    assert ref.converged and got.converged
+    np.testing.assert_allclose(got.emitters.as_array() * scale, ref.emitters.as_array(), atol=1e-4)
+    np.testing.assert_allclose(got.sigma * scale, ref.sigma, rtol=1e-5)
+    assert got.deviance_per_dof == pytest.approx(ref.deviance_per_dof, rel=1e-6)
+    plain = fit_emitters(electrons / q, analytic, Emitters.from_array(start), **kw, **rv_ph)
+    # the photon-counting model claims more precision than the photoelectrons carry
+    assert np.all(plain.sigma[:, :3] < got.sigma[:, :3])
+
+
+def test_qe_makes_the_uncertainties_honest(analytic):
+    """Isolated emitters recorded with qe = 0.5: the errors match the standard errors
+    reported with ``qe`` and exceed those of the photon-counting model by about sqrt(2)."""
+    q = 0.5
+    truth = np.array([860.0, 830.0, 250.0, 3000.0])
+    mu = analytic.render(*truth[:, None], (W, W), PX) + 10.0
+    rng = np.random.default_rng(22)
+    errs, sd_q, sd_1 = [], [], []
+    for _ in range(120):
+        img = rng.poisson(q * mu) / q
+        start = Emitters.from_array(
+            [truth + np.array([rng.normal(0, 20), rng.normal(0, 20), 40.0, 0])]
+        )
+        fit = fit_emitters(img, analytic, start, pixel_size=PX, qe=q)
+        naive = fit_emitters(img, analytic, start, pixel_size=PX)
+        errs.append(fit.emitters.as_array()[0, :3] - truth[:3])
+        sd_q.append(fit.sigma[0, :3])
+        sd_1.append(naive.sigma[0, :3])
+    rmse = np.sqrt(np.mean(np.square(errs), axis=0))
+    ratio = rmse / np.median(sd_q, axis=0)
+    # 120 samples: the RMSE is known to about +-7 %
+    assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
+    assert np.all(rmse / np.median(sd_1, axis=0) > 1.2)
+
+
+def test_qe_is_checked(analytic):
+    img = window(analytic, [850.0, 850.0, 0.0, 2000.0])
+    start = Emitters.from_array([[850.0, 850.0, 0.0, 2000.0]])
+    for bad in (0.0, 1.5, float("nan"), "high"):
+        with pytest.raises(ValueError, match="qe"):
+            fit_emitters(img, analytic, start, pixel_size=PX, qe=bad)

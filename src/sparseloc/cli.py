@@ -475,6 +475,7 @@ def localize(
             noise={"emccd": "emccd", "scmos": "scmos"}.get(opts["camera"], "poisson"),
             read_variance=float(read_var) if read_var.ndim == 0 else 0.0,
             device=None if opts["device"] in (None, "none") else opts["device"],
+            qe=cam.qe,
         )
         from tqdm import tqdm
 

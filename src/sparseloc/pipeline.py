@@ -36,7 +36,7 @@ from .psf.base import PSFModel
 from .psf.spline import SplinePSF
 from .solvers import WindowSolution, convex_solve, hybrid_solve, matching_pursuit
 from .solvers.frame import FrameFit, frame_fit, frame_templates, tiled_pursuit
-from .solvers.refine import refine_solution
+from .solvers.refine import check_qe, refine_solution
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +93,11 @@ class LocalizeParams:
     read_variance : float
         Read-noise variance per pixel in photons^2 (``noise="scmos"``): enters the
         detection threshold and the likelihood (Huang et al. 2013).
+    qe : float
+        The camera's quantum efficiency in (0, 1]: frames converted to photons hold
+        photoelectrons divided by it, so their shot noise is ``mu / qe``. It scales the
+        likelihood (uncertainties, count selection, goodness of fit) and the detection
+        threshold's noise; 1 treats the frames as photon counts.
     max_emitters : int
         Cap per window.
     device : str, optional
@@ -122,6 +127,7 @@ class LocalizeParams:
     max_emitters: int = 10
     read_variance: float = 0.0
     device: str | None = None
+    qe: float = 1.0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -136,6 +142,7 @@ class LocalizeParams:
             raise ValueError(f"noise must be poisson, emccd or scmos; got {self.noise!r}")
         if not (np.isfinite(self.read_variance) and self.read_variance >= 0):
             raise ValueError(f"read_variance must be >= 0 photons^2, got {self.read_variance}")
+        object.__setattr__(self, "qe", check_qe(self.qe))  # frozen: as a float
         if self.read_variance > 0 and self.noise != "scmos":
             raise ValueError(
                 f"read_variance applies to noise='scmos', not {self.noise!r} (it would be ignored)"
@@ -223,8 +230,9 @@ class _Solver:
                 self.fine,
                 refine=p.refine,
                 noise=p.noise,
+                noise_factor=_variance_factor(p),
                 max_emitters=p.max_emitters,
-                **_read_kwargs(p),
+                **_noise_kwargs(p),
             )
         if p.method == "mp":
             sol = matching_pursuit(
@@ -233,7 +241,7 @@ class _Solver:
                 orthogonal=True,
                 max_emitters=p.max_emitters,
                 replace_sweeps=2,
-                noise_factor=2.0 if p.noise == "emccd" else 1.0,
+                noise_factor=_variance_factor(p),
             )
         else:
             sol = convex_solve(y, self.coarse)
@@ -245,17 +253,23 @@ class _Solver:
                 pixel_size=p.pixel_size,
                 noise=p.noise,
                 max_emitters=p.max_emitters,
-                **_read_kwargs(p),
+                **_noise_kwargs(p),
             )
         return sol
 
 
-def _read_kwargs(p: LocalizeParams, read_variance: Any = None) -> dict:
-    """The read-noise keyword for the maximum-likelihood stage (sCMOS only): ``read_variance``
-    (a map) or else ``p.read_variance``."""
-    if p.noise != "scmos":
-        return {}
-    return {"read_variance": p.read_variance if read_variance is None else read_variance}
+def _noise_kwargs(p: LocalizeParams, read_variance: Any = None) -> dict:
+    """The noise keywords of the maximum-likelihood stage beside ``noise``: ``qe`` and, for
+    sCMOS, ``read_variance`` (a map) or else ``p.read_variance``."""
+    kw: dict[str, Any] = {"qe": p.qe}
+    if p.noise == "scmos":
+        kw["read_variance"] = p.read_variance if read_variance is None else read_variance
+    return kw
+
+
+def _variance_factor(p: LocalizeParams) -> float:
+    """Shot-noise variance per expected photon of the frames: 1 / qe, doubled for EMCCD."""
+    return (2.0 if p.noise == "emccd" else 1.0) / p.qe
 
 
 #: Largest pad (pixels) of a group's window around its emitters in the frame solver. The pad is
@@ -277,7 +291,7 @@ class _FrameSolver:
     ) -> None:
         self.model = model
         self.p = params
-        self.read_kw = _read_kwargs(params, read_variance)
+        self.noise_kw = _noise_kwargs(params, read_variance)
         zr = params.z_range or model.z_range
         self.templates = frame_templates(
             model, params.pixel_size, dxy=params.coarse[0], dz=params.coarse[1], z_range=zr
@@ -299,8 +313,8 @@ class _FrameSolver:
             background,
             self.templates,
             threshold=p.threshold,
-            noise_factor=2.0 if p.noise == "emccd" else 1.0,
-            read_variance=self.read_kw.get("read_variance", 0.0),
+            noise_factor=_variance_factor(p),
+            read_variance=self.noise_kw.get("read_variance", 0.0),
             correlators=self.correlators,
         )
 
@@ -315,7 +329,7 @@ class _FrameSolver:
             count_selection=p.refine,
             max_emitters=p.max_emitters,
             noise=p.noise,
-            **self.read_kw,
+            **self.noise_kw,
         )
 
     def __call__(self, frame: NDArray, background: NDArray) -> FrameFit:

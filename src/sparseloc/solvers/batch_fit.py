@@ -43,7 +43,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..psf.spline import SplinePSF, bspline_terms, table_coords
 from .emitters import Emitters
-from .refine import _MIN_BG, _MIN_PHOTONS, NOISE_MODELS, FitResult
+from .refine import _MIN_BG, _MIN_PHOTONS, NOISE_MODELS, FitResult, check_qe, likelihood_weight
 
 log = logging.getLogger(__name__)
 
@@ -1072,6 +1072,7 @@ def fit_batch(
     device: Any = None,
     precision: str = "float64",
     chunk: int | None = None,
+    qe: float = 1.0,
 ) -> BatchFitResult:
     """Maximum-likelihood fits of K emitters plus a background in each of B windows.
 
@@ -1120,6 +1121,8 @@ def fit_batch(
     chunk : int, optional
         Windows fitted together (bounds the memory: about ``chunk * (4 Kmax + n_bg) * R * C``
         doubles for the Jacobian); default 1024 on the CPU, 16384 on CUDA.
+    qe : float
+        Quantum efficiency in (0, 1] (see :func:`~sparseloc.solvers.refine.fit_emitters`).
 
     Returns
     -------
@@ -1142,6 +1145,10 @@ def fit_batch(
         raise ValueError(f"tol must be a non-negative number; got {tol!r}")
     if chunk is not None and int(chunk) < 1:
         raise ValueError(f"chunk must be at least 1; got {chunk!r}")
+    weight = likelihood_weight(noise, qe) if noise in NOISE_MODELS else 1.0
+    if read_variance is not None and check_qe(qe) != 1.0:
+        # on the photoelectron scale of the likelihood (see refine's module notes)
+        read_variance = np.asarray(_as_numpy(read_variance), dtype=np.float64) * float(qe)
     d = _prepare(
         windows,
         starts,
@@ -1161,7 +1168,6 @@ def fit_batch(
     tab = _table(spline, ops, ops.float_dtype(precision))
     if chunk is None:
         chunk = 16384 if ops.kind == "torch" and ops.device.type == "cuda" else 1024
-    weight = 0.5 if noise == "emccd" else 1.0
     n_bg = 3 if plane else 1
     nb = d["y"].shape[0]
     kmax = d["emask"].shape[1]
@@ -1170,7 +1176,7 @@ def fit_batch(
         sl = slice(s0, min(s0 + int(chunk), nb))
         parts.append(_fit_chunk(ops, tab, _take(d, sl), weight, n_bg, int(max_iter), float(tol)))
     res = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-    out = _collect(d, res, kmax, n_bg, ops.device_name, time.perf_counter() - t0)
+    out = _collect(d, res, kmax, n_bg, weight, ops.device_name, time.perf_counter() - t0)
     log.debug(
         "fit_batch: %d windows, %d emitters on %s in %.3f s; %d converged, mean %.1f iterations",
         nb,
@@ -1183,7 +1189,9 @@ def fit_batch(
     return out
 
 
-def _collect(d, res, kmax: int, n_bg: int, device: str, seconds: float) -> BatchFitResult:
+def _collect(
+    d, res, kmax: int, n_bg: int, weight: float, device: str, seconds: float
+) -> BatchFitResult:
     """NumPy results, uncertainties and flags as :func:`fit_emitters` reports them."""
     nb = res["theta"].shape[0]
     emask = d["emask"]
@@ -1218,7 +1226,7 @@ def _collect(d, res, kmax: int, n_bg: int, device: str, seconds: float) -> Batch
     yv = d["y"] + d["v"]
     muv = np.where(valid > 0, mu + d["v"], 1.0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        dev = 2.0 * (d["sat"] - np.sum(valid * (yv * np.log(muv) - muv), axis=(1, 2)))
+        dev = 2.0 * weight * (d["sat"] - np.sum(valid * (yv * np.log(muv) - muv), axis=(1, 2)))
     dof = np.maximum(d["n_valid"] - (4 * d["n_emitters"] + n_bg), 1)
     # The plane's value at the window centre is b0 (its coordinates are centred).
     return BatchFitResult(

@@ -602,6 +602,7 @@ def _response(model: PSFModel, y: NDArray, fit, kw: dict) -> NDArray[np.float64]
         kw.get("plane", False),
         1.0,
         kw.get("offset"),
+        kw.get("qe", 1.0),
     )
     theta = np.concatenate([fit.emitters.as_array().ravel(), fit.background])
     jac = prob.jacobian(theta)
@@ -738,7 +739,7 @@ def frame_fit(
         more than this (nm) laterally or twice this axially, and changes no pixel by more
         than :data:`SHIFT_CAP` standard deviations; 0 turns this test off.
     **fit_kwargs
-        ``noise``, ``read_variance`` (a map is cropped to each window), ``plane``.
+        ``noise``, ``read_variance`` (a map is cropped to each window), ``plane``, ``qe``.
 
     Returns
     -------

@@ -54,7 +54,7 @@ from .frame import (
     _near_ends,
     _settled,
 )
-from .refine import SKIP_FACTOR, FitResult, _residual_candidates
+from .refine import SKIP_FACTOR, FitResult, _residual_candidates, likelihood_weight
 
 log = logging.getLogger(__name__)
 
@@ -129,11 +129,14 @@ class _Fitter:
     with each list split into calls of similar windows); on a GPU fewer calls matter more.
     """
 
-    def __init__(self, model: SplinePSF, pixel_size: float, noise: str, device: Any) -> None:
+    def __init__(
+        self, model: SplinePSF, pixel_size: float, noise: str, device: Any, qe: float = 1.0
+    ) -> None:
         self.model = model
         self.px = float(pixel_size)
         self.noise = noise
         self.device = device
+        self.qe = qe
         self.calls = 0
         self.windows = 0
 
@@ -186,6 +189,7 @@ class _Fitter:
             noise=self.noise,
             read_variance=read_variance,
             device=self.device,
+            qe=self.qe,
         )
         self.calls += 1
         self.windows += nb
@@ -447,6 +451,7 @@ def frame_fit_batch(
     noise: str = "poisson",
     read_variance: float | ArrayLike | None = None,
     colouring: str = "windows",
+    qe: float = 1.0,
 ) -> list[FrameFit]:
     """:func:`~sparseloc.solvers.frame.frame_fit` for many frames in lockstep, with batched fits.
 
@@ -512,6 +517,8 @@ def frame_fit_batch(
     colouring : {"windows", "emitters"}
         Rule of the colouring (see the module notes): ``"windows"`` keeps the sweeps exact
         Gauss-Seidel sweeps; ``"emitters"`` needs fewer colours.
+    qe : float
+        Quantum efficiency in (0, 1] (see :func:`~sparseloc.solvers.refine.fit_emitters`).
 
     Returns
     -------
@@ -539,7 +546,7 @@ def frame_fit_batch(
         raise ValueError(f"{len(emitters)} sets of starting emitters for {n} frames")
     px = float(pixel_size)
     threshold = ADD_THRESHOLD if threshold is None else float(threshold)
-    weight = 0.5 if noise == "emccd" else 1.0
+    weight = likelihood_weight(noise, qe)
     bgs = _per_frame(background, n, "background")
     data: list[NDArray[np.float64]] = []
     bg_maps: list[NDArray[np.float64]] = []
@@ -555,7 +562,7 @@ def frame_fit_batch(
             rv_maps.append(None)
         else:
             rv_maps.append(np.broadcast_to(np.asarray(read_variance, dtype=np.float64), f.shape))
-    fit = _Fitter(model, px, noise, device)
+    fit = _Fitter(model, px, noise, device, qe)
     em = [e.as_array().reshape(-1, 4).copy() for e in emitters]
     info: list[list[tuple]] = [[] for _ in range(n)]
     # per frame, where z flips lost (x, y, z in nm): not tried again there (as frame_fit)

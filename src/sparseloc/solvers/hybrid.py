@@ -139,6 +139,7 @@ def hybrid_solve(
     read_variance: float | np.ndarray | None = None,
     plane: bool = False,
     link: float = 1.5,
+    qe: float = 1.0,
 ) -> WindowSolution:
     """The hybrid MP+CO solver, with a continuous maximum-likelihood fit as its last stage.
 
@@ -199,10 +200,11 @@ def hybrid_solve(
         Report the point-source (polished) emitters rather than the L1 weighted centres.
     refine, count_selection : bool
         Run the maximum-likelihood stage, and its count selection.
-    noise, read_variance, plane
+    noise, read_variance, plane, qe
         Likelihood and background model of the maximum-likelihood stage (see
         :func:`~sparseloc.solvers.refine.fit_emitters`). ``noise="emccd"`` also sets the
-        sparse stages' ``noise_factor`` to 2.
+        sparse stages' ``noise_factor`` to 2 when it is left at 1 (pass ``2 / qe`` with a
+        quantum efficiency below 1).
     link : float
         Grouping distance in grid steps.
 
@@ -342,6 +344,7 @@ def hybrid_solve(
             noise=noise,
             read_variance=read_variance,
             plane=plane,
+            qe=qe,
             max_emitters=max_emitters,
             extra_starts=alts,
         )

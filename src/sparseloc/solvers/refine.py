@@ -13,6 +13,14 @@ Likelihoods (``noise``):
 - ``"scmos"``: per-pixel read noise (Huang et al. 2013): ``y + v ~ Poisson(mu + v)`` with
   ``v`` the read-noise variance in photons^2 (a scalar or a map).
 
+Quantum efficiency (``qe``): a camera counts photoelectrons, ``e ~ Poisson(qe mu)``, and the
+frames hold ``e / qe`` photons, whose variance is ``mu / qe``, not ``mu``. The likelihood of
+the photoelectrons is ``qe`` times the Poisson objective in photons (times 1/2 for EMCCD), and
+the sCMOS read variance ``v`` (photons^2, ``v_e / qe^2``) enters as ``qe v``. The estimate is
+unchanged; the Fisher information, the uncertainties, the likelihood ratios of the count
+selection and the deviance are those of the detected photoelectrons. ``qe = 1`` (the default)
+is the plain photon-counting model.
+
 The fit is Levenberg-Marquardt with Fisher scoring: the step solves
 ``(F + lam diag F) d = -grad`` with ``F = sum(w dmu dmu' / mu)``; a step is taken only if the
 likelihood improves (then ``lam`` shrinks), else ``lam`` grows. z is kept inside the model's
@@ -30,7 +38,8 @@ carries the EMCCD weight, so the ratio is on that scale for EMCCD data too.
 
 Uncertainties: the Cramer-Rao bound at the fitted parameters, ``sqrt(diag(F^-1))`` (x, y, z in
 nm, photons), with the background parameters in ``F``. Goodness of fit: the deviance
-``2 sum(y log(y / mu) - (y - mu))`` per degree of freedom (about 1 for a good fit).
+``2 w sum(y log(y / mu) - (y - mu))`` per degree of freedom, with the likelihood's weight ``w``
+(EMCCD, ``qe``), about 1 for a good fit.
 
 Flags (one string per emitter, ``"ok"`` when fine): ``"z_edge"`` (z within 1 nm of the model's
 range, where the true z may lie outside), ``"outside"`` (x or y outside the window),
@@ -56,8 +65,10 @@ __all__ = [
     "LR_THRESHOLD",
     "NOISE_MODELS",
     "FitResult",
+    "check_qe",
     "fit_emitters",
     "fit_with_count_selection",
+    "likelihood_weight",
     "refine_solution",
 ]
 
@@ -114,11 +125,38 @@ class FitResult:
         return 4 * len(self.emitters) + self.background.size
 
 
+def check_qe(qe: float) -> float:
+    """``qe`` as a float in (0, 1]; ValueError naming the value otherwise."""
+    try:
+        q = float(qe)
+    except (TypeError, ValueError):
+        raise ValueError(f"qe must be a number in (0, 1]; got {qe!r}") from None
+    if not (np.isfinite(q) and 0.0 < q <= 1.0):
+        raise ValueError(f"qe must be in (0, 1] (the fraction of photons detected); got {qe!r}")
+    return q
+
+
+def likelihood_weight(noise: str, qe: float = 1.0) -> float:
+    """The weight ``w`` of the Poisson objective in photons (see the module notes): ``qe``,
+    halved for EMCCD data (excess noise factor 2)."""
+    return (0.5 if noise == "emccd" else 1.0) * check_qe(qe)
+
+
 class _Problem:
     """The window, the PSF and the noise model: likelihood, gradient and Fisher matrix."""
 
     def __init__(
-        self, y, model, pixel_size, origin, noise, read_variance, plane, xy_margin, offset=None
+        self,
+        y,
+        model,
+        pixel_size,
+        origin,
+        noise,
+        read_variance,
+        plane,
+        xy_margin,
+        offset=None,
+        qe=1.0,
     ):
         if noise not in NOISE_MODELS:
             raise ValueError(f"noise must be one of {', '.join(NOISE_MODELS)}; got {noise!r}")
@@ -127,11 +165,14 @@ class _Problem:
         self.px = float(pixel_size)
         self.origin = (float(origin[0]), float(origin[1]))
         self.shape = y.shape
-        self.weight = 0.5 if noise == "emccd" else 1.0
+        self.weight = likelihood_weight(noise, qe)
         if noise == "scmos":
             if read_variance is None:
                 raise ValueError("noise='scmos' needs read_variance (photons^2, scalar or map)")
-            self.v = np.broadcast_to(np.asarray(read_variance, dtype=np.float64), y.shape)
+            # on the photoelectron scale of the likelihood: qe * v (see the module notes)
+            self.v = check_qe(qe) * np.broadcast_to(
+                np.asarray(read_variance, dtype=np.float64), y.shape
+            )
             if np.any(self.v < 0):
                 raise ValueError("read_variance must be >= 0")
         else:
@@ -217,7 +258,7 @@ class _Problem:
 
     def deviance(self, mu):
         muv = mu + self.v
-        return 2.0 * (self._sat - float(np.sum(self.yv * np.log(muv) - muv)))
+        return 2.0 * self.weight * (self._sat - float(np.sum(self.yv * np.log(muv) - muv)))
 
 
 def fit_emitters(
@@ -235,6 +276,7 @@ def fit_emitters(
     tol: float = 1e-6,
     xy_margin: float = 1.0,
     offset: ArrayLike | None = None,
+    qe: float = 1.0,
 ) -> FitResult:
     """Maximum-likelihood fit of K emitters plus a background in one window.
 
@@ -267,6 +309,9 @@ def fit_emitters(
     offset : float or ndarray, shape (rows, cols), optional
         Known expected light (photons/pixel) added to the model and not fitted, such as the
         images of neighbouring emitters fitted in other windows.
+    qe : float
+        Quantum efficiency in (0, 1]: the frames hold photoelectrons divided by it, so their
+        variance is ``mu / qe`` (see the module notes); 1 for photon-counting data.
 
     Returns
     -------
@@ -277,7 +322,9 @@ def fit_emitters(
         raise ValueError("fit_emitters takes one window (rows, cols)")
     if np.any(y < -1e-9) and noise != "scmos":
         raise ValueError("the window has negative photon counts; convert ADU to photons first")
-    prob = _Problem(y, model, pixel_size, origin, noise, read_variance, plane, xy_margin, offset)
+    prob = _Problem(
+        y, model, pixel_size, origin, noise, read_variance, plane, xy_margin, offset, qe
+    )
     em0 = emitters.as_array()
     if background is None:
         resid = y - prob.mu(np.concatenate([em0.ravel(), np.zeros(prob.n_bg)]))
@@ -556,7 +603,7 @@ def fit_with_count_selection(
     kw = dict(pixel_size=pixel_size, origin=origin, **fit_kwargs)
     best = fit_emitters(y, model, emitters, **kw)
     best.history.append(f"K={len(best.emitters)} logL={best.log_likelihood:.1f}")
-    w = 0.5 if fit_kwargs.get("noise", "poisson") == "emccd" else 1.0
+    w = likelihood_weight(fit_kwargs.get("noise", "poisson"), fit_kwargs.get("qe", 1.0))
     changes = 0
     while changes < max_changes or (
         len(best.emitters) and best.emitters.photons.min() < min_photons
