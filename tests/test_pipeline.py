@@ -60,6 +60,17 @@ def test_background_and_detection_find_a_double_helix_once():
     found = cand[:, ::-1] * PX + PX / 2  # (x, y) nm of the pixel centres
     for p in truth[:, :2]:
         assert np.min(np.linalg.norm(found - p, axis=1)) < 2 * PX
+    # The noise model scales the bar: variance noise_factor * background + read variance.
+    snr = [
+        detect_candidates(frames[4], bg, tmpl, threshold=t, noise_factor=f, read_variance=r)
+        for t, f, r in ((10.0, 1.0, 0.0), (5.0, 4.0, 0.0), (5.0, 1.0, 3.0 * bg))
+    ]
+    np.testing.assert_array_equal(snr[0], snr[1])  # twice the noise: half the SNR
+    np.testing.assert_array_equal(snr[0], snr[2])  # a read-variance map 3 b: the same
+    half = np.zeros(frames[4].shape)
+    half[:, :20] = 1e6
+    right = detect_candidates(frames[4], bg, tmpl, threshold=5.0, read_variance=half)
+    assert len(right) >= 1 and np.all(right[:, 1] > 20)  # the left emitter is not found
 
 
 def test_end_to_end_on_a_small_movie():

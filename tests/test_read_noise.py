@@ -105,6 +105,31 @@ def test_constant_read_variance_map_equals_the_scalar(analytic, movie):
     assert a.table.sigma_x_nm.median() > c.table.sigma_x_nm.median()
 
 
+@pytest.mark.parametrize("method", ["mp", "hybrid"])
+def test_windowed_solvers_take_a_read_variance_map(analytic, movie, method):
+    """The windowed solvers crop a map to each window: a constant map is the scalar, and a
+    map that is noisy on the left half keeps only the right half's localizations (those of the
+    quiet run there)."""
+    kw = dict(pixel_size=PX, method=method, noise="scmos")
+    scalar = localize(movie, analytic, LocalizeParams(**kw, read_variance=4.0))
+    mapped = localize(
+        movie, analytic, LocalizeParams(**kw), read_variance=np.full(movie.shape[1:], 4.0)
+    )
+    assert len(scalar.table) > 3
+    pd.testing.assert_frame_equal(scalar.table, mapped.table)
+    half = np.full(movie.shape[1:], 4.0)
+    half[:, :20] = 1e4
+    noisy = localize(movie, analytic, LocalizeParams(**kw), read_variance=half).table
+    # Beyond 32 px neither a window owning an emitter (11 px, 3 px margin) nor the detection
+    # template (23 px) reaches the noisy half.
+    far = 32 * PX
+    assert (scalar.table.x_nm > far).sum() >= 1
+    assert len(noisy) and (noisy.x_nm > 20 * PX).all()
+    np.testing.assert_allclose(
+        np.sort(noisy.x_nm[noisy.x_nm > far]), np.sort(scalar.table.x_nm[scalar.table.x_nm > far])
+    )
+
+
 @pytest.mark.parametrize(
     ("kwargs", "rv", "message"),
     [

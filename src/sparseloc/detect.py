@@ -132,14 +132,20 @@ def detect_candidates(
     *,
     threshold: float = 5.0,
     min_distance: int | None = None,
+    noise_factor: float = 1.0,
+    read_variance: float | NDArray = 0.0,
 ) -> NDArray[np.float64]:
     """Candidate emitter positions (row, col in pixels) in one frame.
 
     The signal-to-noise map is ``corr / sqrt(var)`` with ``corr`` the correlation of
-    ``frame - background`` with ``template`` and ``var = background * sum(template^2)`` its
-    Poisson variance; local maxima above ``threshold`` are returned, strongest first. Maxima
-    closer than ``min_distance`` pixels to a stronger one are dropped (default: the radius of
-    the template's part above half its maximum, so a double helix's lobes give one candidate).
+    ``frame - background`` with ``template`` and ``var`` its variance under the background:
+    ``sum(template^2 (noise_factor * background + read_variance))`` over the template's
+    pixels (``noise_factor``: shot-noise variance per photon, 2 for EMCCD, 1 / qe for frames
+    converted from photoelectrons; ``read_variance``: sCMOS read noise in photons^2, a scalar
+    or a map of the frame's shape). Local maxima above ``threshold`` are returned, strongest
+    first. Maxima closer than ``min_distance`` pixels to a stronger one are dropped (default:
+    the radius of the template's part above half its maximum, so a double helix's lobes give
+    one candidate).
     """
     f = np.asarray(frame, dtype=np.float64)
     bg = np.broadcast_to(np.asarray(background, dtype=np.float64), f.shape)
@@ -149,7 +155,9 @@ def detect_candidates(
         min_distance = max(2, int(np.ceil(np.sqrt(np.count_nonzero(t > 0.5 * t.max()) / np.pi))))
     kernel = t[::-1, ::-1]
     corr = fftconvolve(f - bg, kernel, mode="same")
-    var = fftconvolve(np.maximum(bg, 1e-3), kernel**2, mode="same")
+    rv = np.broadcast_to(np.asarray(read_variance, dtype=np.float64), f.shape)
+    noise = float(noise_factor) * np.maximum(bg, 1e-3) + rv
+    var = fftconvolve(noise, kernel**2, mode="same")
     snr = corr / np.sqrt(np.maximum(var, 1e-12))
     peaks = (ndi.maximum_filter(snr, size=2 * min_distance + 1) == snr) & (snr > threshold)
     rc = np.argwhere(peaks)

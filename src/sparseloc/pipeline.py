@@ -221,7 +221,8 @@ class _Solver:
         self.coarse = Dictionary(model, w, px, *params.coarse, zr)
         self.fine = Dictionary(model, w, px, *params.fine, zr) if params.method != "co" else None
 
-    def __call__(self, y: NDArray) -> WindowSolution:
+    def __call__(self, y: NDArray, read_variance: NDArray | None = None) -> WindowSolution:
+        """Solve window ``y``; ``read_variance``: the window's crop of a read-variance map."""
         p = self.p
         if p.method == "hybrid":
             return hybrid_solve(
@@ -232,7 +233,7 @@ class _Solver:
                 noise=p.noise,
                 noise_factor=_variance_factor(p),
                 max_emitters=p.max_emitters,
-                **_noise_kwargs(p),
+                **_noise_kwargs(p, read_variance),
             )
         if p.method == "mp":
             sol = matching_pursuit(
@@ -253,7 +254,7 @@ class _Solver:
                 pixel_size=p.pixel_size,
                 noise=p.noise,
                 max_emitters=p.max_emitters,
-                **_noise_kwargs(p),
+                **_noise_kwargs(p, read_variance),
             )
         return sol
 
@@ -430,7 +431,8 @@ def localize(
         the same whatever the number; the reading and the background stay here.
     read_variance : ndarray, shape (rows, cols), optional
         Per-pixel read-noise variance (photons^2) of an sCMOS camera, for ``noise="scmos"``
-        with the frame solver; replaces ``params.read_variance``.
+        (every solver: the windowed ones crop it to each window); replaces
+        ``params.read_variance``.
 
     Returns
     -------
@@ -467,10 +469,10 @@ def localize(
             raise ValueError(
                 f"the read-variance map is {read_variance.shape}, the frames are {tuple(shape)}"
             )
-        if p.noise != "scmos" or p.method != "frame":
+        if p.noise != "scmos":
             raise ValueError(
-                "a per-pixel read-variance map (--variance-map) needs the sCMOS likelihood and "
-                "the frame solver (--method frame); the windowed solvers take a scalar read noise"
+                "a per-pixel read-variance map (--variance-map) needs the sCMOS likelihood "
+                "(noise 'scmos', --camera scmos)"
             )
         if not np.all(np.isfinite(read_variance)) or np.any(read_variance < 0):
             raise ValueError("the read-variance map must be finite and >= 0 photons^2")
@@ -559,6 +561,7 @@ class _FrameWork:
             self.solver: Any = _FrameSolver(work_model, p, shape, read_variance)
         else:
             self.solver = _Solver(work_model, p)
+            self.read_variance = read_variance
             zr = p.z_range or work_model.z_range
             tsize = min(2 * p.window + 1, 2 * (min(shape) // 2) - 1)
             self.template = z_averaged_psf(work_model, p.pixel_size, zr, tsize)
@@ -571,11 +574,20 @@ class _FrameWork:
             # window ids: the group index here; localize() makes them unique over the movie
             return [_frame_rows(fit, f, 0)], int(fit.group.max() + 1) if len(fit.group) else 0
         parts = []
-        cand = detect_candidates(frame, bg, self.template, threshold=p.threshold)
+        rv = self.read_variance
+        cand = detect_candidates(
+            frame,
+            bg,
+            self.template,
+            threshold=p.threshold,
+            noise_factor=_variance_factor(p),
+            read_variance=(p.read_variance if rv is None else rv) if p.noise == "scmos" else 0.0,
+        )
         todo = _tiles_to_solve(self.tiling, cand, p.margin)
         for tile in todo:
-            y = frame[tile.row0 : tile.row0 + p.window, tile.col0 : tile.col0 + p.window]
-            sol = self.solver(y)
+            rows = slice(tile.row0, tile.row0 + p.window)
+            cols = slice(tile.col0, tile.col0 + p.window)
+            sol = self.solver(frame[rows, cols], None if rv is None else rv[rows, cols])
             window_id = f * len(self.tiling) + tile.index
             parts.append(_rows(sol, tile, f, window_id, p.pixel_size))
         return parts, len(todo)
