@@ -392,3 +392,16 @@ def test_batch_equals_fit_emitters_with_a_quantum_efficiency(spline, noise):
         np.testing.assert_allclose(res.sigma[real], plain.sigma[real] / np.sqrt(0.7), rtol=1e-5)
     with pytest.raises(ValueError, match="qe"):
         batch(spline, d, qe=0.0)
+
+
+def test_no_iterations_evaluate_the_starts(spline):
+    """max_iter=0: the starts' likelihood, uncertainties and flags, as fit_emitters gives."""
+    d = simulate(spline, 6, seed=12, offsets=True)
+    res = batch(spline, d, background=10.0, max_iter=0)
+    ref = loop(spline, d, background=10.0, max_iter=0)
+    assert_same_fits(ref, res)
+    assert not res.converged.any() and np.all(res.n_iter == 0)
+    real = np.isfinite(res.theta)
+    np.testing.assert_allclose(res.theta[real], d["starts"][real])
+    with pytest.raises(ValueError, match="max_iter"):
+        batch(spline, d, max_iter=-1)

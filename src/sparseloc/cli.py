@@ -126,6 +126,7 @@ def simulate(
     gain: Annotated[float, typer.Option(help="Conversion gain (e-/ADU).")] = 1.0,
     em_gain: Annotated[float, typer.Option(help="EM gain (EMCCD).")] = 1.0,
     read_noise: Annotated[float, typer.Option(help="Read noise (e- rms, sCMOS).")] = 0.0,
+    qe: Annotated[float, typer.Option(help="Quantum efficiency (detected fraction).")] = 1.0,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
 ) -> None:
     """Simulate a movie with ground truth: writes OUT.tif and OUT_truth.csv."""
@@ -139,7 +140,13 @@ def simulate(
         _fail(f"the output must be a .tif file, got {out.name!r}")
     model = _run(make_psf, psf)
     cam = _run(
-        Camera, kind=camera.value, offset=offset, gain=gain, em_gain=em_gain, read_noise=read_noise
+        Camera,
+        kind=camera.value,
+        offset=offset,
+        gain=gain,
+        em_gain=em_gain,
+        read_noise=read_noise,
+        qe=qe,
     )
     z_range = None
     if z_min is not None or z_max is not None:

@@ -177,9 +177,6 @@ PICASSO_DTYPE = np.dtype(
 _PARQUET_KEY = b"sparseloc"
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 _PARQUET_MAGIC = b"PAR1"
-# Values pandas' default CSV float converter has been seen to read one unit in the last place
-# off (pandas 2 and some pandas 3 builds; pandas 3.1 reads them exactly).
-_ROUND_TRIP_PROBES = ("226.99794465914354", "3896.1569467578365", "1469.7349595836233")
 _LENGTH_UNITS = {"nm": 1.0, "um": 1000.0, "µm": 1000.0}
 
 
@@ -394,13 +391,19 @@ def _csv_cells(frame: pd.DataFrame) -> pd.DataFrame:
 
 @functools.cache
 def _csv_kw() -> dict[str, Any]:
-    """``read_csv`` arguments that read floats exactly: the default converter where it round-
-    trips the probes, else the round-trip converter (deprecated where the default is exact)."""
-    text = "a\n" + "\n".join(_ROUND_TRIP_PROBES) + "\n"
+    """``read_csv`` arguments that read floats exactly. pandas < 3 needs the round-trip
+    converter; pandas 3 deprecates it as exact by default, but pandas 3.0.6 was seen to read
+    some values one unit in the last place off: the default is kept only where it reads back
+    500 seeded random doubles exactly."""
+    if int(pd.__version__.split(".")[0]) < 3:
+        return {"float_precision": "round_trip"}
+    rng = np.random.default_rng(0)
+    values = np.concatenate(
+        [rng.uniform(0.0, 1e4, 200), rng.normal(0.0, 500.0, 200), 10.0 ** rng.uniform(-8, 8, 100)]
+    )
+    text = "a\n" + "\n".join(repr(float(v)) for v in values) + "\n"
     got = pd.read_csv(io.StringIO(text))["a"].to_numpy()
-    if np.array_equal(got, [float(v) for v in _ROUND_TRIP_PROBES]):
-        return {}
-    return {"float_precision": "round_trip"}
+    return {} if np.array_equal(got, values) else {"float_precision": "round_trip"}
 
 
 def _read_csv(path: Path) -> pd.DataFrame:

@@ -1139,8 +1139,8 @@ def fit_batch(
     t0 = time.perf_counter()
     spline = _check_spline(spline, pixel_size)
     _check_precision(precision)
-    if int(max_iter) < 1:
-        raise ValueError(f"max_iter must be at least 1; got {max_iter!r}")
+    if int(max_iter) < 0:
+        raise ValueError(f"max_iter must be >= 0 (0: evaluate the starts); got {max_iter!r}")
     if not np.isfinite(tol) or tol < 0:
         raise ValueError(f"tol must be a non-negative number; got {tol!r}")
     if chunk is not None and int(chunk) < 1:

@@ -54,7 +54,7 @@ from .frame import (
     _near_ends,
     _settled,
 )
-from .refine import SKIP_FACTOR, FitResult, _residual_candidates, likelihood_weight
+from .refine import SKIP_FACTOR, FitResult, _residual_candidates, check_qe, likelihood_weight
 
 log = logging.getLogger(__name__)
 
@@ -497,7 +497,8 @@ def frame_fit_batch(
     count_selection : bool
         Test one emitter fewer and one more in each group by a likelihood ratio.
     threshold : float, optional
-        Likelihood-ratio threshold; default :data:`~sparseloc.solvers.frame.ADD_THRESHOLD`.
+        Likelihood-ratio threshold; default :data:`~sparseloc.solvers.frame.ADD_THRESHOLD`
+        (on the photon-counting scale, multiplied by ``qe``).
     min_photons : float
         Emitters with fewer photons are removed and never added.
     max_emitters : int
@@ -545,7 +546,8 @@ def frame_fit_batch(
     if len(emitters) != n:
         raise ValueError(f"{len(emitters)} sets of starting emitters for {n} frames")
     px = float(pixel_size)
-    threshold = ADD_THRESHOLD if threshold is None else float(threshold)
+    # on the photon-counting scale (see ADD_THRESHOLD)
+    threshold = (ADD_THRESHOLD if threshold is None else float(threshold)) * check_qe(qe)
     weight = likelihood_weight(noise, qe)
     bgs = _per_frame(background, n, "background")
     data: list[NDArray[np.float64]] = []
