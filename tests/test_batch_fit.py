@@ -407,14 +407,23 @@ def test_no_iterations_evaluate_the_starts(spline):
         batch(spline, d, max_iter=-1)
 
 
-def test_power_basis_weights_equal_the_spline_definition(torch_device):
-    """The batched renderer's B-spline weights (a power-basis product) are ``bspline_weights``."""
+def _assert_power_basis_weights(device):
     from sparseloc.psf.spline import bspline_weights
     from sparseloc.solvers.batch_fit import _as_numpy, _backend, _bspline
 
     f = np.random.default_rng(3).uniform(0.0, 1.0, 500)
     ref_w, ref_dw = bspline_weights(f)
-    for ops in (_backend(None), _backend(torch_device)):
-        w, dw = (np.asarray(_as_numpy(a)) for a in _bspline(ops.asarray(f), ops))
-        np.testing.assert_allclose(w, ref_w, rtol=0, atol=1e-15)
-        np.testing.assert_allclose(dw, ref_dw, rtol=0, atol=1e-15)
+    ops = _backend(device)
+    w, dw = (np.asarray(_as_numpy(a)) for a in _bspline(ops.asarray(f), ops))
+    np.testing.assert_allclose(w, ref_w, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(dw, ref_dw, rtol=0, atol=1e-15)
+
+
+def test_power_basis_weights_equal_the_spline_definition():
+    """The batched renderer's B-spline weights (Horner in the power basis) are
+    ``bspline_weights``."""
+    _assert_power_basis_weights(None)
+
+
+def test_power_basis_weights_on_torch(torch_device):
+    _assert_power_basis_weights(torch_device)
