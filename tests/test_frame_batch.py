@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import test_frame  # the keywords of the per-group solver's tests (tests/ is on sys.path)
 from sparseloc.psf import make_psf
 from sparseloc.psf.spline import SplinePSF
 from sparseloc.solvers import Emitters
@@ -51,16 +52,9 @@ def poisson_frame(model, truth, shape, background=10.0, seed=0):
 
 
 def fit_kwargs(templates):
-    """As tests/test_frame.py: groups within the radius of half the light, pads of 0.6 of
-    it, reach of half a template (here 500 nm, 3 px, 750 nm)."""
-    r50 = templates.core_radius
-    return dict(
-        pixel_size=PX,
-        background=10.0,
-        group_distance=r50 * PX,
-        pad=int(np.ceil(0.6 * r50)),
-        reach=0.5 * templates.images.shape[-1] * PX,
-    )
+    """tests/test_frame.py's keywords (here 500 nm groups, 3 px pads, 750 nm reach)."""
+    assert PX == test_frame.PX
+    return test_frame.frame_fit_kwargs(templates)
 
 
 def matched_errors(est, truth, tol=150.0):
@@ -386,3 +380,24 @@ def test_a_cuda_device_without_a_gpu_is_refused():
 
     with pytest.raises(ValueError, match="no CUDA GPU"):
         check_device("cuda:0")
+
+
+def test_the_add_threshold_stays_on_the_photon_counting_scale(spline, templates, crowded):
+    """With a quantum efficiency the likelihood ratios shrink by qe and so does the threshold
+    (checked directly: on this frame no ratio lies between the two scales). Both solvers take
+    qe and select the same emitters as for photon counts, at the same places."""
+    from sparseloc.solvers.frame import ADD_THRESHOLD, add_threshold
+
+    assert add_threshold(None, 0.5) == ADD_THRESHOLD / 2 and add_threshold(100.0, 0.8) == 80.0
+    with pytest.raises(ValueError, match="qe"):
+        add_threshold(None, 0.0)
+    frame, start = crowded
+    kw = fit_kwargs(templates)
+    ref = frame_fit(frame, spline, start, **kw)
+    for got in (
+        frame_fit(frame, spline, start, **kw, qe=0.3),
+        frame_fit_batch([frame], spline, [start], **kw, qe=0.3)[0],
+    ):
+        # the same emitters; positions within the fits' stopping tolerance (rounding differs)
+        assert len(got.emitters) == len(ref.emitters)
+        np.testing.assert_allclose(got.emitters.as_array(), ref.emitters.as_array(), atol=1.0)

@@ -140,12 +140,11 @@ def detect_candidates(
     The signal-to-noise map is ``corr / sqrt(var)`` with ``corr`` the correlation of
     ``frame - background`` with ``template`` and ``var`` its variance under the background:
     ``sum(template^2 (noise_factor * background + read_variance))`` over the template's
-    pixels (``noise_factor``: shot-noise variance per photon, 2 for EMCCD, 1 / qe for frames
-    converted from photoelectrons; ``read_variance``: sCMOS read noise in photons^2, a scalar
-    or a map of the frame's shape). Local maxima above ``threshold`` are returned, strongest
-    first. Maxima closer than ``min_distance`` pixels to a stronger one are dropped (default:
-    the radius of the template's part above half its maximum, so a double helix's lobes give
-    one candidate).
+    pixels (``noise_factor``: shot-noise variance per expected photon, 2 for EMCCD data;
+    ``read_variance``: sCMOS read noise in photons^2, a scalar or a map of the frame's
+    shape). Local maxima above ``threshold`` are returned, strongest first. Maxima closer
+    than ``min_distance`` pixels to a stronger one are dropped (default: the radius of the
+    template's part above half its maximum, so a double helix's lobes give one candidate).
     """
     f = np.asarray(frame, dtype=np.float64)
     bg = np.broadcast_to(np.asarray(background, dtype=np.float64), f.shape)

@@ -585,7 +585,7 @@ class _FrameWork:
             self.template,
             threshold=p.threshold,
             noise_factor=_variance_factor(p),
-            read_variance=(p.read_variance if rv is None else rv) if p.noise == "scmos" else 0.0,
+            read_variance=_noise_kwargs(p, rv).get("read_variance", 0.0),
         )
         todo = _tiles_to_solve(self.tiling, cand, p.margin)
         for tile in todo:

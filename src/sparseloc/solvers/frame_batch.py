@@ -44,7 +44,6 @@ from ..psf.spline import SplinePSF
 from .batch_fit import fit_batch
 from .emitters import Emitters
 from .frame import (
-    ADD_THRESHOLD,
     FrameFit,
     _box,
     _flipped,
@@ -53,8 +52,9 @@ from .frame import (
     _near,
     _near_ends,
     _settled,
+    add_threshold,
 )
-from .refine import SKIP_FACTOR, FitResult, _residual_candidates, check_qe, likelihood_weight
+from .refine import SKIP_FACTOR, FitResult, _residual_candidates, likelihood_weight
 
 log = logging.getLogger(__name__)
 
@@ -546,8 +546,7 @@ def frame_fit_batch(
     if len(emitters) != n:
         raise ValueError(f"{len(emitters)} sets of starting emitters for {n} frames")
     px = float(pixel_size)
-    # on the photon-counting scale (see ADD_THRESHOLD)
-    threshold = (ADD_THRESHOLD if threshold is None else float(threshold)) * check_qe(qe)
+    threshold = add_threshold(threshold, qe)
     weight = likelihood_weight(noise, qe)
     bgs = _per_frame(background, n, "background")
     data: list[NDArray[np.float64]] = []

@@ -203,8 +203,7 @@ def hybrid_solve(
     noise, read_variance, plane, qe
         Likelihood and background model of the maximum-likelihood stage (see
         :func:`~sparseloc.solvers.refine.fit_emitters`). ``noise="emccd"`` also sets the
-        sparse stages' ``noise_factor`` to 2 when it is left at 1 (pass ``2 / qe`` with a
-        quantum efficiency below 1).
+        sparse stages' ``noise_factor`` to 2 when it is left at 1.
     link : float
         Grouping distance in grid steps.
 
