@@ -180,6 +180,11 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
     assert res.exit_code == 0, res.output
     table_b, meta_b = read_parquet(out_b)
     assert meta_b["params"]["device"] == "numpy" and abs(len(table_b) - len(table)) <= 2
+    assert meta["params"]["relocate"] == 2  # the default, recorded with the table
+    out_r = tmp_path / "locs_r.parquet"
+    res = run("localize", movie, "-o", out_r, "--config", cfg, "--relocate", "0")
+    assert res.exit_code == 0, res.output
+    assert read_parquet(out_r)[1]["params"]["relocate"] == 0
     # bad input: wrong pixel size, offset above the data, missing folder, unknown config key
     for args, msg in [
         (["--config", cfg, "--pixel-size", "100"], "differs from the movie"),
@@ -187,6 +192,7 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
         (["--config", cfg, "--n-sample", "1.33"], "apply to pupil models"),
         (["--config", cfg, "--psf", "dh", "--focal-depth", "500"], "needs --n-sample"),
         (["--config", cfg, "--device", "tpu"], "device must be numpy, cpu, cuda"),
+        (["--config", cfg, "--relocate", "-1"], "relocate"),
         (["--config", cfg, "--device", "numpy", "--workers", "2"], "use one worker"),
         (
             ["--config", cfg, "--device", "numpy", "--workers", "2", "--chunk-frames", "1"],

@@ -328,13 +328,75 @@ def test_z_flip_reaches_the_other_end_of_the_range(dh_table):
     start = Emitters.from_array([[2030.0, 1970.0, 990.0, 3000.0]])  # the wrong end
     fit = frame_fit(frame, dh_table, start, **kw)
     assert abs(fit.emitters.z[0] - (-900.0)) < 60.0
-    # Count selection can also get there (it may add an emitter and remove the stuck one),
-    # so the flip is isolated with count selection off: without it the fit stays at the
-    # wrong end, with it it reaches the right one.
-    stuck = frame_fit(frame, dh_table, start, count_selection=False, z_flip=0, **kw)
+    # Count selection and relocation can also get there (by adding an emitter and removing
+    # the stuck one, or by moving it), so the flip is isolated with both off: without it the
+    # fit stays at the wrong end, with it it reaches the right one.
+    stuck = frame_fit(frame, dh_table, start, count_selection=False, z_flip=0, relocate=0, **kw)
     assert stuck.emitters.z[0] > 900.0
-    flipped = frame_fit(frame, dh_table, start, count_selection=False, **kw)
+    flipped = frame_fit(frame, dh_table, start, count_selection=False, relocate=0, **kw)
     assert abs(flipped.emitters.z[0] - (-900.0)) < 60.0
+    moved = frame_fit(frame, dh_table, start, count_selection=False, z_flip=0, **kw)
+    assert abs(moved.emitters.z[0] - (-900.0)) < 60.0
+
+
+def test_relocation_moves_an_emitter_stuck_in_the_wrong_place(dh_table):
+    """Two emitters; the start has one right and the other 500 nm from its image at the
+    wrong z, where the sweeps cannot pull it back (of 40 random wrong starts of this kind,
+    26 stayed stuck and relocation freed 20). Relocation alone (count selection and z flips
+    off) puts it on its image; without relocation it stays wrong."""
+    from sparseloc.solvers.frame import _relocate
+
+    t = frame_templates(dh_table, PX, dxy=50.0, dz=120.0)
+    kw = frame_fit_kwargs(t)
+    truth = np.array([[2000.0, 2000.0, -300.0, 3000.0], [2600.0, 2300.0, 400.0, 3000.0]])
+    frame = poisson_frame(dh_table, truth, (48, 48), seed=2)
+    wrong = truth.copy()
+    wrong[1, :3] = [2464.0, 1943.0, -872.0]
+    start = Emitters.from_array(wrong)
+    off = dict(count_selection=False, z_flip=0, **kw)
+
+    def errors(e):
+        e = np.asarray(e).reshape(-1, 4)
+        return [np.min(np.hypot(e[:, 0] - p[0], e[:, 1] - p[1])) for p in truth]
+
+    stuck = frame_fit(frame, dh_table, start, relocate=0, **off)
+    assert len(stuck.emitters) == 2 and max(errors(stuck.emitters.as_array())) > 300.0
+    fixed = frame_fit(frame, dh_table, start, **off)
+    assert len(fixed.emitters) == 2 and max(errors(fixed.emitters.as_array())) < 40.0
+    # the batched solver runs the same passes (one group here: the same fits in order)
+    from sparseloc.solvers.frame_batch import frame_fit_batch
+
+    for relocate, ref in ((0, stuck), (2, fixed)):
+        (got,) = frame_fit_batch([frame], dh_table, [start], relocate=relocate, **off)
+        assert np.allclose(got.emitters.as_array(), ref.emitters.as_array(), atol=1e-3)
+    # a pass on the stuck solution keeps a relocation; on the fixed one none is left
+    failed: list = []
+    em, moved = _relocate(
+        frame,
+        dh_table,
+        stuck.emitters.as_array(),
+        stuck.background,
+        px=PX,
+        group_distance=kw["group_distance"],
+        pad=kw["pad"],
+        reach=kw["reach"],
+        min_photons=200.0,
+        failed=failed,
+    )
+    assert moved >= 1 and max(errors(em)) < 100.0
+    again, moved2 = _relocate(
+        frame,
+        dh_table,
+        fixed.emitters.as_array(),
+        fixed.background,
+        px=PX,
+        group_distance=kw["group_distance"],
+        pad=kw["pad"],
+        reach=kw["reach"],
+        min_photons=200.0,
+        failed=failed,
+    )
+    assert moved2 == 0 and np.array_equal(again, fixed.emitters.as_array())
 
 
 def test_memo_entries_are_reused_only_when_nothing_would_move():

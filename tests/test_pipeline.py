@@ -153,3 +153,19 @@ def test_the_camera_qe_reaches_the_likelihood(solver):
     assert 0.8 < got["gof"].median() < 1.3 and plain["gof"].median() > 1.6
     ratio = got["sigma_x_nm"].to_numpy() / plain["sigma_x_nm"].to_numpy()
     assert np.allclose(ratio, np.sqrt(2.0), rtol=0.1)
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5])
+def test_relocate_must_be_a_whole_number(bad):
+    with pytest.raises(ValueError, match="relocate"):
+        LocalizeParams(pixel_size=PX, relocate=bad)
+
+
+def test_relocate_reaches_the_frame_solver():
+    """LocalizeParams.relocate is what the frame solver's fits get."""
+    from sparseloc.pipeline import _FrameSolver
+
+    model = make_psf("dh-analytic")
+    for n in (0, 3):
+        solver = _FrameSolver(model, LocalizeParams(pixel_size=PX, relocate=n), (32, 32))
+        assert solver.fit_kwargs()["relocate"] == n

@@ -140,8 +140,6 @@ def test_bad_arguments(analytic):
 @pytest.mark.parametrize("shape", [(17, 17), (14, 23)])
 def test_residual_candidates_score_equals_direct_correlation(analytic, shape):
     """The FFT correlations behind the candidate search equal sums over the window."""
-    from types import SimpleNamespace
-
     from sparseloc.solvers.refine import _residual_candidates
 
     rows, cols = shape
@@ -151,9 +149,7 @@ def test_residual_candidates_score_equals_direct_correlation(analytic, shape):
     # the fit missed the second emitter
     mu = analytic.render(*truth[:1].T, shape, PX, origin=origin) + 10.0
     y = rng.poisson(analytic.render(*truth.T, shape, PX, origin=origin) + 10.0).astype(float)
-    cands, stat = _residual_candidates(
-        y, SimpleNamespace(model_image=mu), analytic, PX, origin, n_planes=n_planes
-    )
+    cands, stat = _residual_candidates(y, mu, analytic, PX, origin, n_planes=n_planes)
     zs = np.linspace(*analytic.z_range, n_planes)
     best = 0.0
     for r in range(rows):

@@ -208,6 +208,7 @@ LOCALIZE_DEFAULTS: dict = {
     "chunk_frames": None,
     "scheduler": None,
     "overwrite": False,
+    "relocate": 2,
 }
 
 
@@ -297,6 +298,14 @@ def localize(
     refine: Annotated[
         bool | None, typer.Option("--refine/--no-refine", help="Maximum-likelihood stage.")
     ] = None,
+    relocate: Annotated[
+        int | None,
+        typer.Option(
+            help="Relocation passes of the frame solver (default 2; 0: about 1.4x faster, "
+            "fewer emitters found in crowds).",
+            min=0,
+        ),
+    ] = None,
     background: Annotated[
         str | None,
         typer.Option(
@@ -369,6 +378,7 @@ def localize(
         "z_max": z_max,
         "threshold": threshold,
         "refine": refine,
+        "relocate": relocate,
         "background": background,
         "frames": frames,
         "format": fmt,
@@ -483,6 +493,7 @@ def localize(
             read_variance=float(read_var) if read_var.ndim == 0 else 0.0,
             device=None if opts["device"] in (None, "none") else opts["device"],
             qe=cam.qe,
+            relocate=opts["relocate"],
         )
         from tqdm import tqdm
 

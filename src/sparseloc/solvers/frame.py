@@ -20,6 +20,18 @@ one model:
    61-63 %, three 74 %; with 60 nm pursuit planes, up to 10 sweeps against 3 gave Jaccard
    80.1 against 76.0 % on one set of frames and 74.2 against 72.8 % on another, with lower
    RMSE on both.
+3. **Relocation** (:func:`_relocate`): the sweeps only go downhill, and in a crowd the
+   pursuit's greedy starts leave emitters in local optima (one emitter's image paired with
+   part of a neighbour's, a missed emitter explained by a wrong one nearby). Started from the
+   true emitters instead, the same sweeps found Jaccard 92.3 % against 74.6 % and a
+   log-likelihood higher by about 900 per frame (4 dense frames, 128 x 128 px, 1 /um^2), so
+   the gap is the search, not the data. After the sweeps (at most :data:`RELOCATE_AFTER` of
+   them, or fewer when they settle), each emitter in turn is taken out, its neighbours are
+   refitted without it, and the best PSF position in what they leave unexplained is fitted
+   in its place; kept if the likelihood rises. Then the sweeps go on. On 10 x 3 such frames
+   (the pipeline, one process): Jaccard 76.1 % -> 82.6 %, RMSE 32.2 -> 27.2 nm lateral and
+   46.5 -> 38.9 nm axial, every one of the 10 seeds better, at 1.36 times the time (83.6 ->
+   114.1 s). Up to 10 sweeps before each pass instead of 2: Jaccard 82.5 %, 159.7 s.
 """
 
 from __future__ import annotations
@@ -36,7 +48,13 @@ from scipy.optimize import nnls
 
 from ..psf.base import PSFModel, energy_radius
 from .emitters import Emitters
-from .refine import _Problem, check_qe, fit_emitters, fit_with_count_selection
+from .refine import (
+    _Problem,
+    _residual_candidates,
+    check_qe,
+    fit_emitters,
+    fit_with_count_selection,
+)
 
 log = logging.getLogger(__name__)
 
@@ -504,7 +522,7 @@ FLIP_MEMORY_NM = (20.0, 50.0)
 
 def _lost_flip_near(failed: list[NDArray] | None, xyz: NDArray) -> bool:
     """Whether an emitter (x, y, z in nm) is within :data:`FLIP_MEMORY_NM` of a position where
-    a z flip lost."""
+    a z flip (or a relocation) lost."""
     if not failed:
         return False
     f = np.asarray(failed)
@@ -586,6 +604,224 @@ def _try_z_flips(y, model, fit, kw, fraction, failed: list | None = None):
         trial.history = [*fit.history, "z flip"]
         return trial
     return fit
+
+
+#: Relocation passes of :func:`frame_fit` (see :func:`_relocate`), each followed by sweeps.
+#: On 4 dense frames, with up to 10 sweeps before each pass (Jaccard %, seconds): 0 passes
+#: 74.6, 11.3; 1 pass 85.7, 16.4; 2 passes 86.7, 17.3; 3 passes 87.0, 18.9.
+RELOCATE = 2
+#: A relocation pass follows at most this many sweeps (fewer when they settle): it moves some
+#: emitters far, and the sweeps after it settle them all. On 10 x 3 dense frames with 2
+#: passes (Jaccard %, seconds): 2 sweeps 82.6, 114; 3 sweeps 82.4, 134; 10 sweeps 82.5, 160.
+RELOCATE_AFTER = 2
+#: A relocation is tried only when the best candidate lies at least this far (pixels,
+#: laterally) from the emitter it would replace, or ...
+RELOCATE_MIN_SHIFT = 1.5
+#: ... at least this fraction of the z range away axially: nearer candidates are the emitter
+#: itself (in a first trial on 4 dense frames, 459 of 572 candidates were within 1 px, and a
+#: relocation to them gained under 0.1 in log-likelihood).
+RELOCATE_MIN_DZ = 0.15
+
+
+class RelocationTrial(NamedTuple):
+    """One relocation found by :func:`_relocation_trial`: emitter ``i`` of the frame replaced
+    by ``candidate`` (x, y, z, photons) in the window ``box`` (r0, r1, c0, c1 in pixels) of
+    its neighbourhood ``group`` (indices, ``i`` last)."""
+
+    i: int
+    group: NDArray[np.intp]
+    box: tuple[int, int, int, int]
+    offset: NDArray[np.float64]
+    background: float
+    candidate: NDArray[np.float64]
+
+
+def _relocation_trial(
+    f: NDArray,
+    model: PSFModel,
+    em: NDArray,
+    i: int,
+    bg: NDArray,
+    *,
+    px: float,
+    group_distance: float,
+    pad: int,
+    reach: float,
+    fit_kwargs: dict,
+) -> RelocationTrial | None:
+    """The relocation of emitter ``i`` worth a fit, or None.
+
+    Its neighbourhood (the emitters within ``group_distance`` of it, laterally) gets the
+    window of a group, with the light of the frame's other emitters as the offset. The
+    neighbours are fitted there without emitter ``i``, so that they take what of its light
+    they can explain, and the residual is searched for the best PSF position
+    (:func:`~sparseloc.solvers.refine._residual_candidates`). If that is emitter ``i`` itself
+    (closer than :data:`RELOCATE_MIN_SHIFT` pixels and :data:`RELOCATE_MIN_DZ` of the z
+    range), there is nothing to try. (The residual of the current model less emitter ``i``,
+    without that refit, gave the emitter itself nearly always: on 4 dense frames Jaccard
+    80.0 % against 86.9 % with the refit.)
+    """
+    rows, cols = f.shape
+    d = np.hypot(em[:, 0] - em[i, 0], em[:, 1] - em[i, 1])
+    near_i = np.flatnonzero(d < group_distance)
+    group = np.concatenate([near_i[near_i != i], [i]])
+    box = _box(em[group], rows, cols, px, pad)
+    r0, r1, c0, c1 = box
+    origin = (c0 * px, r0 * px)
+    shape = (r1 - r0, c1 - c0)
+    rest = np.ones(len(em), bool)
+    rest[group] = False
+    o = em[rest]
+    o = o[_near(o, box, px, reach)]
+    offset = model.render(*o.T, shape, px, origin=origin) if len(o) else np.zeros(shape)
+    background = float(np.mean(bg[group]))
+    y = _window_data(f, box, fit_kwargs)
+    if len(group) > 1:
+        kw = _window_kwargs(f, box, px, offset, background, fit_kwargs)
+        mu = fit_emitters(y, model, Emitters.from_array(em[group[:-1]]), **kw).model_image
+    else:
+        mu = offset + background
+    cands, _ = _residual_candidates(y, mu, model, px, origin, n_best=1)
+    if not cands:
+        return None
+    c = np.asarray(cands[0], dtype=np.float64)
+    lo, hi = model.z_range
+    if np.hypot(c[0] - em[i, 0], c[1] - em[i, 1]) < RELOCATE_MIN_SHIFT * px and abs(
+        c[2] - em[i, 2]
+    ) < RELOCATE_MIN_DZ * (hi - lo):
+        return None
+    return RelocationTrial(i, group, box, offset, background, c)
+
+
+def _window_data(f: NDArray, box: tuple[int, int, int, int], fit_kwargs: dict) -> NDArray:
+    """A window of the frame, clipped at zero unless the likelihood is sCMOS's (read noise
+    puts some pixels below zero; the Poisson fit needs counts >= 0)."""
+    r0, r1, c0, c1 = box
+    y = f[r0:r1, c0:c1]
+    return y if fit_kwargs.get("noise", "poisson") == "scmos" else np.maximum(y, 0.0)
+
+
+def _window_kwargs(f, box, px, offset, background, fit_kwargs) -> dict:
+    """Keywords of :func:`fit_emitters` for a window of the frame; a read-variance map in
+    ``fit_kwargs`` is cropped to it."""
+    r0, r1, c0, c1 = box
+    kw = dict(fit_kwargs, pixel_size=px, origin=(c0 * px, r0 * px), offset=offset)
+    kw["background"] = background
+    rv = kw.get("read_variance")
+    if rv is not None and np.ndim(rv) == 2:
+        kw["read_variance"] = np.broadcast_to(rv, f.shape)[r0:r1, c0:c1]
+    return kw
+
+
+def _relocate(
+    f: NDArray,
+    model: PSFModel,
+    em: NDArray,
+    bg: NDArray,
+    *,
+    px: float,
+    group_distance: float,
+    pad: int,
+    reach: float,
+    min_photons: float,
+    failed: list | None = None,
+    **fit_kwargs,
+) -> tuple[NDArray[np.float64], int]:
+    """One relocation pass over a frame's emitters: each in turn is removed and the best PSF
+    position of what its neighbours leave unexplained is fitted instead; kept if the
+    likelihood rises.
+
+    The sweeps of :func:`frame_fit` only move emitters downhill from where they are. In a
+    crowd the pursuit's greedy starts can pair one emitter's image with part of a
+    neighbour's, or explain a missed emitter by a nearby wrong one, and no downhill path
+    leads out: started from the true emitters, the same sweeps reached a log-likelihood
+    higher by about 900 per dense frame (see the module notes). A relocation jumps between
+    those optima: the emitter's neighbourhood is fitted jointly twice, from the current
+    emitters and with emitter ``i`` replaced by the candidate of :func:`_relocation_trial`;
+    the replacement is kept if its log-likelihood is higher, with the same count and no
+    emitter below ``min_photons`` or diverged.
+
+    Parameters
+    ----------
+    f : ndarray, shape (rows, cols)
+        The frame (photons).
+    model : PSFModel
+        The continuous PSF model.
+    em : ndarray, shape (K, 4)
+        The frame's emitters (x, y, z in nm, photons), e.g. after :func:`frame_fit`'s sweeps.
+    bg : ndarray, shape (K,)
+        Each emitter's fitted background (photons/pixel).
+    px, group_distance, pad, reach
+        As in :func:`frame_fit`.
+    min_photons : float
+        No emitter of a kept relocation may have fewer photons.
+    failed : list, optional
+        Positions (x, y, z in nm) where a relocation had nothing to try or lost, consulted
+        and extended: an emitter near one of them (:data:`FLIP_MEMORY_NM`) is not tried
+        again; a kept relocation forgets those within ``group_distance`` of its window.
+    **fit_kwargs
+        ``noise``, ``read_variance`` (a map is cropped to each window), ``plane``, ``qe``.
+
+    Returns
+    -------
+    em : ndarray, shape (K, 4)
+        The emitters after the pass (a copy; same order).
+    moved : int
+        How many relocations were kept.
+    """
+    em = np.array(em, dtype=np.float64).reshape(-1, 4)
+    bg = np.array(bg, dtype=np.float64)
+    moved = 0
+    for i in range(len(em)):
+        if _lost_flip_near(failed, em[i]):
+            continue
+        t = _relocation_trial(
+            f,
+            model,
+            em,
+            i,
+            bg,
+            px=px,
+            group_distance=group_distance,
+            pad=pad,
+            reach=reach,
+            fit_kwargs=fit_kwargs,
+        )
+        kept = False
+        if t is not None:
+            y = _window_data(f, t.box, fit_kwargs)
+            kw = _window_kwargs(f, t.box, px, t.offset, t.background, fit_kwargs)
+            base = fit_emitters(y, model, Emitters.from_array(em[t.group]), **kw)
+            kw["background"] = float(base.background[0])
+            start = np.vstack([em[t.group[:-1]], t.candidate[None]])
+            trial = fit_emitters(y, model, Emitters.from_array(start), **kw)
+            new = trial.emitters.as_array().reshape(-1, 4)
+            kept = bool(
+                trial.log_likelihood > base.log_likelihood
+                and len(new) == len(t.group)
+                and np.all(trial.flags != "diverged")
+                and new[:, 3].min() >= min_photons
+            )
+        if not kept:
+            if failed is not None:
+                failed.append(em[i, :3].copy())
+            continue
+        assert t is not None
+        em[t.group] = new
+        bg[t.group] = float(trial.background[0])
+        moved += 1
+        if failed:
+            # the neighbourhood changed: what lost near it may win now
+            r0, r1, c0, c1 = t.box
+            fa = np.asarray(failed)
+            keep = ~(
+                (fa[:, 0] > c0 * px - group_distance)
+                & (fa[:, 0] < c1 * px + group_distance)
+                & (fa[:, 1] > r0 * px - group_distance)
+                & (fa[:, 1] < r1 * px + group_distance)
+            )
+            failed[:] = [a for a, k in zip(failed, keep, strict=True) if k]
+    return em, moved
 
 
 #: Largest change of the neighbours' light (background standard deviations per pixel) for
@@ -706,6 +942,7 @@ def frame_fit(
     max_group: int = 8,
     skip_tolerance: float = 0.1,
     shift_tolerance: float = SHIFT_TOLERANCE,
+    relocate: int = RELOCATE,
     **fit_kwargs,
 ) -> FrameFit:
     """Maximum-likelihood fit of a frame's emitters, group by group.
@@ -729,7 +966,8 @@ def frame_fit(
     reach : float
         Emitters farther than this (nm) from a window are left out of its offset.
     sweeps : int
-        Most passes over the groups; fewer when a pass leaves every emitter in place.
+        Most passes over the groups after the last relocation pass (before one, at most
+        :data:`RELOCATE_AFTER`); fewer when a pass leaves every emitter in place.
     count_selection, threshold, min_photons, max_emitters
         Count selection in each group (see :func:`fit_with_count_selection`); the default
         threshold is :data:`ADD_THRESHOLD`, on the photon-counting scale (multiplied by
@@ -751,6 +989,11 @@ def frame_fit(
         fit's linear response (``-F^-1 J' diag(1/mu)``), would move none of its emitters by
         more than this (nm) laterally or twice this axially, and changes no pixel by more
         than :data:`SHIFT_CAP` standard deviations; 0 turns this test off.
+    relocate : int
+        Most relocation passes (:func:`_relocate`: each emitter in turn replaced by the best
+        PSF position of what the others leave unexplained, kept if the likelihood rises),
+        each after the sweeps have settled and followed by sweeps again; fewer when a pass
+        keeps none. 0 disables.
     **fit_kwargs
         ``noise``, ``read_variance`` (a map is cropped to each window), ``plane``, ``qe``.
 
@@ -773,7 +1016,10 @@ def frame_fit(
     # few emitters, so most groups are skipped).
     memo: dict[bytes, _Memo] = {}
     failed_flips: list[NDArray] = []
-    for _ in range(max(sweeps, 1)):
+    failed_moves: list[NDArray] = []  # where relocations lost (see _relocate)
+    passes = 0  # relocation passes done
+    in_round = 0  # sweeps since the start or the last relocation that kept one
+    while True:
         if len(em) == 0:
             break
         groups = _groups(em[:, :2], group_distance, max_group)
@@ -852,7 +1098,31 @@ def frame_fit(
         prev = em
         em = np.vstack(new_em) if new_em else np.zeros((0, 4))
         info = new_info
-        if _settled(prev, em):
+        in_round += 1
+        settled = _settled(prev, em)
+        if passes < relocate and len(em) and (settled or in_round >= RELOCATE_AFTER):
+            # before a relocation the emitters need not have settled exactly: it moves some
+            # of them far, and the sweeps after it settle them all
+            em, moved = _relocate(
+                f,
+                model,
+                em,
+                np.array([i[1] for i in info], dtype=np.float64),
+                px=px,
+                group_distance=group_distance,
+                pad=pad,
+                reach=reach,
+                min_photons=min_photons,
+                failed=failed_moves,
+                read_variance=rv,
+                **fit_kwargs,
+            )
+            log.debug("frame_fit: relocation pass %d kept %d of %d", passes, moved, len(em))
+            passes = passes + 1 if moved else relocate
+            if moved:
+                in_round = 0
+                continue
+        if settled or in_round >= max(sweeps, 1):
             break
     inside = (em[:, 0] >= 0) & (em[:, 0] < cols * px) & (em[:, 1] >= 0) & (em[:, 1] < rows * px)
     em = em[inside]

@@ -44,6 +44,8 @@ from ..psf.spline import SplinePSF
 from .batch_fit import fit_batch
 from .emitters import Emitters
 from .frame import (
+    RELOCATE,
+    RELOCATE_AFTER,
     FrameFit,
     _box,
     _flipped,
@@ -51,6 +53,7 @@ from .frame import (
     _lost_flip_near,
     _near,
     _near_ends,
+    _relocate,
     _settled,
     add_threshold,
 )
@@ -320,7 +323,7 @@ def _count_selection(
             b = best[j]
             w = windows[j]
             if len(b.emitters) < caps[j]:
-                cands, stat = _residual_candidates(w.y, b, model, px, w.origin)
+                cands, stat = _residual_candidates(w.y, b.model_image, model, px, w.origin)
             else:
                 cands, stat = [], 0.0
             if weight * stat >= threshold / SKIP_FACTOR:
@@ -452,6 +455,7 @@ def frame_fit_batch(
     read_variance: float | ArrayLike | None = None,
     colouring: str = "windows",
     qe: float = 1.0,
+    relocate: int = RELOCATE,
 ) -> list[FrameFit]:
     """:func:`~sparseloc.solvers.frame.frame_fit` for many frames in lockstep, with batched fits.
 
@@ -520,6 +524,9 @@ def frame_fit_batch(
         Gauss-Seidel sweeps; ``"emitters"`` needs fewer colours.
     qe : float
         Quantum efficiency in (0, 1] (see :func:`~sparseloc.solvers.refine.fit_emitters`).
+    relocate : int
+        Most relocation passes per frame, as in :func:`frame_fit`; they run frame by frame on
+        the CPU with unbatched fits. 0 disables.
 
     Returns
     -------
@@ -569,7 +576,12 @@ def frame_fit_batch(
     # per frame, where z flips lost (x, y, z in nm): not tried again there (as frame_fit)
     failed_flips: list[list[NDArray]] = [[] for _ in range(n)]
     running = [True] * n
-    for sweep in range(max(sweeps, 1)):
+    # per frame, as frame_fit: relocation passes done, sweeps since the last that kept one
+    passes = [0] * n
+    in_round = [0] * n
+    failed_moves: list[list[NDArray]] = [[] for _ in range(n)]
+    sweep = 0
+    while True:
         for i in range(n):
             if running[i] and len(em[i]) == 0:
                 running[i] = False
@@ -673,12 +685,37 @@ def frame_fit_batch(
             n_colours,
             fit.calls - calls0,
         )
+        sweep += 1
         for i in active:
             prev = em[i]
             parts = [a for a in new_em[i] if a is not None]
             em[i] = np.vstack(parts) if parts else np.zeros((0, 4))
             info[i] = [t for part in new_info[i] if part is not None for t in part]
-            if _settled(prev, em[i]):
+            in_round[i] += 1
+            settled = _settled(prev, em[i])
+            if passes[i] < relocate and len(em[i]) and (settled or in_round[i] >= RELOCATE_AFTER):
+                # frame_fit's relocation pass, frame by frame with unbatched fits (its trials
+                # are sequential: each sees the relocations before it)
+                em[i], moved = _relocate(
+                    data[i],
+                    model,
+                    em[i],
+                    np.array([t[1] for t in info[i]], dtype=np.float64),
+                    px=px,
+                    group_distance=group_distance,
+                    pad=pad,
+                    reach=reach,
+                    min_photons=min_photons,
+                    failed=failed_moves[i],
+                    noise=noise,
+                    qe=qe,
+                    read_variance=read_variance if rv_maps[i] is None else rv_maps[i],
+                )
+                passes[i] = passes[i] + 1 if moved else relocate
+                if moved:
+                    in_round[i] = 0
+                    continue
+            if settled or in_round[i] >= max(sweeps, 1):
                 running[i] = False
     log.debug("frame_fit_batch: %d fits in %d batched calls", fit.windows, fit.calls)
     out = []

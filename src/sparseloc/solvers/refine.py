@@ -522,10 +522,10 @@ def _valid(f_tmpl, padded, s, rows: int, cols: int):
     return full[:, 2 * pr - 1 - rows : 2 * pr - 1, 2 * pc - 1 - cols : 2 * pc - 1]
 
 
-def _residual_candidates(y, fit: FitResult, model, pixel_size, origin, n_planes=13, n_best=2):
-    """Up to ``n_best`` (x, y, z, photons) where the fit's residual correlates best with the
-    PSF, at least two pixels apart, best first, and the largest score statistic
-    ``corr^2 / var(corr)`` (Poisson variance from the fit) of an emitter on the grid.
+def _residual_candidates(y, model_image, model, pixel_size, origin, n_planes=13, n_best=2):
+    """Up to ``n_best`` (x, y, z, photons) where the residual ``y - model_image`` correlates
+    best with the PSF, at least two pixels apart, best first, and the largest score statistic
+    ``corr^2 / var(corr)`` (Poisson variance from ``model_image``) of an emitter on the grid.
 
     The correlations run in single precision (about 1e-6 relative: the statistic is compared
     with a threshold, the candidates only start fits)."""
@@ -534,9 +534,9 @@ def _residual_candidates(y, fit: FitResult, model, pixel_size, origin, n_planes=
         model, rows, cols, float(pixel_size), n_planes
     )
     resid = np.zeros(padded, np.float32)
-    resid[:rows, :cols] = y - fit.model_image
+    resid[:rows, :cols] = y - model_image
     mu = np.zeros(padded, np.float32)
-    mu[:rows, :cols] = np.maximum(fit.model_image, 1e-9)
+    mu[:rows, :cols] = np.maximum(model_image, 1e-9)
     corr = _valid(ft, resid, s, rows, cols).astype(np.float64)
     var = np.maximum(_valid(ft2, mu, s, rows, cols), 1e-24)
     stat = float(np.max(np.where(corr > 0, corr**2 / var, 0.0)))
@@ -635,7 +635,7 @@ def fit_with_count_selection(
                 changes += 1
                 continue
         cands, stat = (
-            _residual_candidates(y, best, model, pixel_size, origin)
+            _residual_candidates(y, best.model_image, model, pixel_size, origin)
             if k < max_emitters
             else ([], 0.0)
         )
