@@ -208,7 +208,7 @@ LOCALIZE_DEFAULTS: dict = {
     "chunk_frames": None,
     "scheduler": None,
     "overwrite": False,
-    "relocate": 2,
+    "relocate": None,  # LocalizeParams's default
 }
 
 
@@ -493,7 +493,7 @@ def localize(
             read_variance=float(read_var) if read_var.ndim == 0 else 0.0,
             device=None if opts["device"] in (None, "none") else opts["device"],
             qe=cam.qe,
-            relocate=opts["relocate"],
+            **({} if opts["relocate"] is None else {"relocate": opts["relocate"]}),
         )
         from tqdm import tqdm
 

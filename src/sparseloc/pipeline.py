@@ -35,7 +35,7 @@ from .io.tables import LOCS_COLUMNS, empty_locs
 from .psf.base import PSFModel
 from .psf.spline import SplinePSF
 from .solvers import WindowSolution, convex_solve, hybrid_solve, matching_pursuit
-from .solvers.frame import FrameFit, frame_fit, frame_templates, tiled_pursuit
+from .solvers.frame import RELOCATE, FrameFit, frame_fit, frame_templates, tiled_pursuit
 from .solvers.refine import check_qe, refine_solution
 
 log = logging.getLogger(__name__)
@@ -135,15 +135,23 @@ class LocalizeParams:
     read_variance: float = 0.0
     device: str | None = None
     qe: float = 1.0
-    relocate: int = 2
+    relocate: int = RELOCATE
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {', '.join(METHODS)}; got {self.method!r}")
         if not self.pixel_size > 0:
             raise ValueError(f"pixel_size must be > 0 nm, got {self.pixel_size}")
-        if int(self.relocate) != self.relocate or self.relocate < 0:
-            raise ValueError(f"relocate must be a whole number >= 0, got {self.relocate}")
+        r = self.relocate
+        if (
+            isinstance(r, bool)
+            or not isinstance(r, int | float | np.integer | np.floating)
+            or not np.isfinite(r)
+            or r < 0
+            or int(r) != r
+        ):
+            raise ValueError(f"relocate must be a whole number >= 0, got {r!r}")
+        object.__setattr__(self, "relocate", int(r))  # frozen: as an int
         if self.window < 5 or self.margin < 0 or self.window - 2 * self.margin < 1:
             raise ValueError(f"window {self.window} px and margin {self.margin} px leave no core")
         if self.background_frames < 1:

@@ -515,8 +515,8 @@ def _groups(xy: NDArray, distance: float, max_size: int = 8) -> list[NDArray[np.
     return out
 
 
-#: A z flip that failed is not tried again for an emitter within these distances (nm,
-#: lateral and axial) of where it failed, in the later sweeps over the same frame.
+#: A z flip (or a relocation) that failed is not tried again for an emitter within these
+#: distances (nm, lateral and axial) of where it failed, later on the same frame.
 FLIP_MEMORY_NM = (20.0, 50.0)
 
 
@@ -625,8 +625,10 @@ RELOCATE_MIN_DZ = 0.15
 
 class RelocationTrial(NamedTuple):
     """One relocation found by :func:`_relocation_trial`: emitter ``i`` of the frame replaced
-    by ``candidate`` (x, y, z, photons) in the window ``box`` (r0, r1, c0, c1 in pixels) of
-    its neighbourhood ``group`` (indices, ``i`` last)."""
+    by ``candidate`` (x, y, z in nm, photons) in the window ``box`` (r0, r1, c0, c1 in
+    pixels) of its neighbourhood ``group`` (indices, ``i`` last), whose fits start from
+    ``background`` and hold ``offset`` (the other emitters' light) fixed, both in
+    photons/pixel."""
 
     i: int
     group: NDArray[np.intp]
@@ -647,12 +649,14 @@ def _relocation_trial(
     group_distance: float,
     pad: int,
     reach: float,
+    max_group: int,
     fit_kwargs: dict,
 ) -> RelocationTrial | None:
     """The relocation of emitter ``i`` worth a fit, or None.
 
-    Its neighbourhood (the emitters within ``group_distance`` of it, laterally) gets the
-    window of a group, with the light of the frame's other emitters as the offset. The
+    Its neighbourhood (the emitters within ``group_distance`` of it, laterally, at most
+    ``max_group`` with it: the nearest) gets the window of a group, with the light of the
+    frame's other emitters as the offset. The
     neighbours are fitted there without emitter ``i``, so that they take what of its light
     they can explain, and the residual is searched for the best PSF position
     (:func:`~sparseloc.solvers.refine._residual_candidates`). If that is emitter ``i`` itself
@@ -663,8 +667,9 @@ def _relocation_trial(
     """
     rows, cols = f.shape
     d = np.hypot(em[:, 0] - em[i, 0], em[:, 1] - em[i, 1])
-    near_i = np.flatnonzero(d < group_distance)
-    group = np.concatenate([near_i[near_i != i], [i]])
+    near_i = np.flatnonzero((d < group_distance) & (np.arange(len(em)) != i))
+    near_i = near_i[np.argsort(d[near_i], kind="stable")][: max(max_group, 1) - 1]
+    group = np.concatenate([near_i, [i]]).astype(np.intp)
     box = _box(em[group], rows, cols, px, pad)
     r0, r1, c0, c1 = box
     origin = (c0 * px, r0 * px)
@@ -708,9 +713,38 @@ def _window_kwargs(f, box, px, offset, background, fit_kwargs) -> dict:
     kw = dict(fit_kwargs, pixel_size=px, origin=(c0 * px, r0 * px), offset=offset)
     kw["background"] = background
     rv = kw.get("read_variance")
-    if rv is not None and np.ndim(rv) == 2:
+    if rv is not None and np.ndim(rv) > 0:
         kw["read_variance"] = np.broadcast_to(rv, f.shape)[r0:r1, c0:c1]
     return kw
+
+
+def _relocation_fit(
+    f: NDArray,
+    model: PSFModel,
+    em: NDArray,
+    t: RelocationTrial,
+    px: float,
+    min_photons: float,
+    fit_kwargs: dict,
+) -> tuple[NDArray[np.float64], float] | None:
+    """The two fits of a relocation (:func:`_relocate`): its neighbourhood from the current
+    emitters and with emitter ``t.i`` replaced by the candidate. The replacement's emitters
+    (K, 4; the group's order) and background (photons/pixel) if its log-likelihood is
+    higher and no emitter is below ``min_photons`` or diverged, else None."""
+    y = _window_data(f, t.box, fit_kwargs)
+    kw = _window_kwargs(f, t.box, px, t.offset, t.background, fit_kwargs)
+    base = fit_emitters(y, model, Emitters.from_array(em[t.group]), **kw)
+    kw["background"] = float(base.background[0])
+    start = np.vstack([em[t.group[:-1]], t.candidate[None]])
+    trial = fit_emitters(y, model, Emitters.from_array(start), **kw)
+    new = trial.emitters.as_array().reshape(-1, 4)
+    if (
+        trial.log_likelihood > base.log_likelihood
+        and np.all(trial.flags != "diverged")
+        and new[:, 3].min() >= min_photons
+    ):
+        return new, float(trial.background[0])
+    return None
 
 
 def _relocate(
@@ -724,6 +758,7 @@ def _relocate(
     pad: int,
     reach: float,
     min_photons: float,
+    max_group: int = 8,
     failed: list | None = None,
     **fit_kwargs,
 ) -> tuple[NDArray[np.float64], int]:
@@ -755,10 +790,13 @@ def _relocate(
         As in :func:`frame_fit`.
     min_photons : float
         No emitter of a kept relocation may have fewer photons.
+    max_group : int
+        Most emitters of a neighbourhood (the nearest; as :func:`frame_fit`'s groups).
     failed : list, optional
         Positions (x, y, z in nm) where a relocation had nothing to try or lost, consulted
         and extended: an emitter near one of them (:data:`FLIP_MEMORY_NM`) is not tried
-        again; a kept relocation forgets those within ``group_distance`` of its window.
+        again; a kept relocation forgets those less than ``group_distance`` (per axis) from
+        its window.
     **fit_kwargs
         ``noise``, ``read_variance`` (a map is cropped to each window), ``plane``, ``qe``.
 
@@ -785,30 +823,18 @@ def _relocate(
             group_distance=group_distance,
             pad=pad,
             reach=reach,
+            max_group=max_group,
             fit_kwargs=fit_kwargs,
         )
-        kept = False
+        kept = None
         if t is not None:
-            y = _window_data(f, t.box, fit_kwargs)
-            kw = _window_kwargs(f, t.box, px, t.offset, t.background, fit_kwargs)
-            base = fit_emitters(y, model, Emitters.from_array(em[t.group]), **kw)
-            kw["background"] = float(base.background[0])
-            start = np.vstack([em[t.group[:-1]], t.candidate[None]])
-            trial = fit_emitters(y, model, Emitters.from_array(start), **kw)
-            new = trial.emitters.as_array().reshape(-1, 4)
-            kept = bool(
-                trial.log_likelihood > base.log_likelihood
-                and len(new) == len(t.group)
-                and np.all(trial.flags != "diverged")
-                and new[:, 3].min() >= min_photons
-            )
-        if not kept:
+            kept = _relocation_fit(f, model, em, t, px, min_photons, fit_kwargs)
+        if t is None or kept is None:
             if failed is not None:
                 failed.append(em[i, :3].copy())
             continue
-        assert t is not None
-        em[t.group] = new
-        bg[t.group] = float(trial.background[0])
+        # fit_emitters keeps the count and order of its starting emitters: the group's rows
+        em[t.group], bg[t.group] = kept
         moved += 1
         if failed:
             # the neighbourhood changed: what lost near it may win now
@@ -966,8 +992,9 @@ def frame_fit(
     reach : float
         Emitters farther than this (nm) from a window are left out of its offset.
     sweeps : int
-        Most passes over the groups after the last relocation pass (before one, at most
-        :data:`RELOCATE_AFTER`); fewer when a pass leaves every emitter in place.
+        Most passes over the groups after the start or after a relocation pass that kept
+        one; fewer when a pass leaves every emitter in place. A relocation pass comes after
+        at most ``min(sweeps, RELOCATE_AFTER)`` of them (or when they settle).
     count_selection, threshold, min_photons, max_emitters
         Count selection in each group (see :func:`fit_with_count_selection`); the default
         threshold is :data:`ADD_THRESHOLD`, on the photon-counting scale (multiplied by
@@ -992,8 +1019,8 @@ def frame_fit(
     relocate : int
         Most relocation passes (:func:`_relocate`: each emitter in turn replaced by the best
         PSF position of what the others leave unexplained, kept if the likelihood rises),
-        each after the sweeps have settled and followed by sweeps again; fewer when a pass
-        keeps none. 0 disables.
+        each after the sweeps settle or after :data:`RELOCATE_AFTER` of them, and followed
+        by sweeps again; the last pass is the first that keeps none. 0 disables.
     **fit_kwargs
         ``noise``, ``read_variance`` (a map is cropped to each window), ``plane``, ``qe``.
 
@@ -1018,6 +1045,7 @@ def frame_fit(
     failed_flips: list[NDArray] = []
     failed_moves: list[NDArray] = []  # where relocations lost (see _relocate)
     passes = 0  # relocation passes done
+    relocate_after = min(RELOCATE_AFTER, max(sweeps, 1))
     in_round = 0  # sweeps since the start or the last relocation that kept one
     while True:
         if len(em) == 0:
@@ -1100,7 +1128,7 @@ def frame_fit(
         info = new_info
         in_round += 1
         settled = _settled(prev, em)
-        if passes < relocate and len(em) and (settled or in_round >= RELOCATE_AFTER):
+        if passes < relocate and len(em) and (settled or in_round >= relocate_after):
             # before a relocation the emitters need not have settled exactly: it moves some
             # of them far, and the sweeps after it settle them all
             em, moved = _relocate(
@@ -1113,6 +1141,7 @@ def frame_fit(
                 pad=pad,
                 reach=reach,
                 min_photons=min_photons,
+                max_group=max_group,
                 failed=failed_moves,
                 read_variance=rv,
                 **fit_kwargs,

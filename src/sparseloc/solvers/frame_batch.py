@@ -461,7 +461,8 @@ def frame_fit_batch(
 
     Every frame is solved as :func:`frame_fit` solves it: the same groups (emitters closer than
     ``group_distance``, split above ``max_group``), windows, offsets, count selection, z flips,
-    sweeps and settle test, and the same output. Two things differ:
+    sweeps and settle test, relocation passes (run frame by frame on the CPU, as
+    :func:`frame_fit` runs them), and the same output. Two things differ:
 
     - Within a sweep the groups are visited colour by colour (see the module notes) instead of
       brightest first. With ``colouring="windows"`` groups of one colour cannot reach each
@@ -473,7 +474,8 @@ def frame_fit_batch(
       its neighbours' light barely changes) is not used: every group is refitted every sweep,
       as :func:`frame_fit` with ``skip_tolerance=0`` does.
 
-    Frames that settle (a sweep leaves every emitter in place) stop; the others go on.
+    A frame stops when its sweeps settle (a sweep leaves every emitter in place) and no
+    relocation pass is due or the last one kept none; the others go on.
 
     Parameters
     ----------
@@ -497,7 +499,8 @@ def frame_fit_batch(
     reach : float
         Emitters farther than this (nm, per axis) from a window are left out of its offset.
     sweeps : int
-        Most passes over the groups of a frame.
+        Most passes over the groups of a frame after the start or after a relocation pass
+        that kept one (as :func:`frame_fit`).
     count_selection : bool
         Test one emitter fewer and one more in each group by a likelihood ratio.
     threshold : float, optional
@@ -578,6 +581,7 @@ def frame_fit_batch(
     running = [True] * n
     # per frame, as frame_fit: relocation passes done, sweeps since the last that kept one
     passes = [0] * n
+    reloc_after = min(RELOCATE_AFTER, max(sweeps, 1))
     in_round = [0] * n
     failed_moves: list[list[NDArray]] = [[] for _ in range(n)]
     sweep = 0
@@ -693,7 +697,7 @@ def frame_fit_batch(
             info[i] = [t for part in new_info[i] if part is not None for t in part]
             in_round[i] += 1
             settled = _settled(prev, em[i])
-            if passes[i] < relocate and len(em[i]) and (settled or in_round[i] >= RELOCATE_AFTER):
+            if passes[i] < relocate and len(em[i]) and (settled or in_round[i] >= reloc_after):
                 # frame_fit's relocation pass, frame by frame with unbatched fits (its trials
                 # are sequential: each sees the relocations before it)
                 em[i], moved = _relocate(
@@ -706,6 +710,7 @@ def frame_fit_batch(
                     pad=pad,
                     reach=reach,
                     min_photons=min_photons,
+                    max_group=max_group,
                     failed=failed_moves[i],
                     noise=noise,
                     qe=qe,
