@@ -28,7 +28,7 @@ Two more optical facts come from that work's settings, not from fitting this fra
 
 Usage::
 
-    python benchmarks/real_data.py [--data DIR] [--png docs/real_tetrapod.png]
+    python benchmarks/real_data.py [--data DIR] [--png docs/real_tetrapod.png] [--baseline 30]
 """
 
 from __future__ import annotations
@@ -67,6 +67,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--png", type=Path, default=Path("docs/real_tetrapod.png"))
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/real_data.json"))
     ap.add_argument("--blur", type=float, default=110.0, help="PSF blur sigma (nm)")
+    ap.add_argument(
+        "--baseline", type=float, default=30.0, help="camera baseline (counts; 20-40 likely)"
+    )
     args = ap.parse_args(argv)
     px = 110.0
     model = make_psf(
@@ -82,7 +85,7 @@ def main(argv: list[str] | None = None) -> dict:
     frame = tifffile.imread(args.data / "Experimental_Data_Tetrapod_demo2_1.tif").astype(float)
     frame = frame.reshape(-1, *frame.shape[-2:])
     slope, intercept = photon_transfer(frame[0])
-    baseline = 30.0
+    baseline = args.baseline
     read_var_adu = intercept + slope * baseline
     print(
         f"photon transfer: variance = {slope:.2f} x mean {intercept:+.1f} (counts); baseline "
