@@ -372,33 +372,25 @@ def test_relocation_moves_an_emitter_stuck_in_the_wrong_place(dh_table):
     for relocate, ref in ((0, stuck), (2, fixed)):
         (got,) = frame_fit_batch([frame], dh_table, [start], relocate=relocate, **off)
         assert np.allclose(got.emitters.as_array(), ref.emitters.as_array(), atol=1e-3)
+
     # a pass on the stuck solution keeps a relocation; on the fixed one none is left
-    failed: list = []
-    em, moved = _relocate(
-        frame,
-        dh_table,
-        stuck.emitters.as_array(),
-        stuck.background,
-        px=PX,
-        group_distance=kw["group_distance"],
-        pad=kw["pad"],
-        reach=kw["reach"],
-        min_photons=200.0,
-        failed=failed,
-    )
+    def one_pass(fit, failed):
+        return _relocate(
+            frame,
+            dh_table,
+            fit.emitters.as_array(),
+            fit.background,
+            px=PX,
+            group_distance=kw["group_distance"],
+            pad=kw["pad"],
+            reach=kw["reach"],
+            min_photons=200.0,
+            failed=failed,
+        )
+
+    em, moved = one_pass(stuck, [])
     assert moved >= 1 and max(errors(em)) < 100.0
-    again, moved2 = _relocate(
-        frame,
-        dh_table,
-        fixed.emitters.as_array(),
-        fixed.background,
-        px=PX,
-        group_distance=kw["group_distance"],
-        pad=kw["pad"],
-        reach=kw["reach"],
-        min_photons=200.0,
-        failed=[],  # a fresh memory: every emitter is tried
-    )
+    again, moved2 = one_pass(fixed, [])  # a fresh memory: every emitter is tried
     assert moved2 == 0 and np.array_equal(again, fixed.emitters.as_array())
 
 
