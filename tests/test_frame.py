@@ -592,3 +592,24 @@ def test_tiled_pursuit_finds_what_the_whole_frame_finds(analytic):
     assert len(a) == len(b) == 5
     assert np.allclose(a[:, :3], b[:, :3]) and np.allclose(a[:, 3], b[:, 3], rtol=0.05)
     assert np.all(np.hypot(*(a[:, :2] - truth[np.lexsort(truth[:, :2].T), :2]).T) < 100.0)
+
+
+def test_light_is_each_emitters_image_within_reach(dh_table):
+    """The relocation's frame light: each emitter's image on the pixels within reach of it."""
+    from sparseloc.solvers.frame import _light
+
+    em = np.array([[1000.0, 1200.0, -200.0, 3000.0], [2500.0, 1800.0, 300.0, 2000.0]])
+    shape, origin = (30, 35), (-200.0, 300.0)
+    full = dh_table.render(*em.T, shape, PX, origin=origin)
+    np.testing.assert_allclose(_light(dh_table, em, shape, PX, origin, 1e6), full, atol=1e-12)
+    near = _light(dh_table, em[:1], shape, PX, origin, 500.0)
+    alone = dh_table.render(*em[:1].T, shape, PX, origin=origin)
+    cx = origin[0] + (np.arange(shape[1]) + 0.5) * PX
+    cy = origin[1] + (np.arange(shape[0]) + 0.5) * PX
+    inside = (np.abs(cy[:, None] - em[0, 1]) <= 450.0) & (np.abs(cx[None, :] - em[0, 0]) <= 450.0)
+    outside = (np.abs(cy[:, None] - em[0, 1]) > 650.0) | (np.abs(cx[None, :] - em[0, 0]) > 650.0)
+    np.testing.assert_allclose(near[inside], alone[inside], atol=1e-12)
+    assert np.all(near[outside] == 0.0) and alone[outside].max() > 0.1
+    # an emitter out of the window's reach adds nothing
+    far = np.array([[9000.0, 9000.0, 0.0, 3000.0]])
+    assert not _light(dh_table, far, shape, PX, origin, 500.0).any()
