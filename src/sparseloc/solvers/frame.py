@@ -649,8 +649,9 @@ def _light(
     reach: float,
 ) -> NDArray[np.float64]:
     """Sum of the images (photons/pixel) of emitters (K, 4) over a window, each rendered
-    only on the window's pixels within ``reach`` (nm, per axis) of it, as :func:`frame_fit`
-    counts a neighbour's light (a far emitter's tail is left out)."""
+    only on the window's pixels within ``reach`` (nm, per axis) of it. (The sweeps of
+    :func:`frame_fit` take the whole image of each emitter within ``reach`` of a window;
+    both leave a far emitter's faint tail out.)"""
     out = np.zeros(shape)
     rows, cols = shape
     for x, y, z, n in np.asarray(em, dtype=np.float64).reshape(-1, 4):
@@ -678,17 +679,16 @@ def _relocation_trial(
     reach: float,
     max_group: int,
     fit_kwargs: dict,
-    frame_light: NDArray | None = None,
+    frame_light: NDArray,
 ) -> RelocationTrial | None:
     """The relocation of emitter ``i`` worth a fit, or None.
 
     Its neighbourhood (the emitters within ``group_distance`` of it, laterally, at most
     ``max_group`` with it: the nearest) gets the window of a group, with the light of the
-    frame's other emitters within ``reach`` as the offset: rendered here, or, given
-    ``frame_light`` (:func:`_light` of all the frame's emitters over the frame), that less
-    the neighbourhood's own light. The
-    neighbours are fitted there without emitter ``i``, so that they take what of its light
-    they can explain, and the residual is searched for the best PSF position
+    frame's other emitters as the offset: ``frame_light`` (:func:`_light` of all the
+    frame's emitters over the frame) less the neighbourhood's own. The neighbours are
+    fitted there without emitter ``i``, so that they take what of its light they can
+    explain, and the residual is searched for the best PSF position
     (:func:`~sparseloc.solvers.refine._residual_candidates`). If that is emitter ``i`` itself
     (closer than :data:`RELOCATE_MIN_SHIFT` pixels and :data:`RELOCATE_MIN_DZ` of the z
     range), there is nothing to try. (The residual of the current model less emitter ``i``,
@@ -704,15 +704,8 @@ def _relocation_trial(
     r0, r1, c0, c1 = box
     origin = (c0 * px, r0 * px)
     shape = (r1 - r0, c1 - c0)
-    if frame_light is None:
-        rest = np.ones(len(em), bool)
-        rest[group] = False
-        o = em[rest]
-        o = o[_near(o, box, px, reach)]
-        offset = model.render(*o.T, shape, px, origin=origin) if len(o) else np.zeros(shape)
-    else:
-        own = _light(model, em[group], shape, px, origin, reach)
-        offset = np.maximum(frame_light[r0:r1, c0:c1] - own, 0.0)
+    own = _light(model, em[group], shape, px, origin, reach)
+    offset = np.maximum(frame_light[r0:r1, c0:c1] - own, 0.0)  # rounding below zero
     background = float(np.mean(bg[group]))
     y = _window_data(f, box, fit_kwargs)
     if len(group) > 1:
