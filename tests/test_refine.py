@@ -164,6 +164,9 @@ def test_residual_candidates_score_equals_direct_correlation(analytic, shape):
     assert stat == pytest.approx(best, rel=1e-4)  # single-precision FFTs
     # the best candidate is the missing emitter (within a pixel laterally)
     assert np.hypot(cands[0][0] - truth[1, 0], cands[0][1] - truth[1, 1]) < PX
+    # without the score, the same candidates and no statistic
+    bare, nostat = _residual_candidates(y, mu, analytic, PX, origin, n_planes=n_planes, score=False)
+    assert bare == cands and np.isnan(nostat)
 
 
 # -- quantum efficiency --------------------------------------------------------------------------

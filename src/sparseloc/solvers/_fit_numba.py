@@ -140,10 +140,37 @@ def _jacobian(theta, k, img, der, geo, bg_basis, nb, jac):  # pragma: no cover -
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _scoring(mu, v, y_v, weight, jac, inv_mu, g_pix, wj, grad, fisher):  # pragma: no cover
+    """Gradient of the weighted negative log-likelihood and the Fisher matrix, in place."""
+    cols = mu.shape[1]
+    npar, npix = jac.shape
+    for p in range(npix):
+        r = p // cols
+        c = p - r * cols
+        muv = mu[r, c] + v[r, c]
+        inv_mu[p] = 1.0 / muv
+        g_pix[p] = 1.0 - y_v[r, c] / muv
+    # parameter-major loops: contiguous rows of jac (vectorised)
+    for q in range(npar):
+        acc = 0.0
+        for p in range(npix):
+            acc += jac[q, p] * g_pix[p]
+            wj[q, p] = jac[q, p] * inv_mu[p]
+        grad[q] = weight * acc
+    for q in range(npar):
+        for s in range(q, npar):
+            acc = 0.0
+            for p in range(npix):
+                acc += wj[q, p] * jac[s, p]
+            fisher[q, s] = weight * acc
+            fisher[s, q] = weight * acc
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def lm_fit(
     coef, geo, y_v, v, base, bg_basis, weight, theta0, k, lo, hi, min_bg, max_iter, tol
 ):  # pragma: no cover - compiled
-    """LM with Fisher scoring; returns theta, mu, f, jac, converged, n_iter."""
+    """LM with Fisher scoring; returns theta, mu, f, Fisher matrix, converged, n_iter."""
     rows, cols = y_v.shape
     npix = rows * cols
     nb = bg_basis.shape[0]
@@ -175,26 +202,7 @@ def lm_fit(
     f_t = np.inf
     for it in range(1, max_iter + 1):
         n_iter = it
-        for p in range(npix):
-            r = p // cols
-            c = p - r * cols
-            muv = mu[r, c] + v[r, c]
-            inv_mu[p] = 1.0 / muv
-            g_pix[p] = 1.0 - y_v[r, c] / muv
-        # parameter-major loops: contiguous rows of jac (vectorised)
-        for q in range(npar):
-            acc = 0.0
-            for p in range(npix):
-                acc += jac[q, p] * g_pix[p]
-                wj[q, p] = jac[q, p] * inv_mu[p]
-            grad[q] = weight * acc
-        for q in range(npar):
-            for s in range(q, npar):
-                acc = 0.0
-                for p in range(npix):
-                    acc += wj[q, p] * jac[s, p]
-                fisher[q, s] = weight * acc
-                fisher[s, q] = weight * acc
+        _scoring(mu, v, y_v, weight, jac, inv_mu, g_pix, wj, grad, fisher)
         improved = False
         for _ in range(12):
             for q in range(npar):
@@ -231,4 +239,6 @@ def lm_fit(
         if rel < tol:
             converged = True
             break
-    return theta, mu, f, jac, converged, n_iter
+    # the Fisher matrix at the result (its inverse gives the reported standard errors)
+    _scoring(mu, v, y_v, weight, jac, inv_mu, g_pix, wj, grad, fisher)
+    return theta, mu, f, fisher, converged, n_iter

@@ -57,7 +57,13 @@ from .frame import (
     _settled,
     add_threshold,
 )
-from .refine import SKIP_FACTOR, FitResult, _residual_candidates, likelihood_weight
+from .refine import (
+    REMOVE_SKIP_FACTOR,
+    SKIP_FACTOR,
+    FitResult,
+    _residual_candidates,
+    likelihood_weight,
+)
 
 log = logging.getLogger(__name__)
 
@@ -298,7 +304,7 @@ def _count_selection(
             wald = (arr[weakest, 3] / best[j].sigma[weakest, 3]) ** 2
             if (
                 not np.isfinite(wald)
-                or wald < SKIP_FACTOR * threshold
+                or wald < REMOVE_SKIP_FACTOR * threshold
                 or arr[weakest, 3] < min_photons
             ):
                 trials.append((int(j), arr, weakest))
