@@ -613,3 +613,14 @@ def test_light_is_each_emitters_image_within_reach(dh_table):
     # an emitter out of the window's reach adds nothing
     far = np.array([[9000.0, 9000.0, 0.0, 3000.0]])
     assert not _light(dh_table, far, shape, PX, origin, 500.0).any()
+    # the pieces summed over a box are that box of the light (what the relocation trials use)
+    from sparseloc.solvers.frame import _light_pieces, _sum_pieces
+
+    both = np.vstack([em, far])
+    pieces = _light_pieces(dh_table, both, shape, PX, origin, 500.0)
+    assert pieces[2] is None
+    box = (4, 21, 9, 33)
+    np.testing.assert_allclose(
+        _sum_pieces(pieces, box), _light(dh_table, both, shape, PX, origin, 500.0)[4:21, 9:33]
+    )
+    assert _sum_pieces(pieces[1:2], box).max() > 0.1

@@ -640,6 +640,47 @@ class RelocationTrial(NamedTuple):
     candidate: NDArray[np.float64]
 
 
+def _light_pieces(
+    model: PSFModel,
+    em: NDArray,
+    shape: tuple[int, int],
+    px: float,
+    origin: tuple[float, float],
+    reach: float,
+) -> list[tuple[tuple[int, int, int, int], NDArray[np.float64]] | None]:
+    """Each emitter's (K, 4) image (photons/pixel) on the window's pixels within ``reach``
+    (nm, per axis) of it: its box (r0, r1, c0, c1) in the window and the image there; None
+    for an emitter out of reach of the window."""
+    rows, cols = shape
+    out: list = []
+    for x, y, z, n in np.asarray(em, dtype=np.float64).reshape(-1, 4):
+        c0 = max(int(np.floor((x - reach - origin[0]) / px)), 0)
+        c1 = min(int(np.ceil((x + reach - origin[0]) / px)) + 1, cols)
+        r0 = max(int(np.floor((y - reach - origin[1]) / px)), 0)
+        r1 = min(int(np.ceil((y + reach - origin[1]) / px)) + 1, rows)
+        if r1 <= r0 or c1 <= c0:
+            out.append(None)
+            continue
+        o = (origin[0] + c0 * px, origin[1] + r0 * px)
+        img = model.render([x], [y], [z], [n], (r1 - r0, c1 - c0), px, origin=o)
+        out.append(((r0, r1, c0, c1), img))
+    return out
+
+
+def _sum_pieces(pieces, box: tuple[int, int, int, int]) -> NDArray[np.float64]:
+    """Sum of :func:`_light_pieces` over a box (r0, r1, c0, c1) of their window."""
+    r0, r1, c0, c1 = box
+    out = np.zeros((r1 - r0, c1 - c0))
+    for piece in pieces:
+        if piece is None:
+            continue
+        (a0, a1, b0, b1), img = piece
+        i0, i1, j0, j1 = max(a0, r0), min(a1, r1), max(b0, c0), min(b1, c1)
+        if i1 > i0 and j1 > j0:
+            out[i0 - r0 : i1 - r0, j0 - c0 : j1 - c0] += img[i0 - a0 : i1 - a0, j0 - b0 : j1 - b0]
+    return out
+
+
 def _light(
     model: PSFModel,
     em: NDArray,
@@ -652,18 +693,8 @@ def _light(
     only on the window's pixels within ``reach`` (nm, per axis) of it. (The sweeps of
     :func:`frame_fit` take the whole image of each emitter within ``reach`` of a window;
     both leave a far emitter's faint tail out.)"""
-    out = np.zeros(shape)
-    rows, cols = shape
-    for x, y, z, n in np.asarray(em, dtype=np.float64).reshape(-1, 4):
-        c0 = max(int(np.floor((x - reach - origin[0]) / px)), 0)
-        c1 = min(int(np.ceil((x + reach - origin[0]) / px)) + 1, cols)
-        r0 = max(int(np.floor((y - reach - origin[1]) / px)), 0)
-        r1 = min(int(np.ceil((y + reach - origin[1]) / px)) + 1, rows)
-        if r1 <= r0 or c1 <= c0:
-            continue
-        o = (origin[0] + c0 * px, origin[1] + r0 * px)
-        out[r0:r1, c0:c1] += model.render([x], [y], [z], [n], (r1 - r0, c1 - c0), px, origin=o)
-    return out
+    pieces = _light_pieces(model, em, shape, px, origin, reach)
+    return _sum_pieces(pieces, (0, shape[0], 0, shape[1]))
 
 
 def _relocation_trial(
@@ -676,17 +707,18 @@ def _relocation_trial(
     px: float,
     group_distance: float,
     pad: int,
-    reach: float,
     max_group: int,
     fit_kwargs: dict,
     frame_light: NDArray,
+    pieces: list,
 ) -> RelocationTrial | None:
     """The relocation of emitter ``i`` worth a fit, or None.
 
     Its neighbourhood (the emitters within ``group_distance`` of it, laterally, at most
     ``max_group`` with it: the nearest) gets the window of a group, with the light of the
     frame's other emitters as the offset: ``frame_light`` (:func:`_light` of all the
-    frame's emitters over the frame) less the neighbourhood's own. The neighbours are
+    frame's emitters over the frame) less the neighbourhood's own, summed from ``pieces``
+    (:func:`_light_pieces` of the frame's emitters, in their order). The neighbours are
     fitted there without emitter ``i``, so that they take what of its light they can
     explain, and the residual is searched for the best PSF position
     (:func:`~sparseloc.solvers.refine._residual_candidates`). If that is emitter ``i`` itself
@@ -703,8 +735,7 @@ def _relocation_trial(
     box = _box(em[group], rows, cols, px, pad)
     r0, r1, c0, c1 = box
     origin = (c0 * px, r0 * px)
-    shape = (r1 - r0, c1 - c0)
-    own = _light(model, em[group], shape, px, origin, reach)
+    own = _sum_pieces([pieces[j] for j in group], box)
     offset = np.maximum(frame_light[r0:r1, c0:c1] - own, 0.0)  # rounding below zero
     background = float(np.mean(bg[group]))
     y = _window_data(f, box, fit_kwargs)
@@ -713,7 +744,7 @@ def _relocation_trial(
         mu = fit_emitters(y, model, Emitters.from_array(em[group[:-1]]), **kw).model_image
     else:
         mu = offset + background
-    cands, _ = _residual_candidates(y, mu, model, px, origin, n_best=1)
+    cands, _ = _residual_candidates(y, mu, model, px, origin, n_best=1, score=False)
     if not cands:
         return None
     c = np.asarray(cands[0], dtype=np.float64)
@@ -840,7 +871,10 @@ def _relocate(
     # The light of all the frame's emitters, kept up to date: each trial's offset is a crop
     # of it less its neighbourhood's own light, instead of a render of every other emitter
     # within reach (on dense frames that render was a tenth of the solver's time).
-    light = _light(model, em, f.shape, px, (0.0, 0.0), reach)
+    # Each emitter's piece is rendered once per pass (and again when it moves): the trials
+    # sum their neighbourhood's own light from the pieces instead of rendering it.
+    pieces = _light_pieces(model, em, f.shape, px, (0.0, 0.0), reach)
+    light = _sum_pieces(pieces, (0, f.shape[0], 0, f.shape[1]))
     for i in range(len(em)):
         if _lost_flip_near(failed, em[i]):
             continue
@@ -853,10 +887,10 @@ def _relocate(
             px=px,
             group_distance=group_distance,
             pad=pad,
-            reach=reach,
             max_group=max_group,
             fit_kwargs=fit_kwargs,
             frame_light=light,
+            pieces=pieces,
         )
         kept = None
         if t is not None:
@@ -866,9 +900,13 @@ def _relocate(
                 failed.append(em[i, :3].copy())
             continue
         # fit_emitters keeps the count and order of its starting emitters: the group's rows
-        light -= _light(model, em[t.group], f.shape, px, (0.0, 0.0), reach)
+        full = (0, f.shape[0], 0, f.shape[1])
+        light -= _sum_pieces([pieces[j] for j in t.group], full)
         em[t.group], bg[t.group] = kept
-        light += _light(model, em[t.group], f.shape, px, (0.0, 0.0), reach)
+        new = _light_pieces(model, em[t.group], f.shape, px, (0.0, 0.0), reach)
+        for j, piece in zip(t.group, new, strict=True):
+            pieces[j] = piece
+        light += _sum_pieces(new, full)
         moved += 1
         if failed:
             # the neighbourhood changed: what lost near it may win now
