@@ -77,6 +77,25 @@ def test_kernel_matches_the_numpy_path(table, shape, origin):
         assert np.all(img_c == 0.0)
 
 
+@pytest.mark.parametrize("shape", [(1, 13), (11, 1), (1, 1), (7, 12)])
+@pytest.mark.parametrize("derivatives", [True, False])
+def test_kernel_matches_the_numpy_path_at_stride_3_and_thin_windows(shape, derivatives):
+    """Oversample 3, windows of one row or column, with and without derivatives, and
+    emitters whose footprint leaves the table on either side."""
+    m = SplinePSF.from_model(make_psf("dh-analytic"), PX, roi=15, z_step=40.0, oversample=3)
+    x = np.array([300.0, -500.0, 1800.0, 600.0])
+    y = np.array([200.0, 700.0, -900.0, 50.0])
+    z = np.array([0.0, -300.0, 250.0, 400.0])
+    a, b = _both(m, lambda: m._images(x, y, z, shape, PX, (0.0, 0.0), derivatives))
+    if derivatives:
+        (img_c, der_c), (img_n, der_n) = a, b
+        np.testing.assert_allclose(der_c, der_n, rtol=0, atol=1e-12 * np.abs(der_n).max())
+    else:
+        img_c, img_n = a, b
+    np.testing.assert_allclose(img_c, img_n, rtol=0, atol=1e-12 * max(np.abs(img_n).max(), 1e-12))
+    assert np.abs(img_n).max() > 0  # some light reaches the window
+
+
 @pytest.mark.parametrize("noise", ["poisson", "emccd", "scmos"])
 def test_compiled_fit_takes_the_same_steps(table, noise):
     rng = np.random.default_rng(11)
@@ -108,6 +127,23 @@ def test_compiled_fit_takes_the_same_steps(table, noise):
         np.testing.assert_allclose(a.sigma, b.sigma, rtol=1e-6)
         np.testing.assert_allclose(a.background, b.background, rtol=1e-8, atol=1e-8)
         assert list(a.flags) == list(b.flags)
+
+
+@pytest.mark.parametrize("max_iter", [0, 1, 2])
+def test_compiled_fit_uncertainties_at_an_early_stop(table, max_iter):
+    """The standard errors come from the Fisher matrix at the returned parameters, also when
+    the loop stops after few (or no) iterations."""
+    truth = np.array([[1000.0, 1100.0, 150.0, 3000.0], [1400.0, 900.0, -250.0, 2000.0]])
+    img = np.random.default_rng(8).poisson(table.render(*truth.T, (21, 21), PX) + 10.0)
+    shift = np.array([[60.0, -40.0, 100.0, 500.0], [-50.0, 30.0, -80.0, 0.0]])
+    start = Emitters.from_array(truth + shift)
+    a, b = _both(
+        table,
+        lambda: fit_emitters(img.astype(float), table, start, pixel_size=PX, max_iter=max_iter),
+    )
+    assert a.n_iter == b.n_iter == max_iter
+    np.testing.assert_allclose(a.emitters.as_array(), b.emitters.as_array(), atol=1e-6)
+    np.testing.assert_allclose(a.sigma, b.sigma, rtol=1e-8)
 
 
 def test_analytic_models_keep_the_python_loop():

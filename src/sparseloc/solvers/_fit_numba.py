@@ -200,9 +200,11 @@ def lm_fit(
     mu_t = np.empty((rows, cols))
     wj = np.empty((npar, npix))
     f_t = np.inf
+    scored = False  # whether fisher is that of the current theta
     for it in range(1, max_iter + 1):
         n_iter = it
         _scoring(mu, v, y_v, weight, jac, inv_mu, g_pix, wj, grad, fisher)
+        scored = True
         improved = False
         for _ in range(12):
             for q in range(npar):
@@ -236,9 +238,11 @@ def lm_fit(
         img, img_t = img_t, img
         der, der_t = der_t, der
         _jacobian(theta, k, img, der, geo, bg_basis, nb, jac)
+        scored = False
         if rel < tol:
             converged = True
             break
     # the Fisher matrix at the result (its inverse gives the reported standard errors)
-    _scoring(mu, v, y_v, weight, jac, inv_mu, g_pix, wj, grad, fisher)
+    if not scored:
+        _scoring(mu, v, y_v, weight, jac, inv_mu, g_pix, wj, grad, fisher)
     return theta, mu, f, fisher, converged, n_iter

@@ -33,7 +33,9 @@ one model:
    46.5 -> 38.9 nm axial, every one of the 10 seeds better, at 1.36 times the time (83.6 ->
    114.1 s). Up to 10 sweeps before each pass instead of 2: Jaccard 82.5 %, 159.7 s. The
    trials' offsets cut from the frame's light (:func:`_light`) instead of rendered per trial:
-   Jaccard 82.5 -> 83.1 %, 123 -> 115 s on the same frames, run side by side.
+   Jaccard 82.5 -> 83.1 %, 123 -> 115 s on the same frames, run side by side. Each emitter's
+   light is rendered once per pass (:func:`_light_pieces`), and a trial sums its
+   neighbourhood's own from those pieces (:func:`_sum_pieces`).
 """
 
 from __future__ import annotations

@@ -28,7 +28,10 @@ range, photons and background positive, x and y within ``xy_margin`` pixels of t
 
 Count selection (:func:`fit_with_count_selection`): after fitting K emitters, the model with the
 weakest emitter removed is refitted; it replaces the K-emitter model when the likelihood ratio
-``2 (logL_K - logL_{K-1})`` is below ``threshold``. Otherwise one emitter is added where the
+``2 (logL_K - logL_{K-1})`` is below ``threshold``. (That refit is skipped, and the emitter
+kept, when its Wald statistic ``(N / sigma_N)^2``, the quadratic approximation of the same
+ratio, is at or above ``threshold`` and it has at least ``min_photons``:
+:data:`REMOVE_SKIP_FACTOR`.) Otherwise one emitter is added where the
 residual correlates best with the PSF (the two best places are tried, each fitted) and the
 K+1 model is kept when the ratio
 ``2 (logL_{K+1} - logL_K)`` exceeds ``threshold``. Each emitter has 4 parameters, so under the
@@ -630,8 +633,9 @@ def fit_with_count_selection(
             # sigma comes from the weighted Fisher matrix: (N / sigma)^2 is on the scale of
             # the (weighted) likelihood ratio below
             wald = (arr[weakest, 3] / best.sigma[weakest, 3]) ** 2
-        # An emitter whose photons are many standard errors from zero (Wald statistic above
-        # REMOVE_SKIP_FACTOR times the threshold) would not be removed: skip that refit.
+        # An emitter whose Wald statistic (the quadratic approximation of the removal's
+        # likelihood ratio) is at or above REMOVE_SKIP_FACTOR times the threshold would not be
+        # removed: skip that refit.
         if k >= 1 and (
             not np.isfinite(wald)
             or wald < REMOVE_SKIP_FACTOR * threshold
