@@ -596,7 +596,12 @@ def test_tiled_pursuit_finds_what_the_whole_frame_finds(analytic):
 
 def test_light_is_each_emitters_image_within_reach(dh_table):
     """The relocation's frame light: each emitter's image on the pixels within reach of it."""
-    from sparseloc.solvers.frame import _light
+    from sparseloc.solvers.frame import _light_pieces, _sum_pieces
+
+    def _light(model, em, shape, px, origin, reach):
+        return _sum_pieces(
+            _light_pieces(model, em, shape, px, origin, reach), (0, shape[0], 0, shape[1])
+        )
 
     em = np.array([[1000.0, 1200.0, -200.0, 3000.0], [2500.0, 1800.0, 300.0, 2000.0]])
     shape, origin = (30, 35), (-200.0, 300.0)
@@ -614,8 +619,6 @@ def test_light_is_each_emitters_image_within_reach(dh_table):
     far = np.array([[9000.0, 9000.0, 0.0, 3000.0]])
     assert not _light(dh_table, far, shape, PX, origin, 500.0).any()
     # the pieces summed over a box are that box of the light (what the relocation trials use)
-    from sparseloc.solvers.frame import _light_pieces, _sum_pieces
-
     both = np.vstack([em, far])
     pieces = _light_pieces(dh_table, both, shape, PX, origin, 500.0)
     assert pieces[2] is None

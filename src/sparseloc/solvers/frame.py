@@ -32,10 +32,12 @@ one model:
    (the pipeline, one process): Jaccard 76.1 % -> 82.6 %, RMSE 32.2 -> 27.2 nm lateral and
    46.5 -> 38.9 nm axial, every one of the 10 seeds better, at 1.36 times the time (83.6 ->
    114.1 s). Up to 10 sweeps before each pass instead of 2: Jaccard 82.5 %, 159.7 s. The
-   trials' offsets cut from the frame's light (:func:`_light`) instead of rendered per trial:
-   Jaccard 82.5 -> 83.1 %, 123 -> 115 s on the same frames, run side by side. Each emitter's
-   light is rendered once per pass (:func:`_light_pieces`), and a trial sums its
-   neighbourhood's own from those pieces (:func:`_sum_pieces`).
+   trials' offsets cut from the frame's light instead of rendered per trial: Jaccard 82.5 ->
+   83.1 %, 123 -> 115 s on the same frames, run side by side. Each emitter's light is rendered
+   once per pass, within ``reach`` of itself (:func:`_light_pieces`), and a trial sums its
+   neighbourhood's own from those pieces (:func:`_sum_pieces`). (The sweeps of
+   :func:`frame_fit` take the whole image of each emitter within ``reach`` of a window; both
+   leave a far emitter's faint tail out.)
 """
 
 from __future__ import annotations
@@ -683,22 +685,6 @@ def _sum_pieces(pieces, box: tuple[int, int, int, int]) -> NDArray[np.float64]:
     return out
 
 
-def _light(
-    model: PSFModel,
-    em: NDArray,
-    shape: tuple[int, int],
-    px: float,
-    origin: tuple[float, float],
-    reach: float,
-) -> NDArray[np.float64]:
-    """Sum of the images (photons/pixel) of emitters (K, 4) over a window, each rendered
-    only on the window's pixels within ``reach`` (nm, per axis) of it. (The sweeps of
-    :func:`frame_fit` take the whole image of each emitter within ``reach`` of a window;
-    both leave a far emitter's faint tail out.)"""
-    pieces = _light_pieces(model, em, shape, px, origin, reach)
-    return _sum_pieces(pieces, (0, shape[0], 0, shape[1]))
-
-
 def _relocation_trial(
     f: NDArray,
     model: PSFModel,
@@ -718,9 +704,9 @@ def _relocation_trial(
 
     Its neighbourhood (the emitters within ``group_distance`` of it, laterally, at most
     ``max_group`` with it: the nearest) gets the window of a group, with the light of the
-    frame's other emitters as the offset: ``frame_light`` (:func:`_light` of all the
-    frame's emitters over the frame) less the neighbourhood's own, summed from ``pieces``
-    (:func:`_light_pieces` of the frame's emitters, in their order). The neighbours are
+    frame's other emitters as the offset: ``frame_light`` (the sum of ``pieces``,
+    :func:`_light_pieces` of all the frame's emitters in their order, over the frame) less
+    the neighbourhood's own, summed from its ``pieces``. The neighbours are
     fitted there without emitter ``i``, so that they take what of its light they can
     explain, and the residual is searched for the best PSF position
     (:func:`~sparseloc.solvers.refine._residual_candidates`). If that is emitter ``i`` itself
