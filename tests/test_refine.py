@@ -82,6 +82,34 @@ def test_count_selection_removes_a_spurious_emitter(analytic):
     assert any("removed" in h for h in fit.history)
 
 
+def test_removal_is_refitted_only_below_the_wald_threshold(analytic, monkeypatch):
+    """A real faint emitter whose Wald statistic (N / sigma_N)^2 lies between the threshold
+    and four times it is not refitted without (REMOVE_SKIP_FACTOR 1); with the old factor 4
+    it was."""
+    import sparseloc.solvers.refine as refine
+
+    truth = np.array([[850.0, 850.0, 0.0, 3000.0], [400.0, 1300.0, 300.0, 250.0]])
+    img = window(analytic, truth, seed=5)
+    start = Emitters.from_array(truth)
+    fit = fit_emitters(img, analytic, start, pixel_size=PX)
+    wald = (fit.emitters.photons / fit.sigma[:, 3]) ** 2
+    assert refine.LR_THRESHOLD < wald[1] < 4 * refine.LR_THRESHOLD  # the case this tests
+    calls: list[int] = []
+    real = refine.fit_emitters
+
+    def counting(y, model, em, **kw):
+        calls.append(len(em))
+        return real(y, model, em, **kw)
+
+    monkeypatch.setattr(refine, "fit_emitters", counting)
+    fit_with_count_selection(img, analytic, start, pixel_size=PX)
+    assert 1 not in calls  # no refit with an emitter removed
+    calls.clear()
+    monkeypatch.setattr(refine, "REMOVE_SKIP_FACTOR", 4.0)
+    fit_with_count_selection(img, analytic, start, pixel_size=PX)
+    assert calls[:2] == [2, 1]  # the fit, then the refit without the faint one
+
+
 def test_z_outside_the_range_is_flagged(dh_model):
     narrow = make_psf("dh", z_range=(-300.0, 300.0))
     truth = np.array([[850.0, 850.0, 700.0, 3000.0]])

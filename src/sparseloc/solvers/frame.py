@@ -856,13 +856,13 @@ def _relocate(
     em = np.array(em, dtype=np.float64).reshape(-1, 4)
     bg = np.array(bg, dtype=np.float64)
     moved = 0
-    # The light of all the frame's emitters, kept up to date: each trial's offset is a crop
-    # of it less its neighbourhood's own light, instead of a render of every other emitter
-    # within reach (on dense frames that render was a tenth of the solver's time).
-    # Each emitter's piece is rendered once per pass (and again when it moves): the trials
-    # sum their neighbourhood's own light from the pieces instead of rendering it.
+    # Each emitter's light piece is rendered once per pass (and again when it moves), and
+    # their sum over the frame kept up to date: a trial's offset is a crop of that sum less
+    # its neighbourhood's own pieces, instead of a render of every other emitter within
+    # reach (on dense frames that render was a tenth of the solver's time).
+    full = (0, f.shape[0], 0, f.shape[1])
     pieces = _light_pieces(model, em, f.shape, px, (0.0, 0.0), reach)
-    light = _sum_pieces(pieces, (0, f.shape[0], 0, f.shape[1]))
+    light = _sum_pieces(pieces, full)
     for i in range(len(em)):
         if _lost_flip_near(failed, em[i]):
             continue
@@ -888,7 +888,6 @@ def _relocate(
                 failed.append(em[i, :3].copy())
             continue
         # fit_emitters keeps the count and order of its starting emitters: the group's rows
-        full = (0, f.shape[0], 0, f.shape[1])
         light -= _sum_pieces([pieces[j] for j in t.group], full)
         em[t.group], bg[t.group] = kept
         new = _light_pieces(model, em[t.group], f.shape, px, (0.0, 0.0), reach)
