@@ -123,7 +123,7 @@ def dense_correlation(frame, t):
     return out
 
 
-@pytest.mark.parametrize("side", [5, 9])
+@pytest.mark.parametrize("side", [5, 9, 27])  # 27: wider than the 20 x 24 frame
 def test_correlator_matches_a_dense_reference(analytic, side):
     rng = np.random.default_rng(7)
     # random, asymmetric templates: a flip or a transposition cannot go unseen
@@ -155,6 +155,28 @@ def test_correlator_matches_a_dense_reference(analytic, side):
     assert np.allclose(sb, score.max(axis=0), rtol=1e-5, atol=1e-6)
     assert np.allclose(cb[ok], np.take_along_axis(dense, jb[None], 0)[0][ok], rtol=1e-5, atol=1e-6)
     assert np.allclose(nb, np.take_along_axis(n2, jb[None], 0)[0], rtol=1e-5)
+
+
+def test_compiled_template_selection_is_bit_identical_to_numpy(analytic):
+    from sparseloc.solvers.frame import _select_kernel
+
+    if _select_kernel() is None:
+        pytest.skip("numba is not available")
+    rng = np.random.default_rng(3)
+    imgs = rng.random((7, 9, 9))
+    imgs[4] = imgs[1]  # a duplicate template: equal scores, the first must win in both
+    z = np.zeros(7)
+    base = frame_templates(analytic, PX, dxy=PX, dz=2000.0, size=9)
+    tmpl = replace(base, images=imgs, dx=z, dy=z, z=z)
+    frame = rng.random((30, 26)) - 0.2
+    cor = _Correlator(tmpl, frame.shape, batch=3)  # batches of 3, 3 and 1 templates
+    fast = cor.best(frame, compiled=True)
+    ref = cor.best(frame, compiled=False)
+    for a, b in zip(fast, ref, strict=True):
+        assert a.dtype == b.dtype
+        assert np.array_equal(a, b)
+    assert not np.any(fast[1] == 4)  # the duplicate never wins over its first copy
+    assert np.any(fast[1] == 1)
 
 
 # --- pursuit -----------------------------------------------------------------------------

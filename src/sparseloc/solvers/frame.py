@@ -43,6 +43,7 @@ one model:
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -195,7 +196,10 @@ class _Correlator:
         self.h = t.shape[-1] // 2
         self.shape = shape
         self.batch = int(batch)
-        self.fshape = tuple(sfft.next_fast_len(n + t.shape[-1] - 1, real=True) for n in shape)
+        # Circular correlations of length >= n + h: the full linear one is n + 2h long, and
+        # its tail wraps only onto the first h outputs, which are not kept (a 128 px frame
+        # with 41 px templates: 150 points a side instead of 180, 1.4x fewer).
+        self.fshape = tuple(sfft.next_fast_len(n + self.h, real=True) for n in shape)
         self._flipped = t[:, ::-1, ::-1]
         self.ft = sfft.rfft2(self._flipped, s=self.fshape).astype(np.complex64)
         self.norm2 = np.empty((t.shape[0], *shape), dtype=np.float32)
@@ -240,17 +244,25 @@ class _Correlator:
             out[j0 : j0 + len(part)] = part
         return out
 
-    def best(self, img: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    def best(
+        self, img: NDArray, compiled: bool = True
+    ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """Per pixel, the template whose normalised correlation with ``img`` is largest.
 
         Returns ``(score, j, corr, norm2)`` at that template, each (rows, cols): the score is
-        ``corr / sqrt(norm2)`` (matching pursuit's choice).
+        ``corr / sqrt(norm2)`` (matching pursuit's choice). ``compiled`` selects with the
+        numba loop where it is available (same result, ~5x faster than the NumPy gathers).
         """
         sb = np.full(self.shape, -np.inf)
         jb = np.zeros(self.shape, dtype=np.intp)
         cb = np.zeros(self.shape)
+        select = _select_kernel() if compiled else None
         for j0, part in self._batches(img, False):
-            score = part * self.inv_norm[j0 : j0 + len(part)]
+            inv = self.inv_norm[j0 : j0 + len(part)]
+            if select is not None:
+                select(part, inv, j0, sb, jb, cb)
+                continue
+            score = part * inv
             k = np.argmax(score, axis=0)
             s = np.take_along_axis(score, k[None], 0)[0]
             better = s > sb
@@ -259,6 +271,27 @@ class _Correlator:
             cb[better] = np.take_along_axis(part, k[None], 0)[0][better]
         nb = np.take_along_axis(self.norm2, jb[None], 0)[0].astype(np.float64)
         return sb, jb, cb, nb
+
+
+_SELECT: list = []
+
+
+def _select_kernel():
+    """:func:`sparseloc.solvers._pursuit_numba.select_best`, or ``None`` where numba is
+    missing, fails, or ``SPARSELOC_NUMBA=0`` (then :meth:`_Correlator.best` uses NumPy)."""
+    if os.environ.get("SPARSELOC_NUMBA", "1") == "0":
+        return None
+    if not _SELECT:
+        try:
+            from ._pursuit_numba import select_best
+
+            one = np.zeros((1, 1, 1), np.float32)
+            select_best(one, one, 0, np.zeros((1, 1)), np.zeros((1, 1), np.intp), np.zeros((1, 1)))
+            _SELECT.append(select_best)
+        except Exception as exc:  # any numba failure means: use NumPy
+            log.warning("numba pursuit kernel unavailable (%s): using NumPy", exc)
+            _SELECT.append(None)
+    return _SELECT[0]
 
 
 def _place(templates: FrameTemplates, atoms: list[tuple[int, int, int]], shape):
