@@ -649,3 +649,40 @@ def test_light_is_each_emitters_image_within_reach(dh_table):
         _sum_pieces(pieces, box), _light(dh_table, both, shape, PX, origin, 500.0)[4:21, 9:33]
     )
     assert _sum_pieces(pieces[1:2], box).max() > 0.1
+
+
+def test_neighbour_light_from_pieces_equals_rendering_into_the_window(dh_table, analytic):
+    """The sweeps' offsets: one image per emitter over the box where the spline is non-zero,
+    cropped into windows, gives what rendering the emitters into each window gives."""
+    from sparseloc.solvers.frame import _NeighbourLight
+
+    ry, rx = dh_table.zero_beyond(PX)
+    rng = np.random.default_rng(5)
+    for _ in range(10):  # the extent is tight: nothing lit beyond it, something just inside
+        x, y = rng.uniform(3000.0, 3100.0, 2)
+        img = dh_table.render([x], [y], [rng.uniform(-800, 800)], [1.0], (61, 61), PX)
+        c = (np.arange(61) + 0.5) * PX
+        beyond = (np.abs(c - y)[:, None] > ry) | (np.abs(c - x)[None, :] > rx)
+        assert np.all(img[beyond] == 0.0)
+        assert np.abs(c - x)[img.any(axis=0)].max() > rx - 1.5 * PX
+    shape = (40, 50)
+    em = np.array(
+        [
+            [1000.0, 1200.0, -200.0, 3000.0],
+            [2500.0, 1800.0, 300.0, 2000.0],
+            [-150.0, 3900.0, 0.0, 2500.0],  # outside the frame, light inside it
+            [4960.0, 20.0, 600.0, 1500.0],  # at a corner
+        ]
+    )
+    for model in (dh_table, analytic):  # analytic: no table, rendered into the window
+        light = _NeighbourLight(model, shape, PX)
+        for box in [(0, 40, 0, 50), (3, 27, 11, 44), (30, 40, 0, 8)]:
+            r0, r1, c0, c1 = box
+            ref = model.render(*em.T, (r1 - r0, c1 - c0), PX, origin=(c0 * PX, r0 * PX))
+            got = light.window(em, box)
+            np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-12)
+            got = light.window(em[::-1], box)  # the images are reused, in any order
+            np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-12)
+        light.keep(em[:1])
+        if model is dh_table:
+            assert len(light._pieces) == 1

@@ -393,6 +393,24 @@ class SplinePSF(PSFBase):
             return out, der
         return out
 
+    def zero_beyond(self, pixel_size: float) -> tuple[float, float]:
+        """Distances (nm; rows' axis, columns' axis) from the emitter beyond which a pixel
+        centre gets exactly zero light: the coefficient table ends there.
+
+        The frame solver sums neighbours' light from one image per emitter over this box
+        instead of rendering all of them into every window (the same values).
+        """
+        px = check_pixel_size(pixel_size)
+        self._check_pixel(px)
+        os_ = self.oversample
+        out = []
+        for centre, n in ((self.centre[0], self._ny), (self.centre[1], self._nx)):
+            c = centre + _PAD  # the emitter's node
+            # node coordinate t reads coefficients floor(t) - 1 .. floor(t) + 2, all zero
+            # unless -2 <= t < n + 1
+            out.append((max(c + 2.0, n + 1.0 - c) / os_) * px)
+        return out[0], out[1]
+
     def support_radius(
         self,
         pixel_size: float,

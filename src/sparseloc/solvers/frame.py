@@ -36,8 +36,9 @@ one model:
    83.1 %, 123 -> 115 s on the same frames, run side by side. Each emitter's light is rendered
    once per pass, within ``reach`` of itself (:func:`_light_pieces`), and a trial sums its
    neighbourhood's own from those pieces (:func:`_sum_pieces`). (The sweeps of
-   :func:`frame_fit` take the whole image of each emitter within ``reach`` of a window; both
-   leave a far emitter's faint tail out.)
+   :func:`frame_fit` take the whole image of each emitter within ``reach`` of a window, from
+   one image per emitter position (:class:`_NeighbourLight`); both leave a far emitter's
+   faint tail out.)
 """
 
 from __future__ import annotations
@@ -718,6 +719,58 @@ def _sum_pieces(pieces, box: tuple[int, int, int, int]) -> NDArray[np.float64]:
     return out
 
 
+class _NeighbourLight:
+    """The light of a frame's emitters in any window, summed from one image per emitter.
+
+    A sweep renders its neighbours' light into every group's window, and most neighbours
+    are the same emitters, unmoved, from window to window and sweep to sweep. For a spline
+    model each emitter's image is rendered once per position, over the box beyond which the
+    model is exactly zero (:meth:`~sparseloc.psf.spline.SplinePSF.zero_beyond`), and cropped
+    into each window: the same values as rendering them there (to rounding), ~5x less
+    work on dense frames. Other models render into the window directly.
+    """
+
+    def __init__(self, model: PSFModel, shape: tuple[int, int], px: float):
+        from ..psf.spline import SplinePSF
+
+        self.model, self.shape, self.px = model, shape, px
+        self.extent = model.zero_beyond(px) if isinstance(model, SplinePSF) else None
+        self._pieces: dict[bytes, tuple] = {}
+
+    def _render(self, rows: NDArray) -> None:
+        """Images of emitters (K, 4) not seen yet, in one call: each over a box of the same
+        shape from the pixel before its extent begins (the boxes may reach past the frame;
+        the sums crop them)."""
+        (ry, rx), px = self.extent, self.px
+        wy, wx = int(np.floor(2 * ry / px)) + 2, int(np.floor(2 * rx / px)) + 2
+        c0 = np.floor((rows[:, 0] - rx) / px - 0.5)
+        r0 = np.floor((rows[:, 1] - ry) / px - 0.5)
+        # positions relative to each box: one window shape serves them all
+        imgs = self.model.images(
+            rows[:, 0] - c0 * px, rows[:, 1] - r0 * px, rows[:, 2], (wy, wx), px
+        )
+        for row, a, b, img in zip(rows, r0.astype(int), c0.astype(int), imgs, strict=True):
+            self._pieces[row.tobytes()] = ((a, a + wy, b, b + wx), row[3] * img)
+
+    def window(self, em: NDArray, box: tuple[int, int, int, int]) -> NDArray[np.float64]:
+        """(r1 - r0, c1 - c0): the light of emitters ``em`` (K, 4) on the frame's pixels
+        ``box`` (r0, r1, c0, c1)."""
+        r0, r1, c0, c1 = box
+        if self.extent is None:
+            origin = (c0 * self.px, r0 * self.px)
+            return self.model.render(*em.T, (r1 - r0, c1 - c0), self.px, origin=origin)
+        em = np.ascontiguousarray(em, dtype=np.float64)
+        new = [k for k, row in enumerate(em) if row.tobytes() not in self._pieces]
+        if new:
+            self._render(em[new])
+        return _sum_pieces([self._pieces[row.tobytes()] for row in em], box)
+
+    def keep(self, em: NDArray) -> None:
+        """Forget the images of emitters no longer in ``em`` (K, 4)."""
+        live = {np.ascontiguousarray(row).tobytes() for row in em}
+        self._pieces = {k: v for k, v in self._pieces.items() if k in live}
+
+
 def _relocation_trial(
     f: NDArray,
     model: PSFModel,
@@ -1134,6 +1187,7 @@ def frame_fit(
     # from its own optimum to the same place: its last result is kept (later sweeps move
     # few emitters, so most groups are skipped).
     memo: dict[bytes, _Memo] = {}
+    light = _NeighbourLight(model, f.shape, px)
     failed_flips: list[NDArray] = []
     failed_moves: list[NDArray] = []  # where relocations lost (see _relocate)
     passes = 0  # relocation passes done
@@ -1142,6 +1196,7 @@ def frame_fit(
     while True:
         if len(em) == 0:
             break
+        light.keep(em)
         groups = _groups(em[:, :2], group_distance, max_group)
         # brightest groups first: their light is the largest offset for the others
         groups.sort(key=lambda g: -em[g, 3].sum())
@@ -1163,8 +1218,7 @@ def frame_fit(
                 o = np.vstack(others)
                 near = _near(o, (r0, r1, c0, c1), px, reach)
                 if near.any():
-                    o = o[near]
-                    offset = model.render(*o.T, shape, px, origin=origin)
+                    offset = light.window(o[near], (r0, r1, c0, c1))
             key = np.ascontiguousarray(em[g]).tobytes()
             hit = memo.get(key)
             if hit is not None and _unmoved(hit, offset, origin, shift_tolerance):
