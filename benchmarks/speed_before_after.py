@@ -1,12 +1,13 @@
 """The same frames through whichever sparseloc is imported: compare two versions of the code.
 
-Localizes ``N`` simulated 128 x 128 double-helix frames (1 emitter/um^2, seed 3) in one process
-and prints one JSON line (seconds, localizations, Jaccard, RMSE). Run it once with this
-checkout and once with an older one first on the path, back to back::
+Localizes ``N`` simulated 128 x 128 double-helix frames (``DENSITY`` emitters/um^2, default 1;
+seed 3) in one process and prints one JSON line (seconds, localizations, Jaccard, RMSE). Run
+it once with this checkout and once with an older one first on the path, back to back::
 
     git worktree add /tmp/old 633c58a
     PYTHONPATH=/tmp/old/src python benchmarks/speed_before_after.py 4
     python benchmarks/speed_before_after.py 4
+    python benchmarks/speed_before_after.py 40 0.05   # N DENSITY: a sparse movie
 """
 
 import json
@@ -24,6 +25,7 @@ from sparseloc.simulate import simulate
 
 def main() -> None:
     n = int(sys.argv[1]) if len(sys.argv) > 1 else 4
+    density = float(sys.argv[2]) if len(sys.argv) > 2 else 1.0
     model = make_psf("dh")
     p = LocalizeParams(pixel_size=100.0)
     work = work_model_for(model, p)
@@ -33,7 +35,7 @@ def main() -> None:
         n_frames=n,
         shape=(128, 128),
         pixel_size=100.0,
-        density=1.0,
+        density=density,
         photons=(1000.0, 5000.0),
         background=10.0,
         seed=3,
@@ -49,6 +51,7 @@ def main() -> None:
             {
                 "code": sparseloc.__file__,
                 "frames": n,
+                "density": density,
                 "seconds": dt,
                 "locs": len(r.table),
                 "locs_per_s": len(r.table) / dt,
