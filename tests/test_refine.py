@@ -111,8 +111,8 @@ def test_removal_is_refitted_only_below_the_wald_threshold(analytic, monkeypatch
 
 
 def test_the_first_candidate_that_passes_is_kept(analytic, monkeypatch):
-    """Two missing emitters, one change allowed: the best-correlated candidate's refit passes
-    and is kept; the second candidate is then not refitted."""
+    """Two missing emitters, one change allowed, ``first_passing`` (the frame solver's rule):
+    the best-correlated candidate's refit passes and is kept; the second is not refitted."""
     import sparseloc.solvers.refine as refine
 
     truth = np.array(
@@ -128,8 +128,13 @@ def test_the_first_candidate_that_passes_is_kept(analytic, monkeypatch):
 
     monkeypatch.setattr(refine, "fit_emitters", counting)
     start = Emitters.from_array(truth[:1])
-    fit = fit_with_count_selection(img, analytic, start, pixel_size=PX, max_changes=1)
+    fit = fit_with_count_selection(
+        img, analytic, start, pixel_size=PX, max_changes=1, first_passing=True
+    )
     assert calls == [1, 2]  # the fit, then one addition trial
+    calls.clear()
+    fit_with_count_selection(img, analytic, start, pixel_size=PX, max_changes=1)
+    assert calls == [1, 2, 2]  # by default both candidates are refitted (the likelier is kept)
     cands, _ = refine._residual_candidates(
         img, real(img, analytic, start, pixel_size=PX).model_image, analytic, PX, (0.0, 0.0)
     )

@@ -339,8 +339,9 @@ def _count_selection(
         more_fits = fit(
             [_Request(windows[j], arr, None, float(best[j].background[0])) for j, arr in adds]
         )
-        # The rule of fit_with_count_selection: the first candidate (best correlation first)
-        # whose fit passes is kept. All are fitted in one call here; the CPU path stops early.
+        # frame_fit's rule (fit_with_count_selection with first_passing): the first candidate
+        # (best correlation first) whose fit passes is kept. All are fitted in one call here;
+        # the CPU path stops early.
         kept: dict[int, FitResult] = {}
         for (j, _), f in zip(adds, more_fits, strict=True):
             ratio = 2.0 * (f.log_likelihood - best[j].log_likelihood)

@@ -607,6 +607,7 @@ def fit_with_count_selection(
     max_emitters: int = 10,
     max_changes: int = 4,
     min_photons: float = 200.0,
+    first_passing: bool = False,
     **fit_kwargs,
 ) -> FitResult:
     """Fit K emitters, then test K-1 and K+1 by a likelihood ratio (see the module notes).
@@ -622,6 +623,12 @@ def fit_with_count_selection(
         Never more emitters than this.
     max_changes : int
         Cap on accepted additions and removals.
+    first_passing : bool
+        Addition: keep the first candidate (best correlation first) whose refit passes and
+        skip the other's refit, instead of refitting both and keeping the likelier. The frame
+        solver uses it (40 seeds x 3 dense frames: 9.6 % less fitting work, Jaccard +0.37 +-
+        0.35 points); on the paper's Figure 2 windows it raised the mean 3D error from 54.1 to
+        58.9 nm at the same right-count fraction, so windows keep the likelier by default.
     min_photons : float
         Emitters fitted with fewer photons are removed whatever the likelihood ratio (they
         explain noise or model mismatch, not molecules), and are never added.
@@ -672,21 +679,28 @@ def fit_with_count_selection(
             else ([], 0.0)
         )
         # The score statistic of the best grid emitter approximates the likelihood ratio of
-        # adding it; far below the threshold, the refits cannot pass it. The candidates are
-        # tried in order (best correlation first) and the first that passes is kept: the
-        # second's refit is then saved (choosing the likelier of the two passing ones instead
-        # measured the same Jaccard, 10 % more fitting work).
+        # adding it; far below the threshold, the refits cannot pass it. With first_passing the
+        # candidates are tried in order and the first that passes is kept; otherwise the
+        # likelier of the refits is tested.
         if w * stat >= threshold / SKIP_FACTOR:  # stat uses the Poisson variance
+            more = None
             for cand in cands:
                 arr = np.vstack([best.emitters.as_array().reshape(-1, 4), cand])
-                more = fit_emitters(y, model, Emitters.from_array(arr), **{**kw, "background": bg})
+                trial = fit_emitters(y, model, Emitters.from_array(arr), **{**kw, "background": bg})
+                ratio = 2.0 * (trial.log_likelihood - best.log_likelihood)
+                if first_passing:
+                    if _addition_passes(trial, ratio, threshold, min_photons):
+                        more = trial
+                        break
+                elif more is None or trial.log_likelihood > more.log_likelihood:
+                    more = trial
+            if more is not None:
                 ratio = 2.0 * (more.log_likelihood - best.log_likelihood)
                 if _addition_passes(more, ratio, threshold, min_photons):
                     best = more
                     best.history.append(f"added one: K={k + 1}, LR={ratio:.1f}")
                     changes += 1
                     changed = True
-                    break
         if not changed:
             break
     return best
