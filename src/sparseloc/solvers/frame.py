@@ -1245,7 +1245,6 @@ def frame_fit(
                     y,
                     model,
                     start,
-                    first_passing=True,
                     threshold=threshold,
                     min_photons=min_photons,
                     max_emitters=max(max_emitters, len(g) + 2),

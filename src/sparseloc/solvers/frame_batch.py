@@ -339,21 +339,20 @@ def _count_selection(
         more_fits = fit(
             [_Request(windows[j], arr, None, float(best[j].background[0])) for j, arr in adds]
         )
-        # frame_fit's rule (fit_with_count_selection with first_passing): the first candidate
-        # (best correlation first) whose fit passes is kept. All are fitted in one call here;
-        # the CPU path stops early.
-        kept: dict[int, FitResult] = {}
+        more: dict[int, FitResult] = {}
         for (j, _), f in zip(adds, more_fits, strict=True):
-            ratio = 2.0 * (f.log_likelihood - best[j].log_likelihood)
-            if j not in kept and _addition_passes(f, ratio, threshold, min_photons):
-                kept[j] = f
+            if j not in more or f.log_likelihood > more[j].log_likelihood:
+                more[j] = f
         for j in todo:
             if j in removed:
                 continue
-            if int(j) in kept:
-                best[j] = kept[int(j)]
-                changes[j] += 1
-                continue
+            m = more.get(int(j))
+            if m is not None:
+                ratio = 2.0 * (m.log_likelihood - best[j].log_likelihood)
+                if _addition_passes(m, ratio, threshold, min_photons):
+                    best[j] = m
+                    changes[j] += 1
+                    continue
             open_[j] = False
     return best
 
