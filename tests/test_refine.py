@@ -82,6 +82,21 @@ def test_count_selection_removes_a_spurious_emitter(analytic):
     assert any("removed" in h for h in fit.history)
 
 
+def count_fits(monkeypatch) -> list[int]:
+    """Record the emitter count of every fit_emitters call made by the count selection."""
+    import sparseloc.solvers.refine as refine
+
+    calls: list[int] = []
+    real = refine.fit_emitters
+
+    def counting(y, model, em, **kw):
+        calls.append(len(em))
+        return real(y, model, em, **kw)
+
+    monkeypatch.setattr(refine, "fit_emitters", counting)
+    return calls
+
+
 def test_removal_is_refitted_only_below_the_wald_threshold(analytic, monkeypatch):
     """A real faint emitter whose Wald statistic (N / sigma_N)^2 lies between the threshold
     and four times it is not refitted without (REMOVE_SKIP_FACTOR 1); with the old factor 4
@@ -94,14 +109,7 @@ def test_removal_is_refitted_only_below_the_wald_threshold(analytic, monkeypatch
     fit = fit_emitters(img, analytic, start, pixel_size=PX)
     wald = (fit.emitters.photons / fit.sigma[:, 3]) ** 2
     assert refine.LR_THRESHOLD < wald[1] < 4 * refine.LR_THRESHOLD  # the case this tests
-    calls: list[int] = []
-    real = refine.fit_emitters
-
-    def counting(y, model, em, **kw):
-        calls.append(len(em))
-        return real(y, model, em, **kw)
-
-    monkeypatch.setattr(refine, "fit_emitters", counting)
+    calls = count_fits(monkeypatch)
     fit_with_count_selection(img, analytic, start, pixel_size=PX)
     assert 1 not in calls  # no refit with an emitter removed
     calls.clear()
@@ -111,7 +119,7 @@ def test_removal_is_refitted_only_below_the_wald_threshold(analytic, monkeypatch
 
 
 def test_the_first_candidate_that_passes_is_kept(analytic, monkeypatch):
-    """Two missing emitters, one change allowed, ``first_passing`` (the frame solver's rule):
+    """Two missing emitters, one change allowed, ``first_passing``:
     the best-correlated candidate's refit passes and is kept; the second is not refitted."""
     import sparseloc.solvers.refine as refine
 
@@ -119,14 +127,7 @@ def test_the_first_candidate_that_passes_is_kept(analytic, monkeypatch):
         [[850.0, 850.0, 0.0, 3000.0], [400.0, 1300.0, 300.0, 3000.0], [1300, 400.0, -200, 2000]]
     )
     img = window(analytic, truth, seed=7)
-    calls: list[int] = []
-    real = refine.fit_emitters
-
-    def counting(y, model, em, **kw):
-        calls.append(len(em))
-        return real(y, model, em, **kw)
-
-    monkeypatch.setattr(refine, "fit_emitters", counting)
+    calls = count_fits(monkeypatch)
     start = Emitters.from_array(truth[:1])
     fit = fit_with_count_selection(
         img, analytic, start, pixel_size=PX, max_changes=1, first_passing=True
@@ -136,7 +137,7 @@ def test_the_first_candidate_that_passes_is_kept(analytic, monkeypatch):
     fit_with_count_selection(img, analytic, start, pixel_size=PX, max_changes=1)
     assert calls == [1, 2, 2]  # by default both candidates are refitted (the likelier is kept)
     cands, _ = refine._residual_candidates(
-        img, real(img, analytic, start, pixel_size=PX).model_image, analytic, PX, (0.0, 0.0)
+        img, fit_emitters(img, analytic, start, pixel_size=PX).model_image, analytic, PX, (0.0, 0.0)
     )
     assert len(cands) == 2  # both missing emitters were candidates
     added = fit.emitters.as_array()[1]
