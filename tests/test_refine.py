@@ -118,32 +118,31 @@ def test_removal_is_refitted_only_below_the_wald_threshold(analytic, monkeypatch
     assert calls[:2] == [2, 1]  # the fit, then the refit without the faint one
 
 
-def test_the_first_candidate_that_passes_is_kept(analytic, monkeypatch):
-    """Two missing emitters, one change allowed, ``first_passing``:
-    the best-correlated candidate's refit passes and is kept; the second is not refitted."""
+def test_both_addition_candidates_are_refitted_and_the_likelier_kept(analytic, monkeypatch):
+    """Two missing emitters, one change allowed: both candidates are refitted, and the one
+    kept is the likelier of the two (the frame solver's and the windows' rule)."""
     import sparseloc.solvers.refine as refine
 
     truth = np.array(
         [[850.0, 850.0, 0.0, 3000.0], [400.0, 1300.0, 300.0, 3000.0], [1300, 400.0, -200, 2000]]
     )
     img = window(analytic, truth, seed=7)
-    calls = count_fits(monkeypatch)
     start = Emitters.from_array(truth[:1])
-    fit = fit_with_count_selection(
-        img, analytic, start, pixel_size=PX, max_changes=1, first_passing=True
-    )
-    assert calls == [1, 2]  # the fit, then one addition trial
-    calls.clear()
-    fit_with_count_selection(img, analytic, start, pixel_size=PX, max_changes=1)
-    assert calls == [1, 2, 2]  # by default both candidates are refitted (the likelier is kept)
     cands, _ = refine._residual_candidates(
-        img, fit_emitters(img, analytic, start, pixel_size=PX).model_image, analytic, PX, (0.0, 0.0)
+        img, fit_emitters(img, analytic, start, pixel_size=PX).model_image, analytic, PX, (0, 0)
     )
-    assert len(cands) == 2  # both missing emitters were candidates
+    assert len(cands) == 2  # both missing emitters are candidates
+    trials = [
+        fit_emitters(img, analytic, Emitters.from_array(np.vstack([truth[:1], c])), pixel_size=PX)
+        for c in cands
+    ]
+    calls = count_fits(monkeypatch)
+    fit = fit_with_count_selection(img, analytic, start, pixel_size=PX, max_changes=1)
+    assert calls == [1, 2, 2]  # the fit, then both addition trials
+    likelier = max(trials, key=lambda t: t.log_likelihood).emitters.as_array()[1]
     added = fit.emitters.as_array()[1]
-    d = np.linalg.norm(truth[1:, :2] - added[:2], axis=1)
-    first = np.linalg.norm(truth[1:, :2] - np.array(cands[0][:2]), axis=1)
-    assert np.argmin(d) == np.argmin(first) and d.min() < 60.0
+    assert np.linalg.norm(added[:2] - likelier[:2]) < 5.0
+    assert np.linalg.norm(truth[1:, :2] - added[:2], axis=1).min() < 60.0
 
 
 def test_z_outside_the_range_is_flagged(dh_model):

@@ -44,7 +44,6 @@ one model:
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -278,9 +277,13 @@ _SELECT: list = []
 
 
 def _select_kernel():
-    """:func:`sparseloc.solvers._pursuit_numba.select_best`, or ``None`` where numba is
-    missing, fails, or ``SPARSELOC_NUMBA=0`` (then :meth:`_Correlator.best` uses NumPy)."""
-    if os.environ.get("SPARSELOC_NUMBA", "1") == "0":
+    """:func:`sparseloc.solvers._pursuit_numba.select_best`, or ``None`` where the compiled
+    kernels are off (:func:`sparseloc.psf._spline_kernel.available`: numba missing or failing,
+    ``SPARSELOC_NUMBA=0``) or this one fails to compile (then :meth:`_Correlator.best` uses
+    NumPy)."""
+    from ..psf import _spline_kernel
+
+    if not _spline_kernel.available():
         return None
     if not _SELECT:
         try:
