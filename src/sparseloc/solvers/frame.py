@@ -729,8 +729,9 @@ class _NeighbourLight:
     are the same emitters, unmoved, from window to window and sweep to sweep. For a spline
     model each emitter's image is rendered once per position, over the box beyond which the
     model is exactly zero (:meth:`~sparseloc.psf.spline.SplinePSF.zero_beyond`), and cropped
-    into each window: the same values as rendering them there (to rounding), ~5x less
-    work on dense frames. Other models render into the window directly.
+    into each window: the same values as rendering them there (to rounding); on 4 dense
+    frames the sweeps' offsets took 0.77 s instead of 1.85 s (profiled, one process). Other
+    models render into the window directly.
     """
 
     def __init__(self, model: PSFModel, shape: tuple[int, int], px: float):
