@@ -220,3 +220,34 @@ def test_a_non_finite_start_is_refused_as_in_numpy(table, bad):
     start[0, col] = value
     with pytest.raises(ValueError, match="finite"):
         fit_emitters(img, table, Emitters.from_array(start), pixel_size=PX, background=10.0)
+
+
+@pytest.mark.parametrize("npar", [1, 2, 5, 9, 13, 15, 33, 35])
+def test_compiled_scoring_matches_numpy(npar):
+    # The Fisher matrix is summed in 2 x 4 blocks with clamped edges: every parameter count
+    # (4 K + 1 or 4 K + 3, and odd sizes) must give J diag(1/mu) J' and J'(1 - y/mu) exactly
+    # as the plain products do.
+    from sparseloc.solvers._fit_numba import _scoring
+
+    rng = np.random.default_rng(npar)
+    rows, cols = 7, 9
+    jac = rng.normal(size=(npar, rows * cols))
+    mu = rng.uniform(5.0, 50.0, size=(rows, cols))
+    v = rng.uniform(0.0, 2.0, size=(rows, cols))
+    y = rng.poisson(mu).astype(float) + v
+    grad, fisher = np.empty(npar), np.empty((npar, npar))
+    _scoring(
+        mu,
+        v,
+        y,
+        0.5,
+        jac,
+        np.empty(rows * cols),
+        np.empty(rows * cols),
+        np.empty((npar, rows * cols)),
+        grad,
+        fisher,
+    )
+    muv = (mu + v).ravel()
+    np.testing.assert_allclose(fisher, 0.5 * (jac / muv) @ jac.T, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(grad, 0.5 * jac @ (1.0 - y.ravel() / muv), rtol=1e-12, atol=1e-12)
