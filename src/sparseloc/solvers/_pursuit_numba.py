@@ -10,23 +10,40 @@ FFTs. This loop does the same comparisons in the same order in one pass (bit-ide
 from __future__ import annotations
 
 import numba
+import numpy as np
 
 
 @numba.njit(cache=True, nogil=True)
-def select_best(part, inv_norm, j0, sb, jb, cb):  # pragma: no cover - compiled
+def select_best(full, h, inv_norm, j0, sb, jb, cb):  # pragma: no cover - compiled
     """Fold one batch of correlations into the running best, in place.
 
-    ``part`` and ``inv_norm`` are (n, rows, cols) single precision; the score is their
-    product in single precision, as in NumPy. A template replaces the running best only
-    when its score is strictly larger, and the templates are visited in order: the first
-    of equal scores wins, as with ``argmax``.
+    ``full`` (n, >= h + rows, >= h + cols) holds the batch's circular correlations, whose
+    pixels ``[h : h + rows, h : h + cols]`` are the frame's; ``inv_norm`` is (n, rows, cols).
+    Both are single precision and the score is their product in single precision, as in
+    NumPy. The running best ``sb`` (score), ``jb`` (template, int32) and ``cb``
+    (correlation) are single precision too: they only ever hold single-precision values,
+    and at half the bytes the loop runs about 1.6x faster (it is bound by memory).
+    A template replaces the running best only when its score is strictly larger, and the
+    templates are visited in order: the first of equal scores wins, as with ``argmax``.
+    Reading ``full`` directly (C-contiguous rows) instead of a cropped view lets the
+    compiler see unit strides.
     """
-    n, rows, cols = part.shape
+    n = full.shape[0]
+    rows, cols = sb.shape
     for k in range(n):
+        jj = np.int32(j0 + k)
         for r in range(rows):
+            fr = full[k, h + r]
+            ir = inv_norm[k, r]
+            sbr = sb[r]
+            jbr = jb[r]
+            cbr = cb[r]
             for c in range(cols):
-                s = part[k, r, c] * inv_norm[k, r, c]
-                if s > sb[r, c]:
-                    sb[r, c] = s
-                    jb[r, c] = j0 + k
-                    cb[r, c] = part[k, r, c]
+                p = fr[h + c]
+                s = p * ir[c]
+                b = sbr[c]
+                better = s > b
+                # selects, not a branch: the loop vectorises
+                sbr[c] = s if better else b
+                jbr[c] = jj if better else jbr[c]
+                cbr[c] = p if better else cbr[c]

@@ -222,7 +222,10 @@ class _Correlator:
         h, (rows, cols) = self.h, self.shape
         return full[h : h + rows, h : h + cols]
 
-    def _batches(self, img: NDArray, squared: bool):
+    def _batches(self, img: NDArray, squared: bool, crop: bool = True):
+        """``(j0, correlations)`` per batch of templates: cropped to the frame's pixels, or
+        with ``crop=False`` the whole circular correlation (the frame's pixels start at
+        ``[h, h]``)."""
         f = sfft.rfft2(img, s=self.fshape)
         if not squared:
             # single precision like the spectra: the inverse FFTs run at twice the speed
@@ -233,7 +236,7 @@ class _Correlator:
             j1 = min(j0 + self.batch, n)
             ft = sfft.rfft2(self._flipped[j0:j1] ** 2, s=self.fshape) if squared else self.ft[j0:j1]
             full = sfft.irfft2(f[None] * ft, s=self.fshape)
-            yield j0, full[:, h : h + rows, h : h + cols]
+            yield j0, (full[:, h : h + rows, h : h + cols] if crop else full)
 
     def correlate(self, img: NDArray, squared: bool = False) -> NDArray[np.float64]:
         """(J, rows, cols): sum over the template of ``img`` times the template (or its
@@ -253,22 +256,28 @@ class _Correlator:
         ``corr / sqrt(norm2)`` (matching pursuit's choice). ``compiled`` selects with the
         numba loop where it is available (same result, ~5x faster than the NumPy gathers).
         """
-        sb = np.full(self.shape, -np.inf)
-        jb = np.zeros(self.shape, dtype=np.intp)
-        cb = np.zeros(self.shape)
         select = _select_kernel() if compiled else None
-        for j0, part in self._batches(img, False):
-            inv = self.inv_norm[j0 : j0 + len(part)]
-            if select is not None:
-                select(part, inv, j0, sb, jb, cb)
-                continue
-            score = part * inv
-            k = np.argmax(score, axis=0)
-            s = np.take_along_axis(score, k[None], 0)[0]
-            better = s > sb
-            sb[better] = s[better]
-            jb[better] = (j0 + k)[better]
-            cb[better] = np.take_along_axis(part, k[None], 0)[0][better]
+        if select is not None:
+            # the kernel's running best is single precision (its values are): converted once
+            sb = np.full(self.shape, -np.inf, dtype=np.float32)
+            jb = np.zeros(self.shape, dtype=np.int32)
+            cb = np.zeros(self.shape, dtype=np.float32)
+            for j0, full in self._batches(img, False, crop=False):
+                select(full, self.h, self.inv_norm[j0 : j0 + len(full)], j0, sb, jb, cb)
+            sb, jb, cb = sb.astype(np.float64), jb.astype(np.intp), cb.astype(np.float64)
+        else:
+            sb = np.full(self.shape, -np.inf)
+            jb = np.zeros(self.shape, dtype=np.intp)
+            cb = np.zeros(self.shape)
+            for j0, part in self._batches(img, False):
+                inv = self.inv_norm[j0 : j0 + len(part)]
+                score = part * inv
+                k = np.argmax(score, axis=0)
+                s = np.take_along_axis(score, k[None], 0)[0]
+                better = s > sb
+                sb[better] = s[better]
+                jb[better] = (j0 + k)[better]
+                cb[better] = np.take_along_axis(part, k[None], 0)[0][better]
         nb = np.take_along_axis(self.norm2, jb[None], 0)[0].astype(np.float64)
         return sb, jb, cb, nb
 
@@ -290,7 +299,8 @@ def _select_kernel():
             from ._pursuit_numba import select_best
 
             one = np.zeros((1, 1, 1), np.float32)
-            select_best(one, one, 0, np.zeros((1, 1)), np.zeros((1, 1), np.intp), np.zeros((1, 1)))
+            best = np.zeros((1, 1), np.float32)
+            select_best(one, 0, one, 0, best, np.zeros((1, 1), np.int32), best.copy())
             _SELECT.append(select_best)
         except Exception as exc:  # any numba failure means: use NumPy
             log.warning("numba pursuit kernel unavailable (%s): using NumPy", exc)
