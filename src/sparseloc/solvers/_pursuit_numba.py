@@ -22,11 +22,11 @@ def select_best(full, h, inv_norm, j0, sb, jb, cb):  # pragma: no cover - compil
     Both are single precision and the score is their product in single precision, as in
     NumPy. The running best ``sb`` (score), ``jb`` (template, int32) and ``cb``
     (correlation) are single precision too: they only ever hold single-precision values,
-    and at half the bytes the loop runs about 1.6x faster (it is bound by memory).
+    and with them the loop ran 1.6x faster than with double-precision ones (0.28 -> 0.17 ms
+    per 16 templates on a 128 px frame; reading ``full`` with unit strides and selects
+    instead of a branch gained nothing on their own).
     A template replaces the running best only when its score is strictly larger, and the
     templates are visited in order: the first of equal scores wins, as with ``argmax``.
-    Reading ``full`` directly (C-contiguous rows) instead of a cropped view lets the
-    compiler see unit strides.
     """
     n = full.shape[0]
     rows, cols = sb.shape
@@ -43,7 +43,6 @@ def select_best(full, h, inv_norm, j0, sb, jb, cb):  # pragma: no cover - compil
                 s = p * ir[c]
                 b = sbr[c]
                 better = s > b
-                # selects, not a branch: the loop vectorises
                 sbr[c] = s if better else b
                 jbr[c] = jj if better else jbr[c]
                 cbr[c] = p if better else cbr[c]
