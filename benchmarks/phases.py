@@ -1,0 +1,178 @@
+"""Where the frame solver's time goes: wall time per phase on simulated frames.
+
+Localizes ``--frames`` simulated 128 x 128 double-helix frames (pupil model tabulated as the
+pipeline does, 100 nm pixels, 1000-5000 photons, background 10) at ``--density`` emitters
+per um^2 in one process, with timers around the solver's parts, and prints one table:
+
+- pursuit: the frame pursuit that gives the fits their start;
+- maximum-likelihood fits: every ``fit_emitters`` call (groups, count-selection trials,
+  z flips, relocations), and within it the compiled Levenberg-Marquardt loop;
+- candidate search: the FFT correlations of residual windows with the PSF planes (count
+  selection's additions and the relocation trials);
+- neighbour light: the other emitters' images summed into each window;
+- linear response: the skip test of settled groups;
+- rest: everything else (grouping, bookkeeping, background, the table).
+
+The timers count a phase only at its outermost call, so the rows add up to the total. Use
+it to see what a change should target; compare versions with
+``speed_before_after.py`` (timings on shared machines drift: alternate runs)::
+
+    python benchmarks/phases.py --frames 3 --density 1
+    python benchmarks/phases.py --frames 20 --density 0.05
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+import sparseloc
+import sparseloc.solvers.frame as frame_mod
+import sparseloc.solvers.refine as refine_mod
+from sparseloc.pipeline import LocalizeParams, localize, work_model_for
+from sparseloc.psf import make_psf
+from sparseloc.simulate import simulate
+
+PHASES = (
+    "pursuit",
+    "maximum-likelihood fits",
+    "candidate search",
+    "neighbour light",
+    "linear response",
+)
+
+
+def _install_timers(acc: collections.Counter, inner: collections.Counter) -> list:
+    """Wrap the solver's functions with timers; returns what to restore."""
+    depth = [0]
+    saved = []
+
+    def wrap(owner, name: str, label: str) -> None:
+        f = getattr(owner, name)
+        saved.append((owner, name, f))
+
+        def timed(*a, **k):
+            if depth[0]:
+                return f(*a, **k)
+            depth[0] += 1
+            t = time.perf_counter()
+            try:
+                return f(*a, **k)
+            finally:
+                acc[label] += time.perf_counter() - t
+                depth[0] -= 1
+
+        setattr(owner, name, timed)
+
+    wrap(frame_mod, "frame_pursuit", "pursuit")
+    for owner in (refine_mod, frame_mod):
+        wrap(owner, "fit_emitters", "maximum-likelihood fits")
+        wrap(owner, "_residual_candidates", "candidate search")
+    wrap(frame_mod._NeighbourLight, "window", "neighbour light")
+    wrap(frame_mod, "_light_pieces", "neighbour light")
+    wrap(frame_mod, "_sum_pieces", "neighbour light")
+    wrap(frame_mod, "_response", "linear response")
+
+    # the compiled loop runs inside fit_emitters: timed on its own, not exclusively
+    try:
+        from sparseloc.solvers import _fit_numba
+    except ImportError:  # numba missing: the NumPy loop, no separate row
+        return saved
+    loop = _fit_numba.lm_fit
+    saved.append((_fit_numba, "lm_fit", loop))
+
+    def timed_loop(*a):
+        t = time.perf_counter()
+        try:
+            return loop(*a)
+        finally:
+            inner["compiled loop"] += time.perf_counter() - t
+            inner["compiled fits"] += 1
+
+    _fit_numba.lm_fit = timed_loop
+    return saved
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--frames", type=int, default=3)
+    ap.add_argument("--density", type=float, default=1.0, help="emitters per um^2")
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/phases.json"))
+    args = ap.parse_args(argv)
+
+    model = make_psf("dh")
+    params = LocalizeParams(pixel_size=100.0)
+    work = work_model_for(model, params)
+    sim = simulate(
+        model,
+        scene="uniform",
+        n_frames=args.frames,
+        shape=(128, 128),
+        pixel_size=100.0,
+        density=args.density,
+        photons=(1000.0, 5000.0),
+        background=10.0,
+        seed=args.seed,
+    )
+    frames = sim.movie.astype(np.float64) - sim.camera.offset
+    localize(frames[:1], work, params)  # compile or load the kernels outside the timings
+
+    acc: collections.Counter = collections.Counter()
+    inner: collections.Counter = collections.Counter()
+    saved = _install_timers(acc, inner)
+    try:
+        t0 = time.perf_counter()
+        res = localize(frames, work, params)
+        total = time.perf_counter() - t0
+    finally:
+        for owner, name, f in reversed(saved):
+            setattr(owner, name, f)
+
+    rows = {name: acc[name] for name in PHASES}
+    rows["rest"] = total - sum(rows.values())
+    print(
+        f"{args.frames} frames of 128x128 px at {args.density:g} emitters/um^2 (seed {args.seed}), "
+        f"one process: {len(res.table)} localizations in {total:.2f} s "
+        f"({len(res.table) / total:.1f}/s)"
+    )
+    print(f"{'phase':26s} {'seconds':>8s} {'share':>7s}")
+    print("-" * 43)
+    for name, sec in rows.items():
+        print(f"{name:26s} {sec:8.2f} {100 * sec / total:6.1f}%")
+        if name == "maximum-likelihood fits" and inner["compiled fits"]:
+            print(
+                f"{'  of which compiled loop':26s} {inner['compiled loop']:8.2f} "
+                f"{100 * inner['compiled loop'] / total:6.1f}%   "
+                f"({inner['compiled fits']} fits, "
+                f"{1e3 * inner['compiled loop'] / inner['compiled fits']:.2f} ms each in the loop, "
+                f"{1e3 * (sec - inner['compiled loop']) / inner['compiled fits']:.2f} ms around it)"
+            )
+    out = {
+        "frames": args.frames,
+        "density": args.density,
+        "seed": args.seed,
+        "seconds": total,
+        "localizations": len(res.table),
+        "phases_s": rows,
+        "compiled_loop_s": inner["compiled loop"],
+        "compiled_fits": inner["compiled fits"],
+        "version": sparseloc.__version__,
+        "machine": platform.platform(),
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(out, indent=2))
+    tmp.replace(args.out)
+    print(f"wrote {args.out}")
+    return out
+
+
+if __name__ == "__main__":
+    main()
