@@ -710,8 +710,10 @@ def _in_processes(inputs, workers: int, init_args: tuple):
         # Compile (or load) the numba kernels here once: forked workers inherit them, and
         # spawned ones find numba's cache filled instead of all compiling at the same time.
         from .psf import _spline_kernel
+        from .solvers.frame import _select_kernel
 
         _spline_kernel.available()
+        _select_kernel()  # the frame pursuit's selection loop
     # The platform's default: fork on Linux (no re-import of the caller's script), spawn
     # elsewhere (scripts then need the usual ``if __name__ == "__main__":`` guard).
     ctx = multiprocessing.get_context()
