@@ -170,6 +170,7 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
     res = run("localize", movie, "-o", out, "--config", cfg)
     assert res.exit_code == 0, res.output
     assert "localizations" in res.output and "frames" in res.output
+    assert "1 process" in res.output  # two frames: no pool (see test_default_workers)
     from sparseloc.io.tables import read_parquet
 
     table, meta = read_parquet(out)
@@ -208,3 +209,22 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
     res = run("localize", movie, "-o", tmp_path / "x.csv", "--config", bad)
     assert res.exit_code == 2 and "unknown keys" in res.output
     assert not (tmp_path / "x.csv").exists()
+
+
+def test_default_workers(monkeypatch):
+    # one process per core the process may use, at most AUTO_WORKERS_CAP and one per
+    # MIN_FRAMES_PER_WORKER frames, never fewer than one
+    from sparseloc import cli
+
+    monkeypatch.setattr(cli.os, "sched_getaffinity", lambda pid: set(range(6)), raising=False)
+    assert cli._auto_workers(1000) == 6
+    assert cli._auto_workers(3 * cli.MIN_FRAMES_PER_WORKER) == 3
+    assert cli._auto_workers(2) == 1
+    monkeypatch.setattr(cli.os, "sched_getaffinity", lambda pid: set(range(64)), raising=False)
+    assert cli._auto_workers(10**6) == cli.AUTO_WORKERS_CAP
+    # where the platform cannot tell the affinity: the CPU count
+    monkeypatch.delattr(cli.os, "sched_getaffinity", raising=False)
+    monkeypatch.setattr(cli.os, "cpu_count", lambda: 2)
+    assert cli._auto_workers(1000) == 2
+    monkeypatch.setattr(cli.os, "cpu_count", lambda: None)
+    assert cli._auto_workers(1000) == 1

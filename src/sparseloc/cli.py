@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import sys
 import time
 from enum import StrEnum
@@ -178,6 +179,22 @@ def simulate(
     typer.echo(f"wrote {tif} and {truth}")
 
 
+#: ``localize --workers`` by default: one process per available core, at most this many (each
+#: holds about 300 MB: ``docs/benchmarks/memory_10k.txt``) ...
+AUTO_WORKERS_CAP = 8
+#: ... and at most one per this many frames (a pool's start-up is not worth it for fewer).
+MIN_FRAMES_PER_WORKER = 8
+
+
+def _auto_workers(n_frames: int) -> int:
+    """The default number of worker processes for ``n_frames`` frames (see above)."""
+    try:
+        cores = len(os.sched_getaffinity(0))  # the cores this process may use
+    except AttributeError:  # not on every platform
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, AUTO_WORKERS_CAP, n_frames // MIN_FRAMES_PER_WORKER))
+
+
 LOCALIZE_DEFAULTS: dict = {
     "psf": "dh",
     "pixel_size": None,
@@ -196,7 +213,7 @@ LOCALIZE_DEFAULTS: dict = {
     "refine": True,
     "frames": None,
     "format": None,
-    "workers": 1,
+    "workers": None,  # one per available core (see _auto_workers)
     "device": None,
     "n_sample": None,
     "focal_depth": None,
@@ -317,7 +334,13 @@ def localize(
         str | None, typer.Option("--format", help="parquet, thunderstorm, picasso, smlm.")
     ] = None,
     workers: Annotated[
-        int | None, typer.Option(help="Processes solving frames (default 1).", min=1)
+        int | None,
+        typer.Option(
+            help="Processes solving frames (default: one per available core, at most "
+            f"{AUTO_WORKERS_CAP} and one per {MIN_FRAMES_PER_WORKER} frames; 1 with --device "
+            "or the chunked options).",
+            min=1,
+        ),
     ] = None,
     device: Annotated[
         str | None,
@@ -501,6 +524,9 @@ def localize(
         if chunked:
             _localize_chunked(opts, out, mov, cam, model, params, start, stop, read_var)
             return
+        workers = opts["workers"]
+        if workers is None:
+            workers = 1 if params.device is not None else _auto_workers(stop - start)
         with tqdm(total=stop - start, unit="frame", disable=not sys.stderr.isatty()) as bar:
             res = _run(
                 run_localize,
@@ -510,11 +536,11 @@ def localize(
                 start=start,
                 stop=stop,
                 progress=bar.update,
-                workers=int(opts["workers"]),
+                workers=workers,
                 read_variance=read_var if read_var.ndim == 2 else None,
             )
         _write_localized(res, out, opts, mov, cam)
-    typer.echo(res.summary())
+    typer.echo(f"{res.summary()}, {workers} process{'es' if workers > 1 else ''}")
     typer.echo(f"wrote {out}")
 
 
@@ -526,7 +552,7 @@ def _localize_chunked(opts, out, mov, cam, model, params, start, stop, read_var)
 
     run_dir = Path(opts["run_dir"]) if opts["run_dir"] else out.with_name(out.stem + ".parts")
     sched = opts["scheduler"]
-    workers = int(opts["workers"])
+    workers = int(opts["workers"] or 1)  # a Dask cluster only when asked for
     if params.device is not None and (workers > 1 or sched not in (None, "sync")):
         _fail(
             f"--device {params.device} runs the chunks one after another in this process; "
