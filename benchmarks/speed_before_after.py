@@ -23,9 +23,11 @@ from sparseloc.psf import make_psf
 from sparseloc.simulate import simulate
 
 
-def main() -> None:
-    n = int(sys.argv[1]) if len(sys.argv) > 1 else 4
-    density = float(sys.argv[2]) if len(sys.argv) > 2 else 1.0
+def benchmark_frames(n: int, density: float, seed: int = 3):
+    """``n`` simulated 128 x 128 double-helix frames (photons; pupil model tabulated as the
+    pipeline does, 100 nm pixels, 1000-5000 photons, background 10) at ``density`` emitters
+    per um^2: ``(frames, work model, params, simulation)``, the kernels already compiled or
+    loaded by one localized frame (also used by ``phases.py``)."""
     model = make_psf("dh")
     p = LocalizeParams(pixel_size=100.0)
     work = work_model_for(model, p)
@@ -38,10 +40,17 @@ def main() -> None:
         density=density,
         photons=(1000.0, 5000.0),
         background=10.0,
-        seed=3,
+        seed=seed,
     )
     frames = sim.movie.astype(np.float64) - sim.camera.offset
     localize(frames[:1], work, p)
+    return frames, work, p, sim
+
+
+def main() -> None:
+    n = int(sys.argv[1]) if len(sys.argv) > 1 else 4
+    density = float(sys.argv[2]) if len(sys.argv) > 2 else 1.0
+    frames, work, p, sim = benchmark_frames(n, density)
     t = time.perf_counter()
     r = localize(frames, work, p)
     dt = time.perf_counter() - t
