@@ -216,8 +216,14 @@ def test_default_workers(monkeypatch):
     # MIN_FRAMES_PER_WORKER frames, never fewer than one
     from sparseloc import cli
 
+    monkeypatch.setattr(cli, "_cpu_quota", lambda: None)
     monkeypatch.setattr(cli.os, "sched_getaffinity", lambda pid: set(range(6)), raising=False)
     assert cli._auto_workers(1000) == 6
+    monkeypatch.setattr(cli, "_cpu_quota", lambda: 2.5)  # a container limited to 2.5 CPUs
+    assert cli._auto_workers(1000) == 2
+    monkeypatch.setattr(cli, "_cpu_quota", lambda: 0.5)
+    assert cli._auto_workers(1000) == 1
+    monkeypatch.setattr(cli, "_cpu_quota", lambda: None)
     assert cli._auto_workers(3 * cli.MIN_FRAMES_PER_WORKER) == 3
     assert cli._auto_workers(2) == 1
     monkeypatch.setattr(cli.os, "sched_getaffinity", lambda pid: set(range(64)), raising=False)
@@ -228,3 +234,22 @@ def test_default_workers(monkeypatch):
     assert cli._auto_workers(1000) == 2
     monkeypatch.setattr(cli.os, "cpu_count", lambda: None)
     assert cli._auto_workers(1000) == 1
+
+
+def test_cpu_quota_from_cgroup_files(tmp_path):
+    from sparseloc.cli import _cpu_quota
+
+    assert _cpu_quota(tmp_path) is None  # nothing there
+    (tmp_path / "cpu.max").write_text("max 100000\n")  # cgroup v2, no limit
+    assert _cpu_quota(tmp_path) is None
+    (tmp_path / "cpu.max").write_text("200000 100000\n")
+    assert _cpu_quota(tmp_path) == 2.0
+    (tmp_path / "cpu.max").write_text("garbage\n")
+    assert _cpu_quota(tmp_path) is None
+    v1 = tmp_path / "v1"
+    (v1 / "cpu").mkdir(parents=True)
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("-1\n")  # cgroup v1, no limit
+    (v1 / "cpu" / "cpu.cfs_period_us").write_text("100000\n")
+    assert _cpu_quota(v1) is None
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("150000\n")
+    assert _cpu_quota(v1) == 1.5
