@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import sys
 import time
 from enum import StrEnum
@@ -186,31 +185,11 @@ AUTO_WORKERS_CAP = 8
 MIN_FRAMES_PER_WORKER = 8
 
 
-def _cpu_quota(root: Path = Path("/sys/fs/cgroup")) -> float | None:
-    """CPUs allowed by a Linux cgroup quota (a container's ``--cpus``, a batch job's limit),
-    or None where there is none or it cannot be read. The core affinity does not show it: a
-    container limited to 2 CPUs on a 64-core host sees 64 cores."""
-    try:
-        if (root / "cpu.max").exists():  # cgroup v2: "QUOTA PERIOD" or "max PERIOD"
-            quota, period = (root / "cpu.max").read_text().split()[:2]
-            return None if quota == "max" else int(quota) / int(period)
-        quota = int((root / "cpu" / "cpu.cfs_quota_us").read_text())  # cgroup v1
-        period = int((root / "cpu" / "cpu.cfs_period_us").read_text())
-        return None if quota <= 0 or period <= 0 else quota / period
-    except (OSError, ValueError):
-        return None
-
-
 def _auto_workers(n_frames: int) -> int:
     """The default number of worker processes for ``n_frames`` frames (see above)."""
-    try:
-        cores = len(os.sched_getaffinity(0))  # the cores this process may use
-    except AttributeError:  # not on every platform
-        cores = os.cpu_count() or 1
-    quota = _cpu_quota()
-    if quota is not None:
-        cores = min(cores, max(1, int(quota)))
-    return max(1, min(cores, AUTO_WORKERS_CAP, n_frames // MIN_FRAMES_PER_WORKER))
+    from .pipeline import available_cores
+
+    return max(1, min(available_cores(), AUTO_WORKERS_CAP, n_frames // MIN_FRAMES_PER_WORKER))
 
 
 LOCALIZE_DEFAULTS: dict = {

@@ -111,9 +111,9 @@ def run_demo(
 
     t0 = time.perf_counter()
     if workers is None:
-        import os
+        from .pipeline import available_cores
 
-        workers = max(1, min(2, os.cpu_count() or 1))
+        workers = min(2, available_cores())
     frames = sim.movie.astype(np.float64) - sim.camera.offset  # ideal camera: gain 1
     params = LocalizeParams(pixel_size=pixel_size)
     bar = None

@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import re
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -213,6 +215,35 @@ class LocalizeResult:
             f"{self.n_frames} frames, {self.n_windows} windows, {len(self.table)} "
             f"localizations in {self.seconds:.1f} s ({self.per_second:.1f} localizations/s)"
         )
+
+
+def _cpu_quota(root: Path = Path("/sys/fs/cgroup")) -> float | None:
+    """CPUs allowed by a Linux cgroup quota (a container's ``--cpus``, a batch job's limit),
+    or None where there is none or it cannot be read. The core affinity does not show it: a
+    container limited to 2 CPUs on a 64-core host sees 64 cores."""
+    try:
+        if (root / "cpu.max").exists():  # cgroup v2: "QUOTA PERIOD" or "max PERIOD"
+            quota, period = (root / "cpu.max").read_text().split()[:2]
+            return None if quota == "max" else int(quota) / int(period)
+        quota = int((root / "cpu" / "cpu.cfs_quota_us").read_text())  # cgroup v1
+        period = int((root / "cpu" / "cpu.cfs_period_us").read_text())
+        return None if quota <= 0 or period <= 0 else quota / period
+    except (OSError, ValueError):
+        return None
+
+
+def available_cores() -> int:
+    """CPU cores this process may use: its affinity (else the CPU count), lowered by a
+    cgroup CPU quota; at least 1. The default worker counts (``localize`` on the command
+    line, ``sparseloc demo``) start from it."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on every platform
+        cores = os.cpu_count() or 1
+    quota = _cpu_quota()
+    if quota is not None:
+        cores = min(cores, int(quota))
+    return max(1, cores)
 
 
 def array_digest(a: NDArray) -> str:
