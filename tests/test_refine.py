@@ -8,7 +8,7 @@ import pytest
 from sparseloc.crlb import crlb
 from sparseloc.psf import make_psf
 from sparseloc.solvers import Emitters
-from sparseloc.solvers.refine import fit_emitters, fit_with_count_selection
+from sparseloc.solvers.refine import LR_THRESHOLD, fit_emitters, fit_with_count_selection
 
 PX, W = 100.0, 17
 
@@ -293,3 +293,75 @@ def test_qe_is_checked(analytic):
     for bad in (0.0, 1.5, float("nan"), "high"):
         with pytest.raises(ValueError, match="qe"):
             fit_emitters(img, analytic, start, pixel_size=PX, qe=bad)
+
+
+def _merged_start(truth: np.ndarray) -> Emitters:
+    """The closest pair of ``truth`` merged at its photon-weighted centre, plus the rest: the
+    start of a fit in which two overlapping emitters were found as one."""
+    d = np.linalg.norm(truth[:, None, :3] - truth[None, :, :3], axis=2) + 1e9 * np.eye(len(truth))
+    i, j = np.unravel_index(np.argmin(d), d.shape)
+    merged = truth[[i, j]].T @ truth[[i, j], 3] / truth[[i, j], 3].sum()
+    merged[3] = truth[[i, j], 3].sum()
+    return Emitters.from_array(np.vstack([merged, np.delete(truth, [i, j], axis=0)]))
+
+
+def _max_error(est: np.ndarray, truth: np.ndarray) -> float:
+    d = np.linalg.norm(est[:, None, :3] - truth[None, :, :3], axis=2)
+    return float(d.min(axis=0).max())
+
+
+@pytest.mark.parametrize(
+    "truth, seed, found_by_count_selection",
+    [
+        # two emitters 128 nm apart laterally fitted as one: the count selection adds nothing
+        ([[682, 713, 143, 2072], [654, 588, 254, 2007], [829, 679, -136, 1575]], 55, 2),
+        # it adds a spurious fourth emitter instead of splitting the pair
+        ([[1074, 947, 42, 2428], [629, 1057, -213, 2052], [1117, 1092, -185, 1681]], 6, 4),
+    ],
+)
+def test_split_merge_search_leaves_the_count_selections_optimum(
+    analytic, truth, seed, found_by_count_selection
+):
+    from sparseloc.solvers.refine import split_merge_search
+
+    truth = np.array(truth, dtype=float)
+    img = window(analytic, truth, seed=seed)
+    cs = fit_with_count_selection(img, analytic, _merged_start(truth), pixel_size=PX)
+    # the case this test is about: the count selection alone ends on a wrong count
+    assert len(cs.emitters) == found_by_count_selection
+    fit = split_merge_search(img, analytic, cs, pixel_size=PX, search_model=analytic)
+    assert len(fit.emitters) == 3
+    assert _max_error(fit.emitters.as_array(), truth) < 60.0
+    assert fit.log_likelihood > cs.log_likelihood - LR_THRESHOLD / 2
+    assert any("one" in h for h in fit.history[len(cs.history) :])
+    assert np.all(fit.flags == "ok") and np.all(np.isfinite(fit.sigma))
+
+
+def test_split_merge_search_keeps_right_fits_and_adds_no_emitter(analytic):
+    from sparseloc.solvers.refine import split_merge_search
+
+    rng = np.random.default_rng(5)
+    for seed in range(12):
+        shift = [rng.uniform(-50, 50), rng.uniform(-50, 50), rng.uniform(-500, 500), 0.0]
+        truth = np.array([[850.0, 850.0, 0.0, 2000.0]]) + np.array(shift)
+        img = window(analytic, truth, seed=100 + seed)
+        cs = fit_with_count_selection(img, analytic, Emitters.from_array(truth), pixel_size=PX)
+        fit = split_merge_search(img, analytic, cs, pixel_size=PX, search_model=analytic)
+        assert len(fit.emitters) == 1, fit.history
+        assert fit is cs  # no move taken: the same fit comes back
+    empty = fit_emitters(
+        window(analytic, np.zeros((0, 4))), analytic, Emitters.empty(), pixel_size=PX
+    )
+    assert split_merge_search(np.zeros((W, W)) + 10, analytic, empty, pixel_size=PX) is empty
+
+
+def test_search_model_is_a_cached_table_of_a_slow_model(analytic):
+    from sparseloc.psf.spline import SplinePSF
+    from sparseloc.solvers.refine import search_model_for
+
+    table = SplinePSF.from_model(analytic, PX, roi=15, z_step=40.0)
+    assert search_model_for(table, PX, (11, 11)) is table
+    a = search_model_for(analytic, PX, (5, 5))
+    assert isinstance(a, SplinePSF) and a.z_range == analytic.z_range
+    assert search_model_for(analytic, PX, (5, 5)) is a
+    assert search_model_for(analytic, PX, (6, 6)) is not a

@@ -135,6 +135,7 @@ def hybrid_solve(
     polish_fine: bool = True,
     refine: bool = True,
     count_selection: bool = True,
+    search: bool = True,
     noise: str = "poisson",
     read_variance: float | np.ndarray | None = None,
     plane: bool = False,
@@ -156,7 +157,9 @@ def hybrid_solve(
     5. Insignificant emitters dropped (:func:`prune`, ``min_snr``).
     6. With ``refine`` (default): maximum-likelihood fit of the emitters with the continuous
        PSF model, off the grid, and (``count_selection``) the likelihood-ratio test of one
-       emitter fewer or more (:mod:`sparseloc.solvers.refine`).
+       emitter fewer or more (:mod:`sparseloc.solvers.refine`), then (``search``) split,
+       merge and exchange moves out of its local optimum
+       (:func:`~sparseloc.solvers.refine.split_merge_search`).
 
     With ``polish_fine`` the emitters are those of the point-source model (positions on the
     fine grid); without it, the weighted centres of step 2 (the paper's conversion).
@@ -198,8 +201,8 @@ def hybrid_solve(
         Cap on re-solves with boxes re-centred on the estimates.
     polish_fine : bool
         Report the point-source (polished) emitters rather than the L1 weighted centres.
-    refine, count_selection : bool
-        Run the maximum-likelihood stage, and its count selection.
+    refine, count_selection, search : bool
+        Run the maximum-likelihood stage, its count selection, and the split/merge search.
     noise, read_variance, plane, qe
         Likelihood and background model of the maximum-likelihood stage (see
         :func:`~sparseloc.solvers.refine.fit_emitters`). ``noise="emccd"`` also sets the
@@ -340,6 +343,7 @@ def hybrid_solve(
             pixel_size=fine.pixel_size,
             origin=fine.origin,
             count_selection=count_selection,
+            search=search,
             noise=noise,
             read_variance=read_variance,
             plane=plane,

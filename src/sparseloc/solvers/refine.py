@@ -51,6 +51,7 @@ range, where the true z may lie outside), ``"outside"`` (x or y outside the wind
 
 from __future__ import annotations
 
+import itertools
 import logging
 import weakref
 from dataclasses import dataclass, field
@@ -73,6 +74,7 @@ __all__ = [
     "fit_with_count_selection",
     "likelihood_weight",
     "refine_solution",
+    "split_merge_search",
 ]
 
 NOISE_MODELS = ("poisson", "emccd", "scmos")
@@ -695,6 +697,207 @@ def fit_with_count_selection(
     return best
 
 
+#: Offset (pixels) from an emitter's centre of each half when :func:`split_merge_search`
+#: splits it in two (along x, then along y).
+SPLIT_OFFSET = 0.5
+#: A same-count exchange in :func:`split_merge_search` must raise ``log L`` by more than this:
+#: moving between optima the data hardly tell apart would add noise, not information.
+EXCHANGE_MIN_GAIN = 0.5
+_SEARCH_MODELS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def search_model_for(model: PSFModel, pixel_size: float, shape: tuple[int, int]) -> PSFModel:
+    """The model :func:`split_merge_search` fits its many trial models with: ``model`` itself
+    if it is a spline table, else its table (:meth:`SplinePSF.from_model`, 10 nm planes),
+    made once per model, pixel size and window size. A pupil model's fit of 3 emitters on
+    11 x 11 px takes ~300 ms, the table's ~2 ms with positions within 0.5 nm of it."""
+    from ..psf.spline import SplinePSF
+
+    if isinstance(model, SplinePSF):
+        return model
+    roi = 2 * max(shape) + 3  # as the pipeline's windows: the table covers the whole window
+    key = (float(pixel_size), roi)
+    try:
+        per_model = _SEARCH_MODELS.setdefault(model, {})
+    except TypeError:  # not weakly referenceable: tabulate each time
+        per_model = {}
+    table = per_model.get(key)
+    if table is None:
+        table = SplinePSF.from_model(model, float(pixel_size), roi=roi, z_step=10.0)
+        per_model[key] = table
+    return table
+
+
+def _split_starts(arr: NDArray, step: float) -> list[NDArray]:
+    """(K+1, 4) starts: each emitter replaced by two halves ``step`` nm either side of it,
+    along x and along y."""
+    out = []
+    for i in range(len(arr)):
+        for d in ((step, 0.0), (0.0, step)):
+            a, b = arr[i].copy(), arr[i].copy()
+            a[:2] += d
+            b[:2] -= d
+            a[3] = b[3] = arr[i, 3] / 2
+            out.append(np.vstack([np.delete(arr, i, axis=0), a, b]))
+    return out
+
+
+def _fewer_starts(arr: NDArray) -> list[NDArray]:
+    """(K-1, 4) starts: each emitter dropped, and each pair merged into one at their
+    photon-weighted centre with their summed photons."""
+    out = [np.delete(arr, i, axis=0) for i in range(len(arr))]
+    for i, j in itertools.combinations(range(len(arr)), 2):
+        pair = arr[[i, j]]
+        merged = (pair[:, 3] / pair[:, 3].sum()) @ pair
+        merged[3] = pair[:, 3].sum()
+        out.append(np.vstack([np.delete(arr, [i, j], axis=0), merged]))
+    return out
+
+
+def split_merge_search(
+    window: ArrayLike,
+    model: PSFModel,
+    fit: FitResult,
+    *,
+    pixel_size: float,
+    origin: tuple[float, float] = (0.0, 0.0),
+    threshold: float = LR_THRESHOLD,
+    min_photons: float = 200.0,
+    max_emitters: int = 10,
+    max_moves: int = 4,
+    split_offset: float = SPLIT_OFFSET,
+    search_model: PSFModel | None = None,
+    **fit_kwargs,
+) -> FitResult:
+    """Leave the local optima of the count selection by split, merge and exchange moves.
+
+    The count selection (:func:`fit_with_count_selection`) removes only the weakest emitter
+    and adds one only where the residual correlates best with the PSF. Overlapping
+    engineered PSFs defeat both: two close emitters fitted as one bright emitter leave a flat
+    residual (nothing to add), and a spurious emitter that took part of a true one's lobes is
+    not the weakest. On the paper's Figure 2 case, fits started from the true emitters found
+    the right count in 83.5 % of 200 windows where the count selection alone found 75 %.
+    Each move refits every trial model and keeps the likeliest:
+
+    1. one fewer: each emitter dropped, each pair merged (photon-weighted centre, summed
+       photons); taken when ``2 (logL_K - logL_{K-1}) < threshold``;
+    2. one more: each emitter split into two halves ``split_offset`` pixels either side of
+       it (along x, then y), and the residual's two best candidates added; taken under the
+       count selection's addition test;
+    3. exchange: the likeliest one-fewer model's emitters split, or a residual candidate
+       added; taken when ``log L`` rises by more than :data:`EXCHANGE_MIN_GAIN`.
+
+    The moves repeat until none is taken (at most ``max_moves``), then the count selection
+    runs again from the result. They are fitted with ``search_model`` (default
+    :func:`search_model_for`: a spline table of a slow model); the result is refitted with
+    ``model`` and kept only if it passes the same test against ``fit`` on ``model``'s
+    likelihood (``K`` more emitters: a ratio above ``K * threshold``; fewer: below it; the
+    same count: a higher ``log L``).
+
+    Parameters
+    ----------
+    window, model, pixel_size, origin, threshold, min_photons, max_emitters
+        As in :func:`fit_with_count_selection`.
+    fit : FitResult
+        The fit to improve (e.g. the count selection's), on ``window`` with ``model``.
+    max_moves : int
+        Cap on moves taken.
+    split_offset : float
+        Distance (pixels) of each half from the split emitter.
+    search_model : PSFModel, optional
+        Model of the trial fits (default: ``search_model_for(model, ...)``).
+    **fit_kwargs
+        Passed to :func:`fit_emitters` (``noise``, ``plane``, ...; ``background`` is taken
+        from the current fit).
+
+    Returns
+    -------
+    FitResult
+        ``fit`` itself when no move was taken or the refit with ``model`` does not pass;
+        otherwise the new fit, whose ``history`` ends with the moves.
+    """
+    y = check_window(window)
+    kw = dict(pixel_size=pixel_size, origin=origin, **fit_kwargs)
+    kw.pop("background", None)
+    start = fit.emitters.as_array().reshape(-1, 4)
+    if len(start) == 0:
+        return fit
+    sm = search_model_for(model, pixel_size, y.shape) if search_model is None else search_model
+
+    def likeliest(starts: list[NDArray], bg: float) -> FitResult:
+        fits = (fit_emitters(y, sm, Emitters.from_array(a), background=bg, **kw) for a in starts)
+        return max(fits, key=lambda f: f.log_likelihood)
+
+    def candidates(f: FitResult) -> list:
+        return _residual_candidates(y, f.model_image, sm, pixel_size, origin, score=False)[0]
+
+    bg0 = float(fit.background[0])
+    best = fit if sm is model else fit_emitters(y, sm, fit.emitters, background=bg0, **kw)
+    step = split_offset * float(pixel_size)
+    moves: list[str] = []
+    while len(moves) < max_moves:
+        arr = best.emitters.as_array().reshape(-1, 4)
+        k, bg = len(arr), float(best.background[0])
+        fewer = None
+        if k >= 2:
+            fewer = likeliest(_fewer_starts(arr), bg)
+            ratio = 2.0 * (best.log_likelihood - fewer.log_likelihood)
+            if ratio < threshold:
+                best = fewer
+                moves.append(f"merged or dropped one: K={k - 1}, LR={ratio:.1f}")
+                continue
+        if k < max_emitters:
+            more = likeliest(
+                _split_starts(arr, step) + [np.vstack([arr, c]) for c in candidates(best)], bg
+            )
+            ratio = 2.0 * (more.log_likelihood - best.log_likelihood)
+            if _addition_passes(more, ratio, threshold, min_photons):
+                best = more
+                moves.append(f"split or added one: K={k + 1}, LR={ratio:.1f}")
+                continue
+        if fewer is not None:
+            farr = fewer.emitters.as_array().reshape(-1, 4)
+            starts = _split_starts(farr, step) + [np.vstack([farr, c]) for c in candidates(fewer)]
+            swap = likeliest(starts, float(fewer.background[0]))
+            gain = swap.log_likelihood - best.log_likelihood
+            # no photon floor here: a weak emitter left by the exchange is the next one-fewer
+            # move's to drop (and the count selection's at the end)
+            if gain > EXCHANGE_MIN_GAIN and np.all(swap.flags != "diverged"):
+                best = swap
+                moves.append(f"exchanged one: K={k}, dlogL={gain:.1f}")
+                continue
+        break
+    if not moves:
+        return fit
+    best = fit_with_count_selection(
+        y,
+        sm,
+        best.emitters,
+        threshold=threshold,
+        min_photons=min_photons,
+        max_emitters=max_emitters,
+        background=float(best.background[0]),
+        **kw,
+    )
+    final = best
+    if sm is not model:
+        final = fit_emitters(y, model, best.emitters, background=float(best.background[0]), **kw)
+    dk = len(final.emitters) - len(fit.emitters)
+    ratio = 2.0 * (final.log_likelihood - fit.log_likelihood)
+    passes = ratio > dk * threshold and np.all(final.flags != "diverged")
+    if dk > 0:
+        passes = passes and final.emitters.photons.min() >= min_photons
+    if not passes:
+        log.debug("split/merge moves %s not kept: LR %.1f for %+d emitters", moves, ratio, dk)
+        return fit
+    final.history = [
+        *fit.history,
+        *moves,
+        f"K={len(final.emitters)} logL={final.log_likelihood:.1f}",
+    ]
+    return final
+
+
 def refine_solution(
     window: ArrayLike,
     solution: WindowSolution,
@@ -703,6 +906,7 @@ def refine_solution(
     pixel_size: float,
     origin: tuple[float, float] = (0.0, 0.0),
     count_selection: bool = True,
+    search: bool = True,
     max_emitters: int = 10,
     extra_starts: list[Emitters] | None = None,
     **fit_kwargs,
@@ -712,7 +916,9 @@ def refine_solution(
     Overlapping engineered PSFs make the likelihood multimodal (two double-helix emitters can
     trade lobes), so the fit starts from ``solution.emitters`` and from each of
     ``extra_starts`` (other estimates of the same window, e.g. a solver's earlier stages) and
-    keeps the best likelihood before the count selection.
+    keeps the best likelihood before the count selection. With ``search`` (and
+    ``count_selection``), :func:`split_merge_search` then tries to leave the count
+    selection's local optimum.
 
     Returns a new :class:`WindowSolution` whose ``details`` hold the solver's own details plus
     ``fit`` (the :class:`FitResult`) and ``sparse_emitters`` (the emitters before the fit).
@@ -742,6 +948,16 @@ def refine_solution(
             max_emitters=max_emitters,
             **fit_kwargs,
         )
+        if search:
+            fit = split_merge_search(
+                window,
+                model,
+                fit,
+                pixel_size=pixel_size,
+                origin=origin,
+                max_emitters=max_emitters,
+                **fit_kwargs,
+            )
     else:
         fit = fit_emitters(window, model, start, pixel_size=pixel_size, origin=origin, **fit_kwargs)
     details = dict(solution.details)
