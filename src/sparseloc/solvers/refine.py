@@ -723,6 +723,7 @@ def search_model_for(model: PSFModel, pixel_size: float, shape: tuple[int, int])
         per_model = {}
     table = per_model.get(key)
     if table is None:
+        log.info("tabulating the PSF model for the split/merge search (once per model and size)")
         table = SplinePSF.from_model(model, float(pixel_size), roi=roi, z_step=10.0)
         per_model[key] = table
     return table
