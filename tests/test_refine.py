@@ -365,3 +365,41 @@ def test_search_model_is_a_cached_table_of_a_slow_model(analytic):
     assert isinstance(a, SplinePSF) and a.z_range == analytic.z_range
     assert search_model_for(analytic, PX, (5, 5)) is a
     assert search_model_for(analytic, PX, (6, 6)) is not a
+
+
+def test_split_merge_search_result_is_checked_on_the_model_itself(analytic, caplog, monkeypatch):
+    """Moves found on the search model are refitted with the model and kept only if they pass
+    there."""
+    import logging
+
+    from sparseloc.psf.spline import SplinePSF
+    from sparseloc.solvers import refine
+
+    truth = np.array([[682, 713, 143, 2072], [654, 588, 254, 2007], [829, 679, -136, 1575]], float)
+    img = window(analytic, truth, seed=55)
+    cs = fit_with_count_selection(img, analytic, _merged_start(truth), pixel_size=PX)
+    assert len(cs.emitters) == 2
+    # a faithful table of the model: the split survives the check on the model
+    table = SplinePSF.from_model(analytic, PX, roi=2 * W + 3, z_step=10.0)
+    out = refine.split_merge_search(img, analytic, cs, pixel_size=PX, search_model=table)
+    assert len(out.emitters) == 3 and _max_error(out.emitters.as_array(), truth) < 60.0
+    direct = fit_emitters(
+        img, analytic, out.emitters, pixel_size=PX, background=float(out.background[0])
+    )
+    assert out.log_likelihood == pytest.approx(direct.log_likelihood, abs=0.05)
+
+    # a search whose last count selection comes back with one emitter only: on the model that
+    # is far less likely than the two-emitter fit it started from, so that fit comes back
+    real = refine.fit_with_count_selection
+
+    def padded(y, model, emitters, **kw):
+        arr = real(y, model, emitters, **kw).emitters.as_array()
+        kw = {k: v for k, v in kw.items() if k not in ("threshold", "min_photons", "max_emitters")}
+        brightest = arr[[np.argmax(arr[:, 3])]]
+        return refine.fit_emitters(y, model, Emitters.from_array(brightest), **kw)
+
+    monkeypatch.setattr(refine, "fit_with_count_selection", padded)
+    with caplog.at_level(logging.DEBUG, logger="sparseloc.solvers.refine"):
+        out = refine.split_merge_search(img, analytic, cs, pixel_size=PX, search_model=table)
+    assert out is cs
+    assert "not kept" in caplog.text
