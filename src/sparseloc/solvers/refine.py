@@ -39,6 +39,12 @@ smaller model the ratio is about chi-square with 4 degrees of freedom: the defau
 18.47 is its 0.1 % tail (a 1-in-1000 chance of adding a spurious emitter per test). ``log L``
 carries the EMCCD weight, so the ratio is on that scale for EMCCD data too.
 
+Split/merge search (:func:`split_merge_search`, run by :func:`refine_solution` after the count
+selection): every one-fewer model (each emitter dropped, each pair merged), every one-more
+model (each emitter split in two, or one added at the residual) and same-count exchanges are
+refitted, under the same likelihood-ratio test; it reaches the optima that the count
+selection's two local moves miss when overlapping images trade lobes.
+
 Uncertainties: the Cramer-Rao bound at the fitted parameters, ``sqrt(diag(F^-1))`` (x, y, z in
 nm, photons), with the background parameters in ``F``. Goodness of fit: the deviance
 ``2 w sum(y log(y / mu) - (y - mu))`` per degree of freedom, with the likelihood's weight ``w``
