@@ -13,9 +13,13 @@ per um^2 in one process, with timers around the solver's parts, and prints one t
 - linear response: the skip test of settled groups;
 - rest: everything else (grouping, bookkeeping, background, the table).
 
-The timers count a phase only at its outermost call, so the rows add up to the total. Use
-it to see what a change should target; compare versions with
-``speed_before_after.py`` (timings on shared machines drift: alternate runs)::
+The timers count a phase only at its outermost call, so the rows add up to the total. Below
+the table it prints what bounds the fits' cost: the compiled loop's Levenberg-Marquardt
+iterations per fit, time per iteration and per emitter-iteration, the windows' size and
+emitter count, and the count selection's addition attempts (how many pass, and the
+likelihood ratios of those that do not). Use it to see what a change should target;
+compare versions with ``speed_before_after.py`` (timings on shared machines drift:
+alternate runs)::
 
     python benchmarks/phases.py --frames 3 --density 1
     python benchmarks/phases.py --frames 20 --density 0.05
@@ -29,6 +33,8 @@ import json
 import platform
 import time
 from pathlib import Path
+
+import numpy as np
 
 import sparseloc
 import sparseloc.solvers.frame as frame_mod
@@ -45,7 +51,7 @@ PHASES = (
 )
 
 
-def _install_timers(acc: collections.Counter, inner: collections.Counter) -> list:
+def _install_timers(acc: collections.Counter, inner: collections.Counter, fits: list) -> list:
     """Wrap the solver's functions with timers; returns what to restore."""
     depth = [0]
     saved = []
@@ -86,14 +92,82 @@ def _install_timers(acc: collections.Counter, inner: collections.Counter) -> lis
 
     def timed_loop(*a):
         t = time.perf_counter()
-        try:
-            return loop(*a)
-        finally:
-            inner["compiled loop"] += time.perf_counter() - t
-            inner["compiled fits"] += 1
+        out = loop(*a)
+        dt = time.perf_counter() - t
+        inner["compiled loop"] += dt
+        inner["compiled fits"] += 1
+        # lm_fit(coef, geo, y, v, base, bg_basis, weight, theta0, k, ...) -> (..., n_iter)
+        fits.append((int(out[5]), int(a[2].size), int(a[8]), dt))
+        return out
 
     _fit_numba.lm_fit = timed_loop
     return saved
+
+
+def _install_addition_log(additions: list) -> list:
+    """Record every addition attempt of the count selection: (likelihood ratio, passed)."""
+    passes = refine_mod._addition_passes
+
+    def logged(more, ratio, threshold, min_photons):
+        ok = passes(more, ratio, threshold, min_photons)
+        additions.append((float(ratio), bool(ok), float(threshold)))
+        return ok
+
+    refine_mod._addition_passes = logged
+    return [(refine_mod, "_addition_passes", passes)]
+
+
+def fit_statistics(fits: list, additions: list, n_locs: int) -> dict:
+    """What bounds the fits' cost: iterations, window sizes, the addition attempts."""
+    out: dict = {}
+    if fits:
+        it, npix, k, dt = (np.array(v, dtype=np.float64) for v in zip(*fits, strict=True))
+        out |= {
+            "fits": len(fits),
+            "fits_per_localization": len(fits) / max(n_locs, 1),
+            "iterations_mean": float(it.mean()),
+            "iterations_median": float(np.median(it)),
+            "iterations_p90": float(np.percentile(it, 90)),
+            "us_per_iteration": 1e6 * float(dt.sum() / it.sum()),
+            "us_per_emitter_iteration": 1e6 * float(dt.sum() / (it * np.maximum(k, 1)).sum()),
+            "emitter_iterations_per_localization": float((it * k).sum() / max(n_locs, 1)),
+            "window_pixels_mean": float(npix.mean()),
+            "emitters_per_fit_mean": float(k.mean()),
+        }
+    if additions:
+        ratio, ok, thr = (np.array(v, dtype=np.float64) for v in zip(*additions, strict=True))
+        rej = ok == 0
+        out |= {
+            "addition_attempts": len(additions),
+            "addition_passed": int(ok.sum()),
+            "addition_threshold": float(thr[0]),
+            "rejected_ratio_quartiles": np.percentile(ratio[rej], [25, 50, 75]).tolist()
+            if rej.any()
+            else [],
+        }
+    return out
+
+
+def _print_statistics(st: dict) -> None:
+    if "fits" in st:
+        print(
+            f"compiled fits: {st['fits']} ({st['fits_per_localization']:.1f} per localization), "
+            f"Levenberg-Marquardt iterations per fit mean {st['iterations_mean']:.1f}, "
+            f"median {st['iterations_median']:.0f}, 90th percentile {st['iterations_p90']:.0f}"
+        )
+        print(
+            f"  {st['us_per_iteration']:.0f} us per iteration on windows of "
+            f"{st['window_pixels_mean']:.0f} px with {st['emitters_per_fit_mean']:.1f} emitters "
+            f"(mean): {st['us_per_emitter_iteration']:.0f} us per emitter and iteration, "
+            f"{st['emitter_iterations_per_localization']:.0f} emitter-iterations per localization"
+        )
+    if "addition_attempts" in st:
+        q = st["rejected_ratio_quartiles"]
+        print(
+            f"count selection: {st['addition_attempts']} addition attempts (two trial fits "
+            f"each), {st['addition_passed']} passed the ratio {st['addition_threshold']:g}"
+            + (f"; the others' ratios: quartiles {q[0]:.0f} / {q[1]:.0f} / {q[2]:.0f}" if q else "")
+        )
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -109,7 +183,9 @@ def main(argv: list[str] | None = None) -> dict:
 
     acc: collections.Counter = collections.Counter()
     inner: collections.Counter = collections.Counter()
-    saved = _install_timers(acc, inner)
+    fits: list = []
+    additions: list = []
+    saved = _install_timers(acc, inner, fits) + _install_addition_log(additions)
     try:
         t0 = time.perf_counter()
         res = localize(frames, work, params)
@@ -137,6 +213,8 @@ def main(argv: list[str] | None = None) -> dict:
                 f"{1e3 * inner['compiled loop'] / inner['compiled fits']:.2f} ms each in the loop, "
                 f"{1e3 * (sec - inner['compiled loop']) / inner['compiled fits']:.2f} ms around it)"
             )
+    stats = fit_statistics(fits, additions, len(res.table))
+    _print_statistics(stats)
     out = {
         "frames": args.frames,
         "density": args.density,
@@ -146,6 +224,7 @@ def main(argv: list[str] | None = None) -> dict:
         "phases_s": rows,
         "compiled_loop_s": inner["compiled loop"],
         "compiled_fits": inner["compiled fits"],
+        "fit_statistics": stats,
         "version": sparseloc.__version__,
         "machine": platform.platform(),
     }
