@@ -129,8 +129,11 @@ def fit_statistics(fits: list, additions: list, n_locs: int) -> dict:
             "iterations_median": float(np.median(it)),
             "iterations_p90": float(np.percentile(it, 90)),
             "us_per_iteration": 1e6 * float(dt.sum() / it.sum()),
+            # a fit of no emitter (background only) counts as one emitter, in both figures
             "us_per_emitter_iteration": 1e6 * float(dt.sum() / (it * np.maximum(k, 1)).sum()),
-            "emitter_iterations_per_localization": float((it * k).sum() / max(n_locs, 1)),
+            "emitter_iterations_per_localization": float(
+                (it * np.maximum(k, 1)).sum() / max(n_locs, 1)
+            ),
             "window_pixels_mean": float(npix.mean()),
             "emitters_per_fit_mean": float(k.mean()),
         }
@@ -164,8 +167,8 @@ def _print_statistics(st: dict) -> None:
     if "addition_attempts" in st:
         q = st["rejected_ratio_quartiles"]
         print(
-            f"count selection: {st['addition_attempts']} addition attempts (two trial fits "
-            f"each), {st['addition_passed']} passed the ratio {st['addition_threshold']:g}"
+            f"count selection: {st['addition_attempts']} addition attempts (up to two trial "
+            f"fits each), {st['addition_passed']} passed the ratio {st['addition_threshold']:g}"
             + (f"; the others' ratios: quartiles {q[0]:.0f} / {q[1]:.0f} / {q[2]:.0f}" if q else "")
         )
 
