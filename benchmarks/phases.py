@@ -76,7 +76,7 @@ def _install_timers(acc: collections.Counter, inner: collections.Counter, fits: 
     wrap(frame_mod, "frame_pursuit", "pursuit")
     for owner in (refine_mod, frame_mod):
         wrap(owner, "fit_emitters", "maximum-likelihood fits")
-        wrap(owner, "_residual_candidates", "candidate search")
+        wrap(owner, "residual_candidates", "candidate search")
     wrap(frame_mod._NeighbourLight, "window", "neighbour light")
     wrap(frame_mod, "_light_pieces", "neighbour light")
     wrap(frame_mod, "_sum_pieces", "neighbour light")

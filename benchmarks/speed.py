@@ -8,17 +8,15 @@ Sections (each can be skipped):
   identical (:mod:`speed_mp`).
 - ``co``: convex recovery on the coarse dictionary against CVXPY on the same problem, with
   the objective gap, and MP+CO with refinement per window of 3 emitters (:mod:`speed_co`).
-- ``fit``: the maximum-likelihood fit: the compiled loop, the NumPy loop, the batched NumPy
-  and PyTorch fitters (:mod:`speed_fit`).
 - ``pipeline``: the whole pipeline (default frame solver, 2 worker processes) on simulated
   128 x 128 double-helix movies at 1 emitter/um^2 (1000-5000 photons, background 10): frames
   of several lengths (cost against length), localizations per second with Jaccard and RMSE
   from the same run, the ratio to storm-analysis's published 30-45 localizations/s, and the
-  compiled kernels against the NumPy paths on the same frames.
+  numba engine against the NumPy engine on the same frames.
 
 Usage::
 
-    python benchmarks/speed.py [--sections mp,co,fit,pipeline] [--frames 25,50,100]
+    python benchmarks/speed.py [--sections mp,co,pipeline] [--frames 25,50,100]
                                [--workers 2] [--out benchmarks/results/speed.json]
 """
 
@@ -30,6 +28,7 @@ import os
 import platform
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -129,15 +128,14 @@ def pipeline_section(
         f"localizations/s on the longest run: {best:.1f}; storm-analysis's published "
         f"{lo:.0f}-{hi:.0f}/s: ratio {best / hi:.2f}-{best / lo:.2f}"
     )
-    # compiled kernels against the NumPy reference paths, same frames, one process
+    # the numba engine against the NumPy reference engine, same frames, one process
     n_cmp = min(2, n_max)
     cmp = {}
     for compiled in (True, False):
-        work.compiled = compiled
+        engine = "numba" if compiled else "numpy"
         t0 = time.perf_counter()
-        res = localize(frames[:n_cmp], work, params)
+        res = localize(frames[:n_cmp], work, replace(params, engine=engine))
         cmp[compiled] = (time.perf_counter() - t0, len(res.table))
-    work.compiled = True
     ratio = cmp[False][0] / cmp[True][0]
     print(
         f"compiled (numba) against NumPy paths, {n_cmp} frames, 1 process: "
@@ -161,7 +159,7 @@ def pipeline_section(
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--sections", default="mp,co,fit,pipeline")
+    ap.add_argument("--sections", default="mp,co,pipeline")
     ap.add_argument("--frames", default="25,50,100", help="movie lengths of the pipeline runs")
     ap.add_argument(
         "--one-run",
@@ -172,7 +170,6 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--mp-windows", type=int, default=200)
     ap.add_argument("--co-windows", type=int, default=30)
-    ap.add_argument("--fit-windows", type=int, default=500)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/speed.json"))
     ap.add_argument(
         "--print-json", type=Path, default=None, help="print the tables of a saved run and stop"
@@ -180,11 +177,10 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     if args.print_json is not None:
         import speed_co
-        import speed_fit
         import speed_mp
 
         saved = json.loads(args.print_json.read_text())
-        for key, mod in (("mp", speed_mp), ("co", speed_co), ("fit", speed_fit)):
+        for key, mod in (("mp", speed_mp), ("co", speed_co)):
             if key in saved:
                 mod.print_table(saved[key])
         return saved
@@ -206,12 +202,6 @@ def main(argv: list[str] | None = None) -> dict:
         print("== convex recovery against CVXPY; MP+CO with refinement ==", flush=True)
         out["co"] = speed_co.run(n_windows=args.co_windows)
         speed_co.print_table(out["co"])
-    if "fit" in sections:
-        import speed_fit
-
-        print("== maximum-likelihood fits ==", flush=True)
-        out["fit"] = speed_fit.run(n_windows=args.fit_windows)
-        speed_fit.print_table(out["fit"])
     if "pipeline" in sections:
         print("== whole pipeline ==", flush=True)
         counts = [int(v) for v in args.frames.split(",")]

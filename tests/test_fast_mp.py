@@ -154,9 +154,9 @@ def test_mp_batch_with_known_background_and_omp(dh_model, small, dense):
         assert f.method == "omp"
 
 
-def test_matching_pursuit_fast_flag_and_reference_search(dh_model, small, dense):
+def test_single_window_batch_and_reference_search(dh_model, small, dense):
     y = fig2_windows(dh_model, 1, seed=7)[0]
-    a = matching_pursuit(y, small, fast=True)
+    a = matching_pursuit_batch(y, small)[0]
     b = matching_pursuit_batch(y[None], small)[0]
     c = matching_pursuit_batch(y, dense, model_error=small.quantization_error)[0]
     assert same_selection(a, b)

@@ -157,28 +157,6 @@ def test_correlator_matches_a_dense_reference(analytic, side):
     assert np.allclose(nb, np.take_along_axis(n2, jb[None], 0)[0], rtol=1e-5)
 
 
-def test_compiled_template_selection_is_bit_identical_to_numpy(analytic):
-    from sparseloc.solvers.frame import _select_kernel
-
-    if _select_kernel() is None:
-        pytest.skip("numba is not available")
-    rng = np.random.default_rng(3)
-    imgs = rng.random((7, 9, 9))
-    imgs[4] = imgs[1]  # a duplicate template: equal scores, the first must win in both
-    z = np.zeros(7)
-    base = frame_templates(analytic, PX, dxy=PX, dz=2000.0, size=9)
-    tmpl = replace(base, images=imgs, dx=z, dy=z, z=z)
-    frame = rng.random((30, 26)) - 0.2
-    cor = _Correlator(tmpl, frame.shape, batch=3)  # batches of 3, 3 and 1 templates
-    fast = cor.best(frame, compiled=True)
-    ref = cor.best(frame, compiled=False)
-    for a, b in zip(fast, ref, strict=True):
-        assert a.dtype == b.dtype
-        assert np.array_equal(a, b)
-    assert not np.any(fast[1] == 4)  # the duplicate never wins over its first copy
-    assert np.any(fast[1] == 1)
-
-
 # --- pursuit -----------------------------------------------------------------------------
 
 
@@ -388,12 +366,6 @@ def test_relocation_moves_an_emitter_stuck_in_the_wrong_place(dh_table):
     # one sweep at a time is enough for the passes to run
     brief = frame_fit(frame, dh_table, start, sweeps=1, **off)
     assert max(errors(brief.emitters.as_array())) < 40.0
-    # the batched solver runs the same passes (one group here: the same fits in order)
-    from sparseloc.solvers.frame_batch import frame_fit_batch
-
-    for relocate, ref in ((0, stuck), (2, fixed)):
-        (got,) = frame_fit_batch([frame], dh_table, [start], relocate=relocate, **off)
-        assert np.allclose(got.emitters.as_array(), ref.emitters.as_array(), atol=1e-3)
 
     # a pass on the stuck solution keeps a relocation; on the fixed one none is left
     def one_pass(fit, failed):

@@ -113,12 +113,12 @@ def test_end_to_end_on_a_small_movie():
     assert isinstance(res.table, pd.DataFrame)
 
 
-@pytest.mark.parametrize("solver", [{}, {"device": "numpy"}, {"method": "hybrid"}])
+@pytest.mark.parametrize("solver", [{}, {"engine": "numpy"}, {"method": "hybrid"}])
 def test_the_camera_qe_reaches_the_likelihood(solver):
     """Frames from a camera with qe 0.5, converted to photons: localized with ``qe=0.5`` the
     same emitters come back with standard errors sqrt(2) larger than the photon-counting
-    model claims (their photoelectrons carry half the information). The frame solver (one
-    frame at a time or batched) and the hybrid solver."""
+    model claims (their photoelectrons carry half the information). The frame solver (on
+    either engine) and the hybrid solver."""
     from sparseloc.camera import Camera, to_photons
     from sparseloc.simulate import simulate
 

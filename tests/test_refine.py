@@ -128,7 +128,7 @@ def test_both_addition_candidates_are_refitted_and_the_likelier_kept(analytic, m
     )
     img = window(analytic, truth, seed=7)
     start = Emitters.from_array(truth[:1])
-    cands, _ = refine._residual_candidates(
+    cands, _ = refine.residual_candidates(
         img, fit_emitters(img, analytic, start, pixel_size=PX).model_image, analytic, PX, (0, 0)
     )
     assert len(cands) == 2  # both missing emitters are candidates
@@ -203,7 +203,7 @@ def test_bad_arguments(analytic):
 @pytest.mark.parametrize("shape", [(17, 17), (14, 23)])
 def test_residual_candidates_score_equals_direct_correlation(analytic, shape):
     """The FFT correlations behind the candidate search equal sums over the window."""
-    from sparseloc.solvers.refine import _residual_candidates
+    from sparseloc.solvers.refine import residual_candidates
 
     rows, cols = shape
     rng = np.random.default_rng(5)
@@ -212,7 +212,7 @@ def test_residual_candidates_score_equals_direct_correlation(analytic, shape):
     # the fit missed the second emitter
     mu = analytic.render(*truth[:1].T, shape, PX, origin=origin) + 10.0
     y = rng.poisson(analytic.render(*truth.T, shape, PX, origin=origin) + 10.0).astype(float)
-    cands, stat = _residual_candidates(y, mu, analytic, PX, origin, n_planes=n_planes)
+    cands, stat = residual_candidates(y, mu, analytic, PX, origin, n_planes=n_planes)
     zs = np.linspace(*analytic.z_range, n_planes)
     best = 0.0
     for r in range(rows):
@@ -228,7 +228,7 @@ def test_residual_candidates_score_equals_direct_correlation(analytic, shape):
     # the best candidate is the missing emitter (within a pixel laterally)
     assert np.hypot(cands[0][0] - truth[1, 0], cands[0][1] - truth[1, 1]) < PX
     # without the score, the same candidates and no statistic
-    bare, nostat = _residual_candidates(y, mu, analytic, PX, origin, n_planes=n_planes, score=False)
+    bare, nostat = residual_candidates(y, mu, analytic, PX, origin, n_planes=n_planes, score=False)
     assert bare == cands and np.isnan(nostat)
 
 

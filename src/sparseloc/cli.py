@@ -211,7 +211,7 @@ LOCALIZE_DEFAULTS: dict = {
     "frames": None,
     "format": None,
     "workers": None,  # one per available core (see _auto_workers)
-    "device": None,
+    "engine": "auto",
     "n_sample": None,
     "focal_depth": None,
     "read_noise": 0.0,
@@ -334,16 +334,16 @@ def localize(
         int | None,
         typer.Option(
             help="Processes solving frames (default: one per available core, at most "
-            f"{AUTO_WORKERS_CAP} and one per {MIN_FRAMES_PER_WORKER} frames; 1 with --device "
-            "or the chunked options).",
+            f"{AUTO_WORKERS_CAP} and one per {MIN_FRAMES_PER_WORKER} frames; 1 with the "
+            "chunked options).",
             min=1,
         ),
     ] = None,
-    device: Annotated[
+    engine: Annotated[
         str | None,
         typer.Option(
-            help="Batch the frame solver's fits on numpy, cpu or cuda[:N] (PyTorch; for a "
-            "GPU); none: the compiled per-group loop (default)."
+            help="auto (compiled numba kernels where numba works, else NumPy), numba or numpy "
+            "(the plain reference); the same tables. [default: auto]"
         ),
     ] = None,
     n_sample: Annotated[
@@ -403,7 +403,7 @@ def localize(
         "frames": frames,
         "format": fmt,
         "workers": workers,
-        "device": device,
+        "engine": engine,
         "n_sample": n_sample,
         "focal_depth": focal_depth,
         "read_noise": read_noise,
@@ -511,7 +511,7 @@ def localize(
             background=opts["background"],
             noise={"emccd": "emccd", "scmos": "scmos"}.get(opts["camera"], "poisson"),
             read_variance=float(read_var) if read_var.ndim == 0 else 0.0,
-            device=None if opts["device"] in (None, "none") else opts["device"],
+            engine=opts["engine"],
             qe=cam.qe,
             **({} if opts["relocate"] is None else {"relocate": opts["relocate"]}),
         )
@@ -523,7 +523,7 @@ def localize(
             return
         workers = opts["workers"]
         if workers is None:
-            workers = 1 if params.device is not None else _auto_workers(stop - start)
+            workers = _auto_workers(stop - start)
         with tqdm(total=stop - start, unit="frame", disable=not sys.stderr.isatty()) as bar:
             res = _run(
                 run_localize,
@@ -550,11 +550,6 @@ def _localize_chunked(opts, out, mov, cam, model, params, start, stop, read_var)
     run_dir = Path(opts["run_dir"]) if opts["run_dir"] else out.with_name(out.stem + ".parts")
     sched = opts["scheduler"]
     workers = int(opts["workers"] or 1)  # a Dask cluster only when asked for
-    if params.device is not None and (workers > 1 or sched not in (None, "sync")):
-        _fail(
-            f"--device {params.device} runs the chunks one after another in this process; "
-            "drop --workers and --scheduler"
-        )
     client = None
     if sched is None:
         sched = "sync"

@@ -52,7 +52,6 @@ from .io.tables import LOCS_COLUMNS, empty_locs, read_parquet, write_parquet
 from .pipeline import (
     LocalizeParams,
     array_digest,
-    check_device,
     localize,
     psf_hash,
     work_model_for,
@@ -380,14 +379,6 @@ def localize_chunked(
         Bad parameters, an unusable run folder, or a folder of a different analysis.
     """
     t0 = time.perf_counter()
-    if params.device is not None:
-        # the batched path drives one device from one process: no parallel chunks
-        check_device(params.device)
-        if scheduler != "sync":
-            raise ValueError(
-                f"device {params.device!r} runs the chunks one after another in this process "
-                "(scheduler 'sync', one worker)"
-            )
     source = frames if isinstance(frames, CameraFrames) else CameraFrames(frames)
     n = len(source)
     stop = n if stop is None else min(stop, n)

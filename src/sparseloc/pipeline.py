@@ -1,10 +1,15 @@
 """From camera frames (photons) to a localization table.
 
 ``localize`` reads frames in blocks (any object with ``len()`` and ``frames(start, stop)``, such
-as :class:`sparseloc.io.Movie`, or an array), estimates the background with a sliding temporal
-percentile, finds candidates with the z-averaged PSF, solves the windows that hold candidates
-(:mod:`sparseloc.detect` explains the tiling that keeps every localization exactly once) and
-returns a :data:`sparseloc.io.tables.LOCS_COLUMNS` table in frame coordinates.
+as :class:`sparseloc.io.Movie`, or an array) and estimates each frame's background (a sliding
+temporal percentile, or a spatial estimate for short movies). The default method, ``"frame"``,
+then solves each whole frame: :func:`~sparseloc.solvers.frame.tiled_pursuit` finds the starting
+emitters and :func:`~sparseloc.solvers.frame.frame_fit` fits them by groups. The window
+methods (``"hybrid"``, ``"mp"``, ``"co"``) instead find candidates with the z-averaged PSF and
+solve the windows that hold them (:mod:`sparseloc.detect` explains the tiling that keeps every
+localization exactly once). Either way the result is a
+:data:`sparseloc.io.tables.LOCS_COLUMNS` table in frame coordinates. Frames run in this
+process or in a pool of worker processes, on the engine that ``LocalizeParams.engine`` chooses.
 """
 
 from __future__ import annotations
@@ -12,7 +17,6 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
-import re
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -33,6 +37,7 @@ from .detect import (
     z_averaged_psf,
 )
 from .dictionary import Dictionary
+from .engine import check_engine, resolve_engine, set_engine, use_engine
 from .io.tables import LOCS_COLUMNS, empty_locs
 from .psf.base import PSFModel
 from .psf.spline import SplinePSF
@@ -104,13 +109,10 @@ class LocalizeParams:
         on; 1 treats the frames as photon counts.
     max_emitters : int
         Cap per window.
-    device : str, optional
-        Backend of the frame solver's maximum-likelihood fits. ``None`` (default): each
-        frame's groups one after another in the compiled loop (fastest on a CPU). ``"numpy"``,
-        ``"cpu"``, ``"cuda"``, ``"cuda:N"``: the frames of each block solved in lockstep, the
-        fits of all their groups batched (:func:`~sparseloc.solvers.frame_batch.
-        frame_fit_batch`) on NumPy or PyTorch on that device (for a GPU; on a CPU it is
-        several times slower than the default).
+    engine : {"auto", "numpy", "numba"}
+        Which engine computes the solvers' arithmetic (:mod:`sparseloc.engine`): ``"auto"``
+        runs the compiled numba kernels where numba works, else NumPy; ``"numpy"`` the plain
+        reference. Both give the same table.
     relocate : int
         Relocation passes of the frame solver (:func:`~sparseloc.solvers.frame.frame_fit`):
         each emitter in turn replaced by the best PSF position of what its neighbours leave
@@ -135,7 +137,7 @@ class LocalizeParams:
     noise: str = "poisson"
     max_emitters: int = 10
     read_variance: float = 0.0
-    device: str | None = None
+    engine: str = "auto"
     qe: float = 1.0
     relocate: int = RELOCATE
 
@@ -167,16 +169,7 @@ class LocalizeParams:
             raise ValueError(
                 f"read_variance applies to noise='scmos', not {self.noise!r} (it would be ignored)"
             )
-        if self.device is not None:
-            if self.method != "frame":
-                raise ValueError(
-                    f"device {self.device!r} applies to the frame solver (method 'frame'), "
-                    f"not to {self.method!r}"
-                )
-            if not isinstance(self.device, str) or not re.fullmatch(
-                r"numpy|cpu|cuda(:\d+)?", self.device
-            ):
-                raise ValueError(f"device must be numpy, cpu, cuda or cuda:N; got {self.device!r}")
+        check_engine(self.engine)
         if self.background not in ("auto", "temporal", "spatial"):
             raise ValueError(
                 f"background must be auto, temporal or spatial; got {self.background!r}"
@@ -371,7 +364,7 @@ class _FrameSolver:
         )
 
     def fit_kwargs(self) -> dict:
-        """Keywords of :func:`frame_fit` (and :func:`frame_fit_batch`) but the frame's own."""
+        """Keywords of :func:`frame_fit` but the frame's own."""
         p = self.p
         return dict(
             pixel_size=p.pixel_size,
@@ -388,20 +381,6 @@ class _FrameSolver:
     def __call__(self, frame: NDArray, background: NDArray) -> FrameFit:
         start = self.start(frame, background)
         return frame_fit(frame, self.model, start, background=background, **self.fit_kwargs())
-
-    def solve_block(self, frames: list[NDArray], backgrounds: list[NDArray]) -> list[FrameFit]:
-        """Several frames in lockstep, their fits batched on ``params.device``."""
-        from .solvers.frame_batch import frame_fit_batch
-
-        starts = [self.start(f, b) for f, b in zip(frames, backgrounds, strict=True)]
-        return frame_fit_batch(
-            frames,
-            self.model,
-            starts,
-            background=backgrounds,
-            device=self.p.device,
-            **self.fit_kwargs(),
-        )
 
 
 def _frame_rows(fit: FrameFit, frame: int, id0: int) -> dict:
@@ -508,13 +487,6 @@ def localize(
     tiles(shape, p.window, p.margin)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    if p.device is not None:
-        if workers > 1:
-            raise ValueError(
-                f"device {p.device!r} solves the frames in this process (its fits are batched); "
-                "use one worker"
-            )
-        check_device(p.device)
     if read_variance is not None:
         read_variance = np.asarray(read_variance, dtype=np.float64)
         if read_variance.shape != tuple(shape):
@@ -532,15 +504,12 @@ def localize(
     work_model = work_model_for(model, p)
     parts: list[dict] = []
     inputs = _frames_and_backgrounds(get, n, start, stop, block, p)
-    if p.device is not None:
-        work = _FrameWork(work_model, p, shape, read_variance)
-        n_windows = _collect(_in_blocks(inputs, work, block), parts, True, progress)
-    elif workers == 1:
+    if workers == 1:
         from threadpoolctl import threadpool_limits
 
         # One BLAS thread, as in the worker processes: the matrices are small (no gain from
         # threads) and the same arithmetic gives the same table whatever ``workers``.
-        with threadpool_limits(limits=1):
+        with threadpool_limits(limits=1), use_engine(p.engine):
             work = _FrameWork(work_model, p, shape, read_variance)
             results = (work(f, frame, bg) for f, frame, bg in inputs)
             n_windows = _collect(results, parts, p.method == "frame", progress)
@@ -645,47 +614,6 @@ class _FrameWork:
         return parts, len(todo)
 
 
-def check_device(device: str) -> None:
-    """A clear error when a batched-fit device cannot be used here (PyTorch, CUDA)."""
-    if device == "numpy":
-        return
-    try:
-        import torch
-    except ImportError:
-        raise ValueError(
-            f"device {device!r} needs PyTorch: pip install 'sparseloc[cpu]' (CPU build) or a "
-            "CUDA build of torch"
-        ) from None
-    if device.startswith("cuda"):
-        if not torch.cuda.is_available():
-            raise ValueError(f"device {device!r}: PyTorch sees no CUDA GPU on this machine")
-        index = int(device.partition(":")[2] or 0)
-        if index >= torch.cuda.device_count():
-            raise ValueError(
-                f"device {device!r}: PyTorch sees {torch.cuda.device_count()} CUDA GPU(s), "
-                f"numbered from 0"
-            )
-
-
-def _in_blocks(inputs, work: _FrameWork, block: int):
-    """Solve ``block`` frames at a time in lockstep (the batched path of ``params.device``);
-    yield each frame's table parts and window count in frame order."""
-    items: list = []
-    for item in inputs:
-        items.append(item)
-        if len(items) == block:
-            yield from _solve_block(items, work)
-            items = []
-    if items:
-        yield from _solve_block(items, work)
-
-
-def _solve_block(items: list, work: _FrameWork):
-    fits = work.solver.solve_block([fr for _, fr, _ in items], [bg for _, _, bg in items])
-    for (f, _, _), fit in zip(items, fits, strict=True):
-        yield [_frame_rows(fit, f, 0)], int(fit.group.max() + 1) if len(fit.group) else 0
-
-
 def _frames_and_backgrounds(get, n: int, start: int, stop: int, block: int, p: LocalizeParams):
     """Yield (frame index, frame, background), reading ``block`` frames at a time."""
     half = p.background_frames // 2
@@ -720,6 +648,7 @@ def _init_worker(
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1)
+    set_engine(p.engine)
     _WORK = _FrameWork(work_model, p, shape, read_variance)
 
 
@@ -737,14 +666,9 @@ def _in_processes(inputs, workers: int, init_args: tuple):
     from collections import deque
     from concurrent.futures import ProcessPoolExecutor
 
-    if isinstance(init_args[0], SplinePSF):
-        # Compile (or load) the numba kernels here once: forked workers inherit them, and
-        # spawned ones find numba's cache filled instead of all compiling at the same time.
-        from .psf import _spline_kernel
-        from .solvers.frame import _select_kernel
-
-        _spline_kernel.available()
-        _select_kernel()  # the frame pursuit's selection loop
+    # Compile (or load) the engine's kernels here once: forked workers inherit them, and
+    # spawned ones find numba's cache filled instead of all compiling at the same time.
+    resolve_engine(init_args[1].engine)
     # The platform's default: fork on Linux (no re-import of the caller's script), spawn
     # elsewhere (scripts then need the usual ``if __name__ == "__main__":`` guard).
     ctx = multiprocessing.get_context()

@@ -23,7 +23,8 @@ import hashlib
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from . import _spline_kernel
+from ..engine import kernels
+from ._spline_kernel import spline_images
 from .base import PSFBase, check_pixel_size, energy_radius
 
 __all__ = ["SplinePSF", "bspline_terms", "bspline_weights", "table_coords"]
@@ -110,10 +111,6 @@ class SplinePSF(PSFBase):
         A bead stack has 1; a table of a theoretical model may use 2-3 to cut the
         interpolation error (cubic: about 2^4 less per doubling).
     """
-
-    #: Use the compiled kernel (:mod:`sparseloc.psf._spline_kernel`) when numba is there;
-    #: ``False`` forces the NumPy reference path (tests compare the two).
-    compiled: bool = True
 
     def __init__(
         self,
@@ -352,9 +349,10 @@ class SplinePSF(PSFBase):
         # z: fractional plane index; the coefficient array has one mirrored plane in front.
         tz, tx, ty = self.node_coords(x, y, z, origin, p)
         os_ = self.oversample
-        if self.compiled and _spline_kernel.available():
-            out, raw = _spline_kernel.spline_images(
-                self._coef, tz, tx, ty, (rows, cols), os_, derivatives
+        kern = kernels()
+        if kern is not None:
+            out, raw = spline_images(
+                kern.spline, self._coef, tz, tx, ty, (rows, cols), os_, derivatives
             )
             if not derivatives:
                 return out

@@ -1,10 +1,10 @@
-"""Compiled Levenberg-Marquardt loop of :func:`sparseloc.solvers.refine.fit_emitters` for
-spline PSFs (numba; imported only when used).
+"""The numba engine of the maximum-likelihood fit, for spline PSF tables (imported only when
+:mod:`sparseloc.engine` chooses numba).
 
-The Python loop spends most of its time in per-iteration overhead on small arrays (a frame's
-fits call it thousands of times on windows of a few hundred pixels); this is the same
-algorithm, step for step (same damping rule, same clamps, same acceptance test), with the
-spline images computed by :func:`sparseloc.psf._spline_numba.spline_kernel`.
+A frame's fits run thousands of times on windows of a few hundred pixels, where NumPy's
+per-call overhead dominates; here the model, ``-log L``, the Jacobian and the Fisher matrix are
+compiled loops, and the Levenberg-Marquardt rule of :mod:`sparseloc.solvers.lm` is compiled
+over them. The spline images come from :func:`sparseloc.psf._spline_numba.spline_kernel`.
 """
 
 from __future__ import annotations
@@ -13,9 +13,12 @@ import numba
 import numpy as np
 
 from ..psf._spline_numba import _FAST, spline_kernel
+from . import lm
+
+_jit = numba.njit(cache=True, nogil=True, fastmath=_FAST)
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@_jit
 def _solve(a, b, out):  # pragma: no cover - compiled
     """Gaussian elimination with partial pivoting; False if the matrix is singular."""
     n = b.shape[0]
@@ -55,7 +58,7 @@ def _solve(a, b, out):  # pragma: no cover - compiled
     return True
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@_jit
 def _node_coords(theta, k, geo, tz, tx, ty):  # pragma: no cover - compiled
     # geo: SplinePSF.node_geometry; the expressions of sparseloc.psf.spline.table_coords
     for i in range(k):
@@ -72,7 +75,7 @@ def _node_coords(theta, k, geo, tz, tx, ty):  # pragma: no cover - compiled
         ty[i] = geo[1] + (geo[5] - y) * geo[2] / geo[3]
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@_jit
 def _model(coef, geo, theta, k, base, bg_basis, nb, img, der, derivs, mu):  # pragma: no cover
     rows, cols = mu.shape
     tz = np.empty(k)
@@ -91,7 +94,7 @@ def _model(coef, geo, theta, k, base, bg_basis, nb, img, der, derivs, mu):  # pr
             mu[r, c] = s
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@_jit
 def _nll(mu, v, yv, weight):  # pragma: no cover - compiled
     s = 0.0
     rows, cols = mu.shape
@@ -104,21 +107,11 @@ def _nll(mu, v, yv, weight):  # pragma: no cover - compiled
     return weight * s
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _clamp(theta, k, lo, hi, min_bg):  # pragma: no cover - compiled
-    for i in range(k):
-        for j in range(4):
-            t = theta[4 * i + j]
-            if not (t >= lo[j]):  # also NaN
-                t = lo[j]
-            if t > hi[j]:
-                t = hi[j]
-            theta[4 * i + j] = t
-    if not (theta[4 * k] >= min_bg):
-        theta[4 * k] = min_bg
+_clamp = _jit(lm.clamp)
+_damped_system = _jit(lm.damped_system)
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@_jit
 def _jacobian(theta, k, img, der, geo, bg_basis, nb, jac):  # pragma: no cover - compiled
     rows = img.shape[1]
     cols = img.shape[2]
@@ -139,7 +132,7 @@ def _jacobian(theta, k, img, der, geo, bg_basis, nb, jac):  # pragma: no cover -
                 jac[4 * k + j, r * cols + c] = bg_basis[j, r, c]
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@_jit
 def _scoring(mu, v, y_v, weight, jac, inv_mu, g_pix, wj, grad, fisher):  # pragma: no cover
     """Gradient of the weighted negative log-likelihood and the Fisher matrix, in place."""
     cols = mu.shape[1]
@@ -197,83 +190,100 @@ def _scoring(mu, v, y_v, weight, jac, inv_mu, g_pix, wj, grad, fisher):  # pragm
             fisher[s, q] = fisher[q, s]
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def lm_fit(
-    coef, geo, y_v, v, base, bg_basis, weight, theta0, k, lo, hi, min_bg, max_iter, tol
-):  # pragma: no cover - compiled
-    """LM with Fisher scoring; returns theta, mu, f, Fisher matrix, converged, n_iter."""
-    rows, cols = y_v.shape
-    npix = rows * cols
+# The fit's state is one tuple (built by lm_fit), by index: 0 coef, 1 geo, 2 y_v, 3 v, 4 base,
+# 5 bg_basis, 6 weight, 7 k, 8 lo, 9 hi, 10 min_bg, 11 theta, 12 trial, 13 img, 14 der, 15 cur,
+# 16 mu, 17 mu_t, 18 jac, 19 grad, 20 fisher, 21 a, 22 step, 23 inv_mu, 24 g_pix, 25 wj. The
+# images and derivatives are double-buffered (``cur[0]`` is the current one): trial steps are
+# rendered with their derivatives, so an accepted step (most are) is not rendered again.
+
+
+@_jit
+def _evaluate(s):  # pragma: no cover - compiled
+    coef, geo, y_v, v, base, bg_basis, weight, k = s[:8]
+    theta, img, der, cur, mu, jac = s[11], s[13], s[14], s[15], s[16], s[18]
     nb = bg_basis.shape[0]
-    npar = theta0.shape[0]
-    img = np.empty((max(k, 1), rows, cols))
-    der = np.empty((max(k, 1), 3, rows, cols))
-    # The trial steps are rendered with their derivatives into a second pair of buffers: an
-    # accepted step (most are) then needs no second rendering, the buffers are swapped.
-    img_t = np.empty((max(k, 1), rows, cols))
-    der_t = np.empty((max(k, 1), 3, rows, cols))
-    inv_mu = np.empty(npix)
-    g_pix = np.empty(npix)
-    theta = theta0.copy()
-    mu = np.empty((rows, cols))
-    _model(coef, geo, theta, k, base, bg_basis, nb, img, der, True, mu)
+    c = cur[0]
+    _model(coef, geo, theta, k, base, bg_basis, nb, img[c], der[c], True, mu)
     f = _nll(mu, v, y_v, weight)
-    jac = np.empty((npar, npix))
-    _jacobian(theta, k, img, der, geo, bg_basis, nb, jac)
-    lam = 1e-3
-    converged = False
-    n_iter = 0
-    grad = np.empty(npar)
-    fisher = np.empty((npar, npar))
-    a = np.empty((npar, npar))
-    step = np.empty(npar)
-    trial = np.empty(npar)
-    mu_t = np.empty((rows, cols))
-    wj = np.empty((npar, npix))
-    f_t = np.inf
-    scored = False  # whether fisher is that of the current theta
-    for it in range(1, max_iter + 1):
-        n_iter = it
-        _scoring(mu, v, y_v, weight, jac, inv_mu, g_pix, wj, grad, fisher)
-        scored = True
-        improved = False
-        for _ in range(12):
-            for q in range(npar):
-                for s in range(npar):
-                    a[q, s] = fisher[q, s]
-                d = fisher[q, q]
-                if d < 1e-12:
-                    d = 1e-12
-                a[q, q] += lam * d
-            ok = _solve(a, -grad, step)
-            if not ok:
-                lam *= 10.0
-                continue
-            for q in range(npar):
-                trial[q] = theta[q] + step[q]
-            _clamp(trial, k, lo, hi, min_bg)
-            _model(coef, geo, trial, k, base, bg_basis, nb, img_t, der_t, True, mu_t)
-            f_t = _nll(mu_t, v, y_v, weight)
-            if f_t < f:
-                improved = True
-                break
-            lam *= 10.0
-        if not improved:
-            converged = True
-            break
-        rel = (f - f_t) / max(abs(f), 1.0)
-        theta[:] = trial
-        mu[:, :] = mu_t
-        f = f_t
-        lam = max(lam / 10.0, 1e-7)
-        img, img_t = img_t, img
-        der, der_t = der_t, der
-        _jacobian(theta, k, img, der, geo, bg_basis, nb, jac)
-        scored = False
-        if rel < tol:
-            converged = True
-            break
-    # the Fisher matrix at the result (its inverse gives the reported standard errors)
-    if not scored:
-        _scoring(mu, v, y_v, weight, jac, inv_mu, g_pix, wj, grad, fisher)
-    return theta, mu, f, fisher, converged, n_iter
+    _jacobian(theta, k, img[c], der[c], geo, bg_basis, nb, jac)
+    return f
+
+
+@_jit
+def _score(s):  # pragma: no cover - compiled
+    y_v, v, weight = s[2], s[3], s[6]
+    mu, jac, grad, fisher, inv_mu, g_pix, wj = s[16], s[18], s[19], s[20], s[23], s[24], s[25]
+    _scoring(mu, v, y_v, weight, jac, inv_mu, g_pix, wj, grad, fisher)
+
+
+@_jit
+def _trial(s, lam):  # pragma: no cover - compiled
+    coef, geo, y_v, v, base, bg_basis, weight, k, lo, hi, min_bg, theta, trial = s[:13]
+    img, der, cur, mu_t = s[13], s[14], s[15], s[17]
+    grad, fisher, a, step = s[19], s[20], s[21], s[22]
+    _damped_system(fisher, lam, a)
+    if not _solve(a, -grad, step):
+        return np.inf
+    for q in range(theta.shape[0]):
+        trial[q] = theta[q] + step[q]
+    _clamp(trial, k, lo, hi, min_bg)
+    t = 1 - cur[0]
+    _model(coef, geo, trial, k, base, bg_basis, bg_basis.shape[0], img[t], der[t], True, mu_t)
+    return _nll(mu_t, v, y_v, weight)
+
+
+@_jit
+def _accept(s):  # pragma: no cover - compiled
+    geo, bg_basis, k, theta, trial = s[1], s[5], s[7], s[11], s[12]
+    img, der, cur, mu, mu_t, jac = s[13], s[14], s[15], s[16], s[17], s[18]
+    theta[:] = trial
+    mu[:, :] = mu_t
+    cur[0] = 1 - cur[0]
+    c = cur[0]
+    _jacobian(theta, k, img[c], der[c], geo, bg_basis, bg_basis.shape[0], jac)
+
+
+_levenberg_marquardt = _jit(lm.make_levenberg_marquardt(_evaluate, _score, _trial, _accept))
+
+
+def lm_fit(coef, geo, y_v, v, base, bg_basis, weight, theta0, k, lo, hi, min_bg, max_iter, tol):
+    """The Levenberg-Marquardt fit of ``k`` emitters on a spline table (arrays as float64,
+    C-contiguous; ``geo``: :meth:`SplinePSF.node_geometry`); returns theta, mu, f, the Fisher
+    matrix at theta, converged, n_iter."""
+    rows, cols = y_v.shape
+    npar = theta0.shape[0]
+    kk = max(k, 1)
+    state = (
+        coef, geo, y_v, v, base, bg_basis, float(weight), int(k), lo, hi, float(min_bg),
+        theta0.copy(), np.empty(npar),
+        np.empty((2, kk, rows, cols)), np.empty((2, kk, 3, rows, cols)), np.zeros(1, np.int64),
+        np.empty((rows, cols)), np.empty((rows, cols)), np.empty((npar, rows * cols)),
+        np.empty(npar), np.empty((npar, npar)), np.empty((npar, npar)), np.empty(npar),
+        np.empty(rows * cols), np.empty(rows * cols), np.empty((npar, rows * cols)),
+    )  # fmt: skip
+    f, converged, n_iter = _levenberg_marquardt(state, int(max_iter), float(tol))
+    return state[11], state[16], f, state[20], converged, n_iter
+
+
+def warm_up():
+    """Run :func:`lm_fit` once on a tiny problem (compiling it or loading it from numba's
+    cache); returns it."""
+    coef = np.zeros((6, 6, 6))
+    geo = np.array([2.0, 2.0, 1.0, 100.0, 50.0, 50.0, 0.0, 10.0, 2.0])
+    lm_fit(
+        coef,
+        geo,
+        np.full((2, 2), 5.0),
+        np.zeros((2, 2)),
+        np.zeros((2, 2)),
+        np.ones((1, 2, 2)),
+        1.0,
+        np.array([100.0, 100.0, 10.0, 100.0, 5.0]),
+        1,
+        np.array([0.0, 0.0, 0.0, 1.0]),
+        np.array([200.0, 200.0, 20.0, np.inf]),
+        1e-3,
+        2,
+        1e-6,
+    )
+    return lm_fit

@@ -48,8 +48,8 @@ from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import ArrayLike, NDArray
 
 from ..dictionary import Dictionary, check_window
-from .emitters import MIN_LINK_NM, WindowSolution, group_coefficients
-from .mp import AtomDictionary, _refit, _steps, pearson_chi2
+from .emitters import WindowSolution
+from .mp import Answer, AtomDictionary, Request, count_groups, grid_steps, pursuit_steps
 
 log = logging.getLogger(__name__)
 
@@ -825,170 +825,6 @@ def get_search(
     return per[key]
 
 
-def count_groups(
-    positions: ArrayLike, coef: ArrayLike, steps: tuple[float, float], *, link: float = 1.5
-) -> int:
-    """``len(group_coefficients(positions, coef, steps, link=link))``, without the emitters.
-
-    The same neighbour relation (``|dx|, |dy| <= max(link * dxy, MIN_LINK_NM[0])``,
-    ``|dz| <= max(link * dz, MIN_LINK_NM[1])``, atoms with ``coef > 0``) and its connected
-    components, counted by a plain graph search (no sparse matrices: MP asks after every atom).
-
-    Parameters
-    ----------
-    positions : ndarray, shape (k, 3)
-        Atom positions (x, y, z) in nm.
-    coef : ndarray, shape (k,)
-        Coefficients in photons.
-    steps : (dxy, dz)
-        Grid steps in nm.
-    link : float
-        Neighbour distance in grid steps.
-    """
-    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    c = np.asarray(coef, dtype=np.float64).ravel()
-    pos = pos[c > 0]
-    n = pos.shape[0]
-    if n <= 1:
-        return n
-    lxy = max(link * steps[0], MIN_LINK_NM[0])
-    lz = max(link * steps[1], MIN_LINK_NM[1])
-    d = np.abs(pos[:, None, :] - pos[None, :, :])
-    adj = (d[..., 0] <= lxy + 1e-9) & (d[..., 1] <= lxy + 1e-9) & (d[..., 2] <= lz + 1e-9)
-    seen = np.zeros(n, dtype=bool)
-    groups = 0
-    for i in range(n):
-        if seen[i]:
-            continue
-        groups += 1
-        seen[i] = True
-        stack = [i]
-        while stack:
-            nb = np.flatnonzero(adj[stack.pop()] & ~seen)
-            seen[nb] = True
-            stack.extend(nb.tolist())
-    return groups
-
-
-Request = tuple[NDArray[np.float64], bool]
-Answer = tuple[int, float, float]
-
-
-def _mp_window(
-    y: NDArray[np.float64],
-    dictionary: AtomDictionary,
-    inv: NDArray[np.float64],
-    *,
-    background: float | None,
-    orthogonal: bool,
-    max_emitters: int,
-    min_photons: float,
-    chi2_sigma: float,
-    noise_factor: float,
-    model_error: float,
-    min_snr: float,
-    replace_sweeps: int,
-    max_iter: int,
-    link: float,
-    steps: tuple[float, float],
-) -> Generator[Request, Answer, WindowSolution]:
-    """``matching_pursuit`` for one window, step by step: it yields each residual whose best
-    atom it needs (with ``True`` where the exact ``numpy.argmax`` semantics matter) and is sent
-    ``(index, corr, score)``. The arithmetic is that of ``matching_pursuit``, line by line."""
-    fixed_bg = background is not None
-    n_pix = y.size
-    centred_scores = not fixed_bg
-    b = float(background) if fixed_bg else float(max(y.mean(), 0.0))
-    chi2_limit = n_pix + chi2_sigma * np.sqrt(2.0 * n_pix)
-    index: list[int] = []
-    coef: list[float] = []
-    atoms: list[NDArray] = []
-    fit = np.zeros_like(y)
-    stop = "max_iter"
-    n_iter = 0
-    for n_iter in range(1, max_iter + 1):  # noqa: B007 - n_iter is reported
-        chi2 = pearson_chi2(y, fit + b, noise_factor, fit, model_error)
-        if chi2 <= chi2_limit:
-            stop = "noise"
-            break
-        resid = y - fit - b
-        k, corr_k, score_k = yield resid, False
-        if not score_k > 0:
-            stop = "no positive correlation"
-            break
-        amp = corr_k * inv[k] ** 2
-        if amp < min_photons:
-            stop = "min_photons"
-            break
-        atom = dictionary.atoms([k])[0]
-        var = noise_factor * np.maximum(fit + b, 1.0) + (model_error * fit) ** 2
-        centred = atom - atom.mean() if centred_scores else atom
-        sigma = np.sqrt(np.sum(centred**2 * var)) * inv[k] ** 2
-        if amp < min_snr * sigma:
-            stop = "min_snr"
-            break
-        if k in index:
-            coef[index.index(k)] += amp
-        else:
-            index.append(k)
-            coef.append(amp)
-            atoms.append(atom)
-        if orthogonal:
-            coef, b = _refit(y, atoms, b, fixed_bg)
-            for _ in range(replace_sweeps if len(index) > 1 else 0):
-                changed = False
-                for j in range(len(index)):
-                    others = [i for i in range(len(index)) if i != j]
-                    part = np.tensordot(
-                        np.asarray(coef)[others], np.asarray(atoms)[others], axes=(0, 0)
-                    )
-                    r = y - part - b
-                    kj, _, _ = yield r, True
-                    if kj != index[j] and kj not in index:
-                        index[j] = kj
-                        atoms[j] = dictionary.atoms([kj])[0]
-                        changed = True
-                coef, b = _refit(y, atoms, b, fixed_bg)
-                if not changed:
-                    break
-            fit = np.tensordot(np.asarray(coef), np.asarray(atoms), axes=(0, 0))
-        else:
-            fit = fit + amp * atom
-            if not fixed_bg:
-                b = float(max(np.mean(y - fit), 0.0))
-        n_emit = count_groups(dictionary.positions(index), coef, steps, link=link)
-        if n_emit >= max_emitters:
-            stop = "max_emitters"
-            break
-    idx = np.asarray(index, dtype=np.int64)
-    cf = np.asarray(coef, dtype=np.float64)
-    keep = cf > 0
-    idx, cf = idx[keep], cf[keep]
-    emitters = group_coefficients(
-        dictionary.positions(idx) if idx.size else np.zeros((0, 3)),
-        cf,
-        steps,
-        link=link,
-        min_photons=min_photons,
-    )
-    model = fit + b
-    return WindowSolution(
-        emitters=emitters,
-        background=b,
-        model_image=model,
-        method="omp" if orthogonal else "mp",
-        details={
-            "index": idx,
-            "coef": cf,
-            "stop": stop,
-            "n_iter": n_iter,
-            "chi2": pearson_chi2(y, model, noise_factor, fit, model_error),
-            "chi2_limit": chi2_limit,
-            "model_error": model_error,
-        },
-    )
-
-
 def matching_pursuit_batch(
     windows: ArrayLike,
     dictionary: AtomDictionary,
@@ -1061,9 +897,9 @@ replace_sweeps, max_iter, min_norm_fraction, link
         search = get_search(dictionary, fit_background=fit_bg, min_norm_fraction=min_norm_fraction)
     elif search.centered != fit_bg:
         raise ValueError("the search's background mode does not match `background`")
-    steps = _steps(dictionary)
+    steps = grid_steps(dictionary)
     gens = [
-        _mp_window(
+        pursuit_steps(
             ys[i],
             dictionary,
             search.inv,

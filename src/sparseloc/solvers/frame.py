@@ -53,14 +53,15 @@ from scipy import fft as sfft
 from scipy import ndimage as ndi
 from scipy.optimize import nnls
 
+from ..engine import kernels
 from ..psf.base import PSFModel, energy_radius
 from .emitters import Emitters
 from .refine import (
-    _Problem,
-    _residual_candidates,
+    LikelihoodProblem,
     check_qe,
     fit_emitters,
     fit_with_count_selection,
+    residual_candidates,
 )
 
 log = logging.getLogger(__name__)
@@ -247,17 +248,16 @@ class _Correlator:
             out[j0 : j0 + len(part)] = part
         return out
 
-    def best(
-        self, img: NDArray, compiled: bool = True
-    ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    def best(self, img: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """Per pixel, the template whose normalised correlation with ``img`` is largest.
 
         Returns ``(score, j, corr, norm2)`` at that template, each (rows, cols): the score is
-        ``corr / sqrt(norm2)`` (matching pursuit's choice). ``compiled`` selects with the
-        numba loop where it is available (same result, ~5x faster than the NumPy gathers).
+        ``corr / sqrt(norm2)`` (matching pursuit's choice). The numba engine selects in one
+        compiled loop (the same result as the NumPy gathers; :mod:`sparseloc.engine`).
         """
-        select = _select_kernel() if compiled else None
-        if select is not None:
+        kern = kernels()
+        if kern is not None:
+            select = kern.select_best
             # the kernel's running best is single precision (its values are): converted once
             sb = np.full(self.shape, -np.inf, dtype=np.float32)
             jb = np.zeros(self.shape, dtype=np.int32)
@@ -280,32 +280,6 @@ class _Correlator:
                 cb[better] = np.take_along_axis(part, k[None], 0)[0][better]
         nb = np.take_along_axis(self.norm2, jb[None], 0)[0].astype(np.float64)
         return sb, jb, cb, nb
-
-
-_SELECT: list = []
-
-
-def _select_kernel():
-    """:func:`sparseloc.solvers._pursuit_numba.select_best`, or ``None`` where the compiled
-    kernels are off (:func:`sparseloc.psf._spline_kernel.available`: numba missing or failing,
-    ``SPARSELOC_NUMBA=0``) or this one fails to compile (then :meth:`_Correlator.best` uses
-    NumPy)."""
-    from ..psf import _spline_kernel
-
-    if not _spline_kernel.available():
-        return None
-    if not _SELECT:
-        try:
-            from ._pursuit_numba import select_best
-
-            one = np.zeros((1, 1, 1), np.float32)
-            best = np.zeros((1, 1), np.float32)
-            select_best(one, 0, one, 0, best, np.zeros((1, 1), np.int32), best.copy())
-            _SELECT.append(select_best)
-        except Exception as exc:  # any numba failure means: use NumPy
-            log.warning("numba pursuit kernel unavailable (%s): using NumPy", exc)
-            _SELECT.append(None)
-    return _SELECT[0]
 
 
 def _place(templates: FrameTemplates, atoms: list[tuple[int, int, int]], shape):
@@ -809,7 +783,7 @@ def _relocation_trial(
     the neighbourhood's own, summed from its ``pieces``. The neighbours are
     fitted there without emitter ``i``, so that they take what of its light they can
     explain, and the residual is searched for the best PSF position
-    (:func:`~sparseloc.solvers.refine._residual_candidates`). If that is emitter ``i`` itself
+    (:func:`~sparseloc.solvers.refine.residual_candidates`). If that is emitter ``i`` itself
     (closer than :data:`RELOCATE_MIN_SHIFT` pixels and :data:`RELOCATE_MIN_DZ` of the z
     range), there is nothing to try. (The residual of the current model less emitter ``i``,
     without that refit, gave the emitter itself nearly always: on 4 dense frames Jaccard
@@ -832,7 +806,7 @@ def _relocation_trial(
         mu = fit_emitters(y, model, Emitters.from_array(em[group[:-1]]), **kw).model_image
     else:
         mu = offset + background
-    cands, _ = _residual_candidates(y, mu, model, px, origin, n_best=1, score=False)
+    cands, _ = residual_candidates(y, mu, model, px, origin, n_best=1, score=False)
     if not cands:
         return None
     c = np.asarray(cands[0], dtype=np.float64)
@@ -1022,10 +996,10 @@ def _response(model: PSFModel, y: NDArray, fit, kw: dict) -> NDArray[np.float64]
     At the optimum the gradient of ``-log L`` is zero; a small change ``d`` of the known
     offset (photons/pixel) moves the optimum by about ``-F^-1 J' (w d / mu)`` (nm): more known
     light on one side pushes the emitters away from it. ``J``, ``F``, the weight ``w`` and
-    ``mu`` (with the sCMOS read variance) are the fit's own (:class:`refine._Problem`). None
-    if ``F`` is singular.
+    ``mu`` (with the sCMOS read variance) are the fit's own
+    (:class:`~sparseloc.solvers.refine.LikelihoodProblem`). None if ``F`` is singular.
     """
-    prob = _Problem(
+    prob = LikelihoodProblem(
         y,
         model,
         kw["pixel_size"],

@@ -27,6 +27,7 @@ non-negative least squares.
 from __future__ import annotations
 
 import logging
+from collections.abc import Generator
 from typing import Protocol
 
 import numpy as np
@@ -34,11 +35,20 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import nnls
 
 from ..dictionary import check_window
-from .emitters import WindowSolution, group_coefficients
+from .emitters import MIN_LINK_NM, WindowSolution, group_coefficients
 
 log = logging.getLogger(__name__)
 
-__all__ = ["AtomDictionary", "estimate_background", "matching_pursuit", "pearson_chi2"]
+__all__ = [
+    "AtomDictionary",
+    "count_groups",
+    "estimate_background",
+    "grid_steps",
+    "matching_pursuit",
+    "pearson_chi2",
+    "pursuit_steps",
+    "refit_amplitudes",
+]
 
 
 class AtomDictionary(Protocol):
@@ -85,7 +95,8 @@ def pearson_chi2(
     return float(np.sum((window - model) ** 2 / var))
 
 
-def _steps(dictionary: AtomDictionary) -> tuple[float, float]:
+def grid_steps(dictionary: AtomDictionary) -> tuple[float, float]:
+    """The dictionary's grid steps ``(dxy, dz)`` in nm."""
     grid = getattr(dictionary, "grid", None)
     if grid is not None:
         return grid.dxy, grid.dz
@@ -111,7 +122,6 @@ def matching_pursuit(
     max_iter: int | None = None,
     min_norm_fraction: float = 0.3,
     link: float = 1.5,
-    fast: bool = False,
 ) -> WindowSolution:
     """Find the emitters in one window by non-negative matching pursuit.
 
@@ -151,13 +161,6 @@ def matching_pursuit(
         never selected: their normalised correlation is unreliable.
     link : float
         Grouping distance in grid steps (see :func:`group_coefficients`).
-    fast : bool
-        Find each best atom with :class:`~sparseloc.solvers.fast_mp.AtomSearch` (a proven
-        argmax, built once per dictionary) instead of correlating with every atom: the
-        selections of the dense float64 reference, much faster on large structured
-        dictionaries (see :func:`~sparseloc.solvers.fast_mp.matching_pursuit_batch`). The
-        reference is the dense matrix (its atom norms), not the FFT path of ``fast=False``:
-        on a near tie the two may pick different atoms.
 
     Returns
     -------
@@ -172,45 +175,138 @@ def matching_pursuit(
         raise ValueError(f"max_emitters must be >= 1, got {max_emitters}")
     if min_photons < 0 or chi2_sigma < 0 or noise_factor <= 0:
         raise ValueError("min_photons and chi2_sigma must be >= 0 and noise_factor > 0")
-    if fast:
-        from .fast_mp import matching_pursuit_batch
-
-        return matching_pursuit_batch(
-            y,
-            dictionary,
-            background=background,
-            orthogonal=orthogonal,
-            max_emitters=max_emitters,
-            min_photons=min_photons,
-            chi2_sigma=chi2_sigma,
-            noise_factor=noise_factor,
-            model_error=model_error,
-            min_snr=min_snr,
-            replace_sweeps=replace_sweeps,
-            max_iter=max_iter,
-            min_norm_fraction=min_norm_fraction,
-            link=link,
-        )[0]
     max_iter = 4 * max_emitters if max_iter is None else int(max_iter)
     if model_error is None:
         model_error = float(getattr(dictionary, "quantization_error", 0.0))
     fixed_bg = background is not None
-    n_pix = y.size
     norms = np.asarray(dictionary.norms).ravel()
     if fixed_bg:
-        b = float(background)
         eff = norms
         sums = None
     else:
-        b = float(max(y.mean(), 0.0))
         sums = np.asarray(dictionary.sums).ravel()
         # norm of each atom after removing its mean: the part a constant cannot explain
-        eff = np.sqrt(np.maximum(norms**2 - sums**2 / n_pix, 0.0))
+        eff = np.sqrt(np.maximum(norms**2 - sums**2 / y.size, 0.0))
     eligible = (norms >= min_norm_fraction * norms.max()) & (eff > 1e-12)
     inv = np.where(eligible, 1.0 / np.where(eligible, eff, 1.0), 0.0)
-    chi2_limit = n_pix + chi2_sigma * np.sqrt(2.0 * n_pix)
-    steps = _steps(dictionary)
+    steps = pursuit_steps(
+        y,
+        dictionary,
+        inv,
+        background=background,
+        orthogonal=orthogonal,
+        max_emitters=max_emitters,
+        min_photons=min_photons,
+        chi2_sigma=chi2_sigma,
+        noise_factor=noise_factor,
+        model_error=model_error,
+        min_snr=min_snr,
+        replace_sweeps=replace_sweeps,
+        max_iter=max_iter,
+        link=link,
+        steps=grid_steps(dictionary),
+    )
+    try:
+        resid, _ = next(steps)
+        while True:
+            corr = np.asarray(dictionary.rmatvec(resid)).ravel()
+            if sums is not None:
+                corr = corr - resid.mean() * sums
+            score = corr * inv
+            k = int(np.argmax(score))
+            resid, _ = steps.send((k, float(corr[k]), float(score[k])))
+    except StopIteration as done:
+        sol = done.value
+    log.debug(
+        "MP: %d atoms, %d emitters, stop=%s",
+        sol.details["index"].size,
+        len(sol.emitters),
+        sol.details["stop"],
+    )
+    return sol
 
+
+def count_groups(
+    positions: ArrayLike, coef: ArrayLike, steps: tuple[float, float], *, link: float = 1.5
+) -> int:
+    """``len(group_coefficients(positions, coef, steps, link=link))``, without the emitters.
+
+    The same neighbour relation (``|dx|, |dy| <= max(link * dxy, MIN_LINK_NM[0])``,
+    ``|dz| <= max(link * dz, MIN_LINK_NM[1])``, atoms with ``coef > 0``) and its connected
+    components, counted by a plain graph search (no sparse matrices: MP asks after every atom).
+
+    Parameters
+    ----------
+    positions : ndarray, shape (k, 3)
+        Atom positions (x, y, z) in nm.
+    coef : ndarray, shape (k,)
+        Coefficients in photons.
+    steps : (dxy, dz)
+        Grid steps in nm.
+    link : float
+        Neighbour distance in grid steps.
+    """
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    c = np.asarray(coef, dtype=np.float64).ravel()
+    pos = pos[c > 0]
+    n = pos.shape[0]
+    if n <= 1:
+        return n
+    lxy = max(link * steps[0], MIN_LINK_NM[0])
+    lz = max(link * steps[1], MIN_LINK_NM[1])
+    d = np.abs(pos[:, None, :] - pos[None, :, :])
+    adj = (d[..., 0] <= lxy + 1e-9) & (d[..., 1] <= lxy + 1e-9) & (d[..., 2] <= lz + 1e-9)
+    seen = np.zeros(n, dtype=bool)
+    groups = 0
+    for i in range(n):
+        if seen[i]:
+            continue
+        groups += 1
+        seen[i] = True
+        stack = [i]
+        while stack:
+            nb = np.flatnonzero(adj[stack.pop()] & ~seen)
+            seen[nb] = True
+            stack.extend(nb.tolist())
+    return groups
+
+
+Request = tuple[NDArray[np.float64], bool]
+Answer = tuple[int, float, float]
+
+
+def pursuit_steps(
+    y: NDArray[np.float64],
+    dictionary: AtomDictionary,
+    inv: NDArray[np.float64],
+    *,
+    background: float | None,
+    orthogonal: bool,
+    max_emitters: int,
+    min_photons: float,
+    chi2_sigma: float,
+    noise_factor: float,
+    model_error: float,
+    min_snr: float,
+    replace_sweeps: int,
+    max_iter: int,
+    link: float,
+    steps: tuple[float, float],
+) -> Generator[Request, Answer, WindowSolution]:
+    """The pursuit's rule for one window, step by step: it yields each residual whose best atom
+    it needs (with ``True`` where the exact ``numpy.argmax`` semantics matter) and is sent
+    ``(index, corr, score)`` of that atom; it returns the window's solution.
+
+    :func:`matching_pursuit` answers with the dictionary's correlations,
+    :func:`~sparseloc.solvers.fast_mp.matching_pursuit_batch` with a batched search over many
+    windows. ``inv`` (one per atom) is the reciprocal of the atom's norm (mean-removed when the
+    background is fitted), 0 for atoms never to be chosen; the other parameters are those of
+    :func:`matching_pursuit`."""
+    fixed_bg = background is not None
+    n_pix = y.size
+    centred_scores = not fixed_bg
+    b = float(background) if fixed_bg else float(max(y.mean(), 0.0))
+    chi2_limit = n_pix + chi2_sigma * np.sqrt(2.0 * n_pix)
     index: list[int] = []
     coef: list[float] = []
     atoms: list[NDArray] = []
@@ -223,21 +319,17 @@ def matching_pursuit(
             stop = "noise"
             break
         resid = y - fit - b
-        corr = np.asarray(dictionary.rmatvec(resid)).ravel()
-        if sums is not None:
-            corr = corr - resid.mean() * sums
-        score = corr * inv
-        k = int(np.argmax(score))
-        if score[k] <= 0:
+        k, corr_k, score_k = yield resid, False
+        if not score_k > 0:
             stop = "no positive correlation"
             break
-        amp = corr[k] * inv[k] ** 2  # photons of the best atom (jointly with the constant)
+        amp = corr_k * inv[k] ** 2
         if amp < min_photons:
             stop = "min_photons"
             break
         atom = dictionary.atoms([k])[0]
         var = noise_factor * np.maximum(fit + b, 1.0) + (model_error * fit) ** 2
-        centred = atom - atom.mean() if sums is not None else atom
+        centred = atom - atom.mean() if centred_scores else atom
         sigma = np.sqrt(np.sum(centred**2 * var)) * inv[k] ** 2
         if amp < min_snr * sigma:
             stop = "min_snr"
@@ -249,7 +341,7 @@ def matching_pursuit(
             coef.append(amp)
             atoms.append(atom)
         if orthogonal:
-            coef, b = _refit(y, atoms, b, fixed_bg)
+            coef, b = refit_amplitudes(y, atoms, b, fixed_bg)
             for _ in range(replace_sweeps if len(index) > 1 else 0):
                 changed = False
                 for j in range(len(index)):
@@ -258,15 +350,12 @@ def matching_pursuit(
                         np.asarray(coef)[others], np.asarray(atoms)[others], axes=(0, 0)
                     )
                     r = y - part - b
-                    cj = np.asarray(dictionary.rmatvec(r)).ravel()
-                    if sums is not None:
-                        cj = cj - r.mean() * sums
-                    kj = int(np.argmax(cj * inv))
+                    kj, _, _ = yield r, True
                     if kj != index[j] and kj not in index:
                         index[j] = kj
                         atoms[j] = dictionary.atoms([kj])[0]
                         changed = True
-                coef, b = _refit(y, atoms, b, fixed_bg)
+                coef, b = refit_amplitudes(y, atoms, b, fixed_bg)
                 if not changed:
                     break
             fit = np.tensordot(np.asarray(coef), np.asarray(atoms), axes=(0, 0))
@@ -274,7 +363,7 @@ def matching_pursuit(
             fit = fit + amp * atom
             if not fixed_bg:
                 b = float(max(np.mean(y - fit), 0.0))
-        n_emit = len(group_coefficients(dictionary.positions(index), coef, steps, link=link))
+        n_emit = count_groups(dictionary.positions(index), coef, steps, link=link)
         if n_emit >= max_emitters:
             stop = "max_emitters"
             break
@@ -290,7 +379,6 @@ def matching_pursuit(
         min_photons=min_photons,
     )
     model = fit + b
-    log.debug("MP: %d atoms, %d emitters, stop=%s", idx.size, len(emitters), stop)
     return WindowSolution(
         emitters=emitters,
         background=b,
@@ -308,7 +396,9 @@ def matching_pursuit(
     )
 
 
-def _refit(y: NDArray, atoms: list[NDArray], b: float, fixed_bg: bool) -> tuple[list[float], float]:
+def refit_amplitudes(
+    y: NDArray, atoms: list[NDArray], b: float, fixed_bg: bool
+) -> tuple[list[float], float]:
     """Non-negative least squares of the kept atoms (and the background unless fixed)."""
     a = np.asarray(atoms).reshape(len(atoms), -1).T
     if fixed_bg:

@@ -21,10 +21,12 @@ unchanged; the Fisher information, the uncertainties, the likelihood ratios of t
 selection and the deviance are those of the detected photoelectrons. ``qe = 1`` (the default)
 is the plain photon-counting model.
 
-The fit is Levenberg-Marquardt with Fisher scoring: the step solves
-``(F + lam diag F) d = -grad`` with ``F = sum(w dmu dmu' / mu)``; a step is taken only if the
-likelihood improves (then ``lam`` shrinks), else ``lam`` grows. z is kept inside the model's
-range, photons and background positive, x and y within ``xy_margin`` pixels of the window.
+The fit is Levenberg-Marquardt with Fisher scoring (:mod:`sparseloc.solvers.lm`, one rule for
+every engine): the step solves ``(F + lam diag F) d = -grad`` with ``F = sum(w dmu dmu' / mu)``;
+a step is taken only if the likelihood improves (then ``lam`` shrinks), else ``lam`` grows. z
+is kept inside the model's range, photons and background positive, x and y within
+``xy_margin`` pixels of the window. Spline tables fit on the numba engine where it runs
+(:mod:`sparseloc.engine`), every other model on NumPy.
 
 Count selection (:func:`fit_with_count_selection`): after fitting K emitters, the model with the
 weakest emitter removed is refitted; it replaces the K-emitter model when the likelihood ratio
@@ -66,8 +68,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..dictionary import check_window
+from ..engine import kernels
 from ..psf.base import PSFModel
+from ..psf.spline import SplinePSF
 from .emitters import Emitters, WindowSolution
+from .lm import clamp, damped_system, make_levenberg_marquardt
 
 log = logging.getLogger(__name__)
 
@@ -163,7 +168,7 @@ def likelihood_weight(noise: str, qe: float = 1.0) -> float:
     return (0.5 if noise == "emccd" else 1.0) * check_qe(qe)
 
 
-class _Problem:
+class LikelihoodProblem:
     """The window, the PSF and the noise model: likelihood, gradient and Fisher matrix."""
 
     def __init__(
@@ -267,15 +272,11 @@ class _Problem:
         muv = (mu + self.v).ravel()
         return self.weight * (jac / muv) @ jac.T
 
-    def clamp(self, theta):
-        em, b = self.split(theta.copy())
-        em[:, 0] = np.clip(em[:, 0], self.xlo, self.xhi)
-        em[:, 1] = np.clip(em[:, 1], self.ylo, self.yhi)
-        em[:, 2] = np.clip(em[:, 2], self.zlo, self.zhi)
-        em[:, 3] = np.maximum(em[:, 3], _MIN_PHOTONS)
-        b = b.copy()
-        b[0] = max(b[0], _MIN_BG)
-        return np.concatenate([em.ravel(), b])
+    def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Lower and upper bounds of each emitter's x, y, z (nm) and photons."""
+        lo = np.array([self.xlo, self.ylo, self.zlo, _MIN_PHOTONS])
+        hi = np.array([self.xhi, self.yhi, self.zhi, np.inf])
+        return lo, hi
 
     def deviance(self, mu):
         muv = mu + self.v
@@ -343,7 +344,7 @@ def fit_emitters(
         raise ValueError("fit_emitters takes one window (rows, cols)")
     if np.any(y < -1e-9) and noise != "scmos":
         raise ValueError("the window has negative photon counts; convert ADU to photons first")
-    prob = _Problem(
+    prob = LikelihoodProblem(
         y, model, pixel_size, origin, noise, read_variance, plane, xy_margin, offset, qe
     )
     em0 = emitters.as_array()
@@ -352,81 +353,89 @@ def fit_emitters(
         background = float(max(np.median(resid), 1.0))
     b0 = np.zeros(prob.n_bg)
     b0[0] = background
-    theta = prob.clamp(np.concatenate([em0.ravel(), b0]))
-    fast = _compiled_fit(prob, theta, max_iter, tol)
-    if fast is not None:
-        return _result(prob, *fast)
-    mu = prob.mu(theta)
-    f = prob.nll(mu)
-    lam = 1e-3
-    converged = False
-    n_iter = 0
-    jac = prob.jacobian(theta)
-    for n_iter in range(1, max_iter + 1):  # noqa: B007 - reported
-        muv = (mu + prob.v).ravel()
-        grad = prob.weight * jac @ (1.0 - prob.yv.ravel() / muv)
-        fisher = prob.fisher(jac, mu)
-        diag = np.maximum(np.diag(fisher), 1e-12)
-        improved = False
-        for _ in range(12):
-            try:
-                step = np.linalg.solve(fisher + lam * np.diag(diag), -grad)
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
-            if not np.all(np.isfinite(step)):  # as the compiled solver: a rejected step
-                lam *= 10
-                continue
-            trial = prob.clamp(theta + step)
-            mu_t = prob.mu(trial)
-            f_t = prob.nll(mu_t)
-            if f_t < f:
-                improved = True
-                break
-            lam *= 10
-        if not improved:
-            converged = True  # no step lowers -log L: a (constrained) optimum
-            break
-        rel = (f - f_t) / max(abs(f), 1.0)
-        theta, mu, f = trial, mu_t, f_t
-        lam = max(lam / 10, 1e-7)
-        jac = prob.jacobian(theta)
-        if rel < tol:
-            converged = True
-            break
-    return _result(prob, theta, mu, f, prob.fisher(jac, mu), converged, n_iter)
-
-
-def _compiled_fit(prob: _Problem, theta, max_iter: int, tol: float):
-    """The LM loop of :func:`fit_emitters` compiled (numba), for spline models; ``None`` when
-    it does not apply (another model, numba missing or disabled, non-finite start). Same steps
-    as the Python loop; ``tests/test_compiled.py`` checks that the two agree."""
-    from ..psf import _spline_kernel
-    from ..psf.spline import SplinePSF
-
-    m = prob.model
-    if not (isinstance(m, SplinePSF) and m.compiled and _spline_kernel.available()):
-        return None
+    theta = np.concatenate([em0.ravel(), b0])
     if not np.all(np.isfinite(theta)):
-        return None  # the NumPy path raises its clear error
+        raise ValueError("the starting positions, photons and background must be finite")
+    lo, hi = prob.bounds()
+    clamp(theta, len(em0), lo, hi, _MIN_BG)
+    if isinstance(model, SplinePSF) and kernels() is not None:
+        out = _numba_fit(prob, theta, lo, hi, max_iter, tol)
+    else:
+        out = _numpy_fit(prob, theta, lo, hi, max_iter, tol)
+    return _result(prob, *out)
+
+
+class _NumpyFit:
+    """The NumPy engine's state of one fit (any PSF model): the operations of
+    :func:`~sparseloc.solvers.lm.make_levenberg_marquardt` are the functions below."""
+
+    def __init__(self, prob: LikelihoodProblem, theta: NDArray, lo: NDArray, hi: NDArray) -> None:
+        self.prob, self.theta, self.lo, self.hi = prob, theta, lo, hi
+        self.k = (theta.size - prob.n_bg) // 4
+        self.a = np.empty((theta.size, theta.size))
+
+
+def _numpy_evaluate(s: _NumpyFit) -> float:
+    s.mu = s.prob.mu(s.theta)
+    s.jac = s.prob.jacobian(s.theta)
+    return s.prob.nll(s.mu)
+
+
+def _numpy_score(s: _NumpyFit) -> None:
+    prob = s.prob
+    muv = (s.mu + prob.v).ravel()
+    s.grad = prob.weight * s.jac @ (1.0 - prob.yv.ravel() / muv)
+    s.fisher = prob.fisher(s.jac, s.mu)
+
+
+def _numpy_trial(s: _NumpyFit, lam: float) -> float:
+    damped_system(s.fisher, lam, s.a)
+    try:
+        step = np.linalg.solve(s.a, -s.grad)
+    except np.linalg.LinAlgError:
+        return np.inf
+    if not np.all(np.isfinite(step)):
+        return np.inf
+    s.trial = s.theta + step
+    clamp(s.trial, s.k, s.lo, s.hi, _MIN_BG)
+    s.mu_t = s.prob.mu(s.trial)
+    return s.prob.nll(s.mu_t)
+
+
+def _numpy_accept(s: _NumpyFit) -> None:
+    s.theta, s.mu = s.trial, s.mu_t
+    s.jac = s.prob.jacobian(s.theta)
+
+
+_numpy_levenberg_marquardt = make_levenberg_marquardt(
+    _numpy_evaluate, _numpy_score, _numpy_trial, _numpy_accept
+)
+
+
+def _numpy_fit(prob: LikelihoodProblem, theta, lo, hi, max_iter: int, tol: float):
+    """The fit on the NumPy engine: theta, mu, -log L, Fisher matrix, converged, n_iter."""
+    s = _NumpyFit(prob, theta, lo, hi)
+    f, converged, n_iter = _numpy_levenberg_marquardt(s, max_iter, tol)
+    return s.theta, s.mu, f, s.fisher, converged, n_iter
+
+
+def _numba_fit(prob: LikelihoodProblem, theta, lo, hi, max_iter: int, tol: float):
+    """The fit on the numba engine (spline tables): the same loop, compiled."""
     from ._fit_numba import lm_fit
 
+    m = prob.model
     m._check_pixel(prob.px)
-    geo = m.node_geometry(prob.origin, prob.px)
-    k = (theta.size - prob.n_bg) // 4
-    lo = np.array([prob.xlo, prob.ylo, prob.zlo, _MIN_PHOTONS])
-    hi = np.array([prob.xhi, prob.yhi, prob.zhi, np.inf])
     base = np.ascontiguousarray(np.broadcast_to(prob.offset, prob.shape), dtype=np.float64)
     theta, mu, f, fisher, converged, n_iter = lm_fit(
         m._coef,
-        geo,
+        m.node_geometry(prob.origin, prob.px),
         np.ascontiguousarray(prob.yv, dtype=np.float64),
         np.ascontiguousarray(prob.v, dtype=np.float64),
         base,
         np.ascontiguousarray(np.stack(prob.bg_basis), dtype=np.float64),
         float(prob.weight),
         np.ascontiguousarray(theta, dtype=np.float64),
-        int(k),
+        (theta.size - prob.n_bg) // 4,
         lo,
         hi,
         _MIN_BG,
@@ -436,7 +445,7 @@ def _compiled_fit(prob: _Problem, theta, max_iter: int, tol: float):
     return theta, mu, float(f), fisher, bool(converged), int(n_iter)
 
 
-def _result(prob: _Problem, theta, mu, f, fisher, converged, n_iter) -> FitResult:
+def _result(prob: LikelihoodProblem, theta, mu, f, fisher, converged, n_iter) -> FitResult:
     """The :class:`FitResult` of a fit that ended at ``theta`` (``fisher``: its Fisher
     matrix, from which the standard errors come)."""
     em, b = prob.split(theta)
@@ -489,7 +498,7 @@ _CANDIDATE_BLOCK = 8
 
 
 def _candidate_templates(model, rows: int, cols: int, pixel_size: float, n_planes: int):
-    """Spectra of the PSF planes that :func:`_residual_candidates` correlates with a window
+    """Spectra of the PSF planes that :func:`residual_candidates` correlates with a window
     of this shape, padded to a multiple of :data:`_CANDIDATE_BLOCK` pixels (computed once
     per padded shape), and the planes' squared norms over the real window.
 
@@ -544,7 +553,7 @@ def _valid(f_tmpl, padded, s, rows: int, cols: int):
     return full[:, 2 * pr - 1 - rows : 2 * pr - 1, 2 * pc - 1 - cols : 2 * pc - 1]
 
 
-def _residual_candidates(
+def residual_candidates(
     y, model_image, model, pixel_size, origin, n_planes=13, n_best=2, score=True
 ):
     """Up to ``n_best`` (x, y, z, photons) where the residual ``y - model_image`` correlates
@@ -675,7 +684,7 @@ def fit_with_count_selection(
                 changes += 1
                 continue
         cands, stat = (
-            _residual_candidates(y, best.model_image, model, pixel_size, origin)
+            residual_candidates(y, best.model_image, model, pixel_size, origin)
             if k < max_emitters
             else ([], 0.0)
         )
@@ -836,7 +845,7 @@ def split_merge_search(
         return max(fits, key=lambda f: f.log_likelihood)
 
     def candidates(f: FitResult) -> list:
-        return _residual_candidates(y, f.model_image, sm, pixel_size, origin, score=False)[0]
+        return residual_candidates(y, f.model_image, sm, pixel_size, origin, score=False)[0]
 
     bg0 = float(fit.background[0])
     best = fit if sm is model else fit_emitters(y, sm, fit.emitters, background=bg0, **kw)

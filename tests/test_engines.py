@@ -1,12 +1,14 @@
-"""The compiled (numba) spline kernel and LM loop against their NumPy reference paths, and
-the frame solver's skipping of groups that a sweep left in place."""
+"""Engine conformance: the numba engine (spline kernel, the compiled Levenberg-Marquardt loop,
+the pursuit's selection) against the NumPy reference on the same requests, the engine setting,
+and the frame solver's skipping of groups that a sweep left in place."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from sparseloc.psf import _spline_kernel, make_psf
+from sparseloc.engine import resolve_engine, use_engine
+from sparseloc.psf import make_psf
 from sparseloc.psf.spline import SplinePSF
 from sparseloc.solvers.emitters import Emitters
 from sparseloc.solvers.frame import frame_fit, frame_templates
@@ -14,7 +16,9 @@ from sparseloc.solvers.refine import fit_emitters
 
 PX = 100.0
 
-pytestmark = pytest.mark.skipif(not _spline_kernel.available(), reason="numba not available")
+pytestmark = pytest.mark.skipif(
+    resolve_engine("auto") != "numba", reason="the numba engine does not run here"
+)
 
 
 @pytest.fixture(scope="module")
@@ -24,14 +28,12 @@ def table():
 
 
 def _both(model, fn):
-    """fn() with the compiled path, then with the NumPy path."""
-    try:
-        model.compiled = True
+    """fn() on the numba engine, then on the NumPy engine (``model``: unused, kept for the
+    callers' readability)."""
+    with use_engine("numba"):
         a = fn()
-        model.compiled = False
+    with use_engine("numpy"):
         b = fn()
-    finally:
-        model.compiled = True
     return a, b
 
 
@@ -146,21 +148,45 @@ def test_compiled_fit_uncertainties_at_an_early_stop(table, max_iter):
     np.testing.assert_allclose(a.sigma, b.sigma, rtol=1e-8)
 
 
-def test_analytic_models_keep_the_python_loop():
-    # Only spline tables are compiled; other models must still fit (through NumPy).
+def test_analytic_models_fit_on_numpy_under_the_numba_engine(monkeypatch):
+    # The numba engine covers spline tables; other models fit through NumPy, whatever the
+    # setting, and a spline table reaches the compiled loop.
+    import sparseloc.solvers._fit_numba as fn
+
+    calls = []
+    real = fn.lm_fit
+    monkeypatch.setattr(fn, "lm_fit", lambda *a: calls.append(1) or real(*a))
     m = make_psf("dh-analytic")
     mu = m.render([1000.0], [1000.0], [0.0], [3000.0], (21, 21), PX) + 10.0
     img = np.random.default_rng(0).poisson(mu).astype(float)
-    fit = fit_emitters(img, m, Emitters.from_array([[1020.0, 980.0, 50.0, 2500.0]]), pixel_size=PX)
-    assert np.hypot(fit.emitters.x[0] - 1000.0, fit.emitters.y[0] - 1000.0) < 30.0
-    from sparseloc.solvers.refine import _compiled_fit, _Problem
+    start = Emitters.from_array([[1020.0, 980.0, 50.0, 2500.0]])
+    with use_engine("numba"):
+        fit = fit_emitters(img, m, start, pixel_size=PX)
+        assert np.hypot(fit.emitters.x[0] - 1000.0, fit.emitters.y[0] - 1000.0) < 30.0
+        assert calls == []
+        table = SplinePSF.from_model(m, PX, roi=31, z_step=20.0)
+        fit_emitters(img, table, start, pixel_size=PX)
+        assert calls == [1]
+    with use_engine("numpy"):
+        fit_emitters(img, table, start, pixel_size=PX)
+        assert calls == [1]
 
-    theta = np.array([1020.0, 980.0, 50.0, 2500.0, 10.0])
-    prob = _Problem(img, m, PX, (0.0, 0.0), "poisson", None, False, 1.0)
-    assert _compiled_fit(prob, theta, 60, 1e-6) is None
-    table = SplinePSF.from_model(m, PX, roi=31, z_step=20.0)
-    prob = _Problem(img, table, PX, (0.0, 0.0), "poisson", None, False, 1.0)
-    assert _compiled_fit(prob, theta, 60, 1e-6) is not None
+
+def test_the_engine_setting(monkeypatch):
+    from sparseloc import engine
+
+    with pytest.raises(ValueError, match="engine must be one of auto, numpy, numba"):
+        engine.check_engine("cuda")
+    with use_engine("numpy") as chosen:
+        assert chosen == "numpy" and engine.kernels() is None
+        with use_engine("numba") as inner:
+            assert inner == "numba" and engine.kernels() is not None
+        assert engine.active_engine() == "numpy"
+    monkeypatch.setenv("SPARSELOC_ENGINE", "numpy")
+    assert resolve_engine("auto") == "numpy" and resolve_engine("numba") == "numba"
+    monkeypatch.setenv("SPARSELOC_ENGINE", "gpu")
+    with pytest.raises(ValueError, match="SPARSELOC_ENGINE"):
+        resolve_engine("auto")
 
 
 def test_skipping_settled_groups_changes_little(table):
@@ -251,3 +277,24 @@ def test_compiled_scoring_matches_numpy(npar):
     muv = (mu + v).ravel()
     np.testing.assert_allclose(fisher, 0.5 * (jac / muv) @ jac.T, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(grad, 0.5 * jac @ (1.0 - y.ravel() / muv), rtol=1e-12, atol=1e-12)
+
+
+def test_template_selection_is_bit_identical_on_both_engines():
+    from dataclasses import replace
+
+    from sparseloc.solvers.frame import _Correlator
+
+    rng = np.random.default_rng(3)
+    imgs = rng.random((7, 9, 9))
+    imgs[4] = imgs[1]  # a duplicate template: equal scores, the first must win in both
+    z = np.zeros(7)
+    base = frame_templates(make_psf("dh-analytic"), PX, dxy=PX, dz=2000.0, size=9)
+    tmpl = replace(base, images=imgs, dx=z, dy=z, z=z)
+    frame = rng.random((30, 26)) - 0.2
+    cor = _Correlator(tmpl, frame.shape, batch=3)  # batches of 3, 3 and 1 templates
+    fast, ref = _both(None, lambda: cor.best(frame))
+    for a, b in zip(fast, ref, strict=True):
+        assert a.dtype == b.dtype
+        assert np.array_equal(a, b)
+    assert not np.any(fast[1] == 4)  # the duplicate never wins over its first copy
+    assert np.any(fast[1] == 1)
