@@ -565,7 +565,7 @@ def test_all_beads_saturated_says_what_to_do():
 
 
 def test_localize_windows_follow_a_calibrated_psf(cal):
-    from sparseloc.cli import _window_for
+    from sparseloc.config import window_for as _window_for
 
     px = cal.psf.pixel_size
     window, margin = _window_for(cal.psf, px, None, None)

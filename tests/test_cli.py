@@ -211,37 +211,37 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
 def test_default_workers(monkeypatch):
     # one process per available core, at most AUTO_WORKERS_CAP and one per
     # MIN_FRAMES_PER_WORKER frames, never fewer than one
-    from sparseloc import cli, pipeline
+    from sparseloc import cli, pool
 
-    monkeypatch.setattr(pipeline, "available_cores", lambda: 6)
+    monkeypatch.setattr(pool, "available_cores", lambda: 6)
     assert cli._auto_workers(1000) == 6
     assert cli._auto_workers(3 * cli.MIN_FRAMES_PER_WORKER) == 3
     assert cli._auto_workers(2) == 1
-    monkeypatch.setattr(pipeline, "available_cores", lambda: 64)
+    monkeypatch.setattr(pool, "available_cores", lambda: 64)
     assert cli._auto_workers(10**6) == cli.AUTO_WORKERS_CAP
 
 
 def test_available_cores(monkeypatch):
-    from sparseloc import pipeline
+    from sparseloc import pool
 
-    monkeypatch.setattr(pipeline, "_cpu_quota", lambda: None)
-    monkeypatch.setattr(pipeline.os, "sched_getaffinity", lambda pid: set(range(6)), raising=False)
-    assert pipeline.available_cores() == 6
-    monkeypatch.setattr(pipeline, "_cpu_quota", lambda: 2.5)  # a container limited to 2.5 CPUs
-    assert pipeline.available_cores() == 2
-    monkeypatch.setattr(pipeline, "_cpu_quota", lambda: 0.5)
-    assert pipeline.available_cores() == 1
+    monkeypatch.setattr(pool, "_cpu_quota", lambda: None)
+    monkeypatch.setattr(pool.os, "sched_getaffinity", lambda pid: set(range(6)), raising=False)
+    assert pool.available_cores() == 6
+    monkeypatch.setattr(pool, "_cpu_quota", lambda: 2.5)  # a container limited to 2.5 CPUs
+    assert pool.available_cores() == 2
+    monkeypatch.setattr(pool, "_cpu_quota", lambda: 0.5)
+    assert pool.available_cores() == 1
     # where the platform cannot tell the affinity: the CPU count
-    monkeypatch.setattr(pipeline, "_cpu_quota", lambda: None)
-    monkeypatch.delattr(pipeline.os, "sched_getaffinity", raising=False)
-    monkeypatch.setattr(pipeline.os, "cpu_count", lambda: 3)
-    assert pipeline.available_cores() == 3
-    monkeypatch.setattr(pipeline.os, "cpu_count", lambda: None)
-    assert pipeline.available_cores() == 1
+    monkeypatch.setattr(pool, "_cpu_quota", lambda: None)
+    monkeypatch.delattr(pool.os, "sched_getaffinity", raising=False)
+    monkeypatch.setattr(pool.os, "cpu_count", lambda: 3)
+    assert pool.available_cores() == 3
+    monkeypatch.setattr(pool.os, "cpu_count", lambda: None)
+    assert pool.available_cores() == 1
 
 
 def test_cpu_quota_from_cgroup_files(tmp_path):
-    from sparseloc.pipeline import _cpu_quota
+    from sparseloc.pool import _cpu_quota
 
     assert _cpu_quota(tmp_path) is None  # nothing there
     (tmp_path / "cpu.max").write_text("max 100000\n")  # cgroup v2, no limit

@@ -152,7 +152,7 @@ def test_a_chunk_that_keeps_failing_is_reported(movie, model, tmp_path, client):
 
 def test_a_different_analysis_is_refused(movie, model, params, tmp_path):
     localize_chunked(movie, model, params, tmp_path / "run", chunk_frames=8)
-    other = LocalizeParams(pixel_size=PX, tabulate=False, threshold=6.0)
+    other = LocalizeParams(pixel_size=PX, tabulate=False, min_snr=6.0)
     with pytest.raises(ValueError, match=r"different analysis \(changed: params\)"):
         localize_chunked(movie, model, other, tmp_path / "run", chunk_frames=8)
     with pytest.raises(ValueError, match="chunk_frames"):
@@ -200,7 +200,7 @@ def test_sigkill_then_rerun_gives_the_uninterrupted_table(movie, tmp_path):
     pd.testing.assert_frame_equal(a, b)
     assert not a.duplicated(["frame", "x_nm", "y_nm"]).any()
     # different parameters in the same run folder: refused with one sentence, exit code 2
-    refused = _cli([*base, *run, "--threshold", "6"])
+    refused = _cli([*base, *run, "--min-snr", "6"])
     _, stderr = refused.communicate(timeout=300)
     assert refused.returncode == 2 and "different analysis" in stderr
     assert "Traceback" not in stderr

@@ -394,7 +394,9 @@ def test_split_merge_search_result_is_checked_on_the_model_itself(analytic, capl
 
     def padded(y, model, emitters, **kw):
         arr = real(y, model, emitters, **kw).emitters.as_array()
-        kw = {k: v for k, v in kw.items() if k not in ("threshold", "min_photons", "max_emitters")}
+        kw = {
+            k: v for k, v in kw.items() if k not in ("lr_threshold", "min_photons", "max_emitters")
+        }
         brightest = arr[[np.argmax(arr[:, 3])]]
         return refine.fit_emitters(y, model, Emitters.from_array(brightest), **kw)
 

@@ -187,66 +187,9 @@ MIN_FRAMES_PER_WORKER = 8
 
 def _auto_workers(n_frames: int) -> int:
     """The default number of worker processes for ``n_frames`` frames (see above)."""
-    from .pipeline import available_cores
+    from .pool import available_cores
 
     return max(1, min(available_cores(), AUTO_WORKERS_CAP, n_frames // MIN_FRAMES_PER_WORKER))
-
-
-LOCALIZE_DEFAULTS: dict = {
-    "psf": "dh",
-    "pixel_size": None,
-    "offset": 100.0,
-    "gain": 1.0,
-    "em_gain": 1.0,
-    "qe": 1.0,
-    "camera": "ideal",
-    "method": "frame",
-    "window": None,
-    "margin": None,
-    "z_min": None,
-    "z_max": None,
-    "threshold": 5.0,
-    "background": "auto",
-    "refine": True,
-    "frames": None,
-    "format": None,
-    "workers": None,  # one per available core (see _auto_workers)
-    "engine": "auto",
-    "n_sample": None,
-    "focal_depth": None,
-    "read_noise": 0.0,
-    "offset_map": None,
-    "variance_map": None,
-    "gain_map": None,
-    "run_dir": None,
-    "chunk_frames": None,
-    "scheduler": None,
-    "overwrite": False,
-    "relocate": None,  # LocalizeParams's default
-}
-
-
-def _window_for(model, pixel_size: float, window: int | None, margin: int | None):
-    """Window and margin (px): the user's, else sized from a measured PSF, else 11 and 3.
-
-    A measured (spline) PSF holds its light in its ROI, so the radius holding 90 % of it is a
-    fair margin: windows then see all of every emitter they keep. On storm-analysis's double
-    helix (100 nm pixels) that gives margin 6 and window 21, which beat 17/4 on the dense
-    frames (Jaccard 76 % against 64 % at 0.5 /um^2). Pupil models keep a halo of a few per cent
-    far out, so their radius says little: they get the paper's 11 px window.
-    """
-    from .psf.spline import SplinePSF
-
-    if margin is None:
-        if isinstance(model, SplinePSF):
-            margin = int(np.ceil(model.support_radius(pixel_size, 0.9) / pixel_size))
-        else:
-            margin = 3
-        if window is not None:  # a window the user chose keeps a core of at least 1 px
-            margin = min(margin, (int(window) - 1) // 2)
-    if window is None:
-        window = max(11, 2 * margin + 9) if isinstance(model, SplinePSF) else 11
-    return int(window), int(margin)
 
 
 def _load_config(path: Path | None) -> dict:
@@ -261,13 +204,9 @@ def _load_config(path: Path | None) -> dict:
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         _fail(f"cannot read the config file {str(path)!r}: {exc}")
     cfg = {k.replace("-", "_"): v for k, v in cfg.get("localize", cfg).items()}
-    unknown = sorted(set(cfg) - set(LOCALIZE_DEFAULTS))
-    if unknown:
-        _fail(
-            f"unknown keys in {path.name}: {', '.join(unknown)}; allowed: "
-            f"{', '.join(sorted(LOCALIZE_DEFAULTS))}"
-        )
-    return cfg
+    from .config import check_options
+
+    return _run(check_options, cfg, path.name)
 
 
 @app.command()
@@ -308,7 +247,12 @@ def localize(
     z_max: Annotated[
         float | None, typer.Option(help="Highest z (nm) searched (sets a pupil model's range).")
     ] = None,
-    threshold: Annotated[float | None, typer.Option(help="Candidate SNR threshold.")] = None,
+    min_snr: Annotated[
+        float | None,
+        typer.Option(
+            help="Detection significance of a new emitter (noise standard errors). [default: 5]"
+        ),
+    ] = None,
     refine: Annotated[
         bool | None, typer.Option("--refine/--no-refine", help="Maximum-likelihood stage.")
     ] = None,
@@ -376,12 +320,8 @@ def localize(
     as tasks (in this process, in threads, on a Dask LocalCluster of --workers processes, or
     on the scheduler given); each finished chunk is saved in the run folder, so the same
     command started again after an interruption runs only the missing chunks."""
-    from .camera import Camera
-    from .distributed import CameraFrames
+    from .config import LOCALIZE_DEFAULTS, build_job
     from .io.movie import Movie
-    from .pipeline import LocalizeParams
-    from .pipeline import localize as run_localize
-    from .psf import make_psf
 
     given = {
         "psf": psf,
@@ -396,7 +336,7 @@ def localize(
         "margin": margin,
         "z_min": z_min,
         "z_max": z_max,
-        "threshold": threshold,
+        "min_snr": min_snr,
         "refine": refine,
         "relocate": relocate,
         "background": background,
@@ -418,130 +358,41 @@ def localize(
     opts = {**LOCALIZE_DEFAULTS, **_load_config(config)}
     opts.update({k: v for k, v in given.items() if v is not None})
     out = _output_path(output)
-    model = _run(make_psf, opts["psf"])
-    from .psf.pupil import PupilPSF
-
-    optics = {k: float(opts[k]) for k in ("n_sample", "focal_depth") if opts[k] is not None}
-    if optics and not isinstance(model, PupilPSF):
-        _fail("--n-sample and --focal-depth apply to pupil models (built-in names, mask files)")
-    if "focal_depth" in optics and "n_sample" not in optics:
-        _fail("--focal-depth needs --n-sample (the sample's refractive index)")
-    if isinstance(model, PupilPSF) and (
-        optics or opts["z_min"] is not None or opts["z_max"] is not None
-    ):
-        # A pupil model renders any depth: the user's z range becomes the model's.
-        lo, hi = model.z_range
-        zr_model = (
-            lo if opts["z_min"] is None else float(opts["z_min"]),
-            hi if opts["z_max"] is None else float(opts["z_max"]),
-        )
-        model = _run(make_psf, opts["psf"], z_range=zr_model, **optics)
-    cal_px = getattr(model, "pixel_size", None)
-    if opts["pixel_size"] is None and cal_px is not None:
-        opts["pixel_size"] = float(cal_px)
-    if opts["pixel_size"] is None:
-        _fail("give the pixel size in sample space with --pixel-size NM")
     mov = _run(Movie.open, [str(p) for p in movie] if len(movie) > 1 else str(movie[0]))
     with mov:
-        if mov.pixel_size and abs(mov.pixel_size - opts["pixel_size"]) > 0.01 * opts["pixel_size"]:
-            _fail(
-                f"--pixel-size {opts['pixel_size']:g} nm differs from the movie's metadata "
-                f"({mov.pixel_size:g} nm)"
-            )
-        cam_kw = {
-            "kind": opts["camera"],
-            "offset": opts["offset"],
-            "gain": opts["gain"],
-            "em_gain": opts["em_gain"],
-            "qe": opts["qe"],
-            "read_noise": opts["read_noise"],
-        }
-        maps = {k: opts[f"{k}_map"] for k in ("offset", "variance", "gain") if opts[f"{k}_map"]}
-        if maps and opts["camera"] != "scmos":
-            _fail("--offset-map, --variance-map and --gain-map need --camera scmos")
-        if maps:
-            cam_kw.update({k: str(v) for k, v in maps.items()})
-            cam = _run(Camera.from_map_files, **cam_kw)
-        else:
-            cam = _run(Camera, **cam_kw)
-        first = mov.frames(0, 1)
-        if cam.map_shape is not None and cam.map_shape != first.shape[-2:]:
-            _fail(
-                f"the camera maps are {cam.map_shape[0]}x{cam.map_shape[1]} pixels but the "
-                f"frames are {first.shape[-2]}x{first.shape[-1]}"
-            )
-        if cam.offset_map is None and opts["offset"] >= float(np.median(first)):
-            _fail(
-                f"the offset ({opts['offset']:g} ADU) is not below the median pixel value "
-                f"({float(np.median(first)):g} ADU) of the first frame; check --offset"
-            )
-        window_px, margin_px = _run(
-            _window_for, model, opts["pixel_size"], opts["window"], opts["margin"]
-        )
-        # sCMOS read noise in photons^2 (a map with maps): the likelihood and the detection
-        # threshold add it to the shot noise.
-        read_var = (
-            np.asarray(cam._read_variance_e(first.shape[-2:])) / cam.qe**2
-            if opts["camera"] == "scmos"
-            else np.asarray(0.0)
-        )
-        if read_var.ndim == 2 and np.ptp(read_var) == 0:
-            read_var = np.asarray(read_var.flat[0])
-        lo, hi = model.z_range
-        zr = (
-            lo if opts["z_min"] is None else opts["z_min"],
-            hi if opts["z_max"] is None else opts["z_max"],
-        )
-        start, stop = 0, len(mov)
-        if opts["frames"]:
-            try:
-                a, b = str(opts["frames"]).split(":")
-                start, stop = int(a or 0), int(b) if b else len(mov)
-            except ValueError:
-                _fail(f"--frames must look like START:STOP, got {opts['frames']!r}")
-        params = _run(
-            LocalizeParams,
-            pixel_size=opts["pixel_size"],
-            method=opts["method"],
-            refine=opts["refine"],
-            window=window_px,
-            margin=margin_px,
-            z_range=zr,
-            threshold=opts["threshold"],
-            background=opts["background"],
-            noise={"emccd": "emccd", "scmos": "scmos"}.get(opts["camera"], "poisson"),
-            read_variance=float(read_var) if read_var.ndim == 0 else 0.0,
-            engine=opts["engine"],
-            qe=cam.qe,
-            **({} if opts["relocate"] is None else {"relocate": opts["relocate"]}),
-        )
-        from tqdm import tqdm
-
-        chunked = any(opts[k] is not None for k in ("run_dir", "chunk_frames", "scheduler"))
-        if chunked:
-            _localize_chunked(opts, out, mov, cam, model, params, start, stop, read_var)
+        job = _run(build_job, opts, mov)
+        if any(opts[k] is not None for k in ("run_dir", "chunk_frames", "scheduler")):
+            _localize_chunked(opts, out, mov, job)
             return
-        workers = opts["workers"]
-        if workers is None:
-            workers = _auto_workers(stop - start)
-        with tqdm(total=stop - start, unit="frame", disable=not sys.stderr.isatty()) as bar:
-            res = _run(
-                run_localize,
-                CameraFrames(mov, cam),
-                model,
-                params,
-                start=start,
-                stop=stop,
-                progress=bar.update,
-                workers=workers,
-                read_variance=read_var if read_var.ndim == 2 else None,
-            )
-        _write_localized(res, out, opts, mov, cam)
+        workers = opts["workers"] or _auto_workers(job.stop - job.start)
+        res = _localize_in_processes(mov, job, workers)
+        _write_localized(res, out, opts, mov, job)
     typer.echo(f"{res.summary()}, {workers} process{'es' if workers > 1 else ''}")
     typer.echo(f"wrote {out}")
 
 
-def _localize_chunked(opts, out, mov, cam, model, params, start, stop, read_var) -> None:
+def _localize_in_processes(mov, job, workers: int):
+    """The unchunked path of ``localize``: one process or a pool, with a progress bar."""
+    from tqdm import tqdm
+
+    from .distributed import CameraFrames
+    from .pipeline import localize as run_localize
+
+    with tqdm(total=job.stop - job.start, unit="frame", disable=not sys.stderr.isatty()) as bar:
+        return _run(
+            run_localize,
+            CameraFrames(mov, job.camera),
+            job.model,
+            job.params,
+            start=job.start,
+            stop=job.stop,
+            progress=bar.update,
+            workers=workers,
+            read_variance=job.read_variance_map,
+        )
+
+
+def _localize_chunked(opts, out, mov, job) -> None:
     """The chunked path of ``localize``: run, save parts, join, or report what is missing."""
     from tqdm import tqdm
 
@@ -557,20 +408,20 @@ def _localize_chunked(opts, out, mov, cam, model, params, start, stop, read_var)
             client = _run(local_cluster, workers)
             sched = client
     try:
-        with tqdm(total=stop - start, unit="frame", disable=not sys.stderr.isatty()) as bar:
+        with tqdm(total=job.stop - job.start, unit="frame", disable=not sys.stderr.isatty()) as bar:
             res = _run(
                 localize_chunked,
-                CameraFrames(mov, cam),
-                model,
-                params,
+                CameraFrames(mov, job.camera),
+                job.model,
+                job.params,
                 run_dir,
-                start=start,
-                stop=stop,
+                start=job.start,
+                stop=job.stop,
                 chunk_frames=int(opts["chunk_frames"] or CHUNK_FRAMES),
                 scheduler=sched,
                 threads=max(workers, 2),
                 overwrite=bool(opts["overwrite"]),
-                read_variance=read_var if read_var.ndim == 2 else None,
+                read_variance=job.read_variance_map,
                 progress=bar.update,
             )
     finally:
@@ -585,21 +436,21 @@ def _localize_chunked(opts, out, mov, cam, model, params, start, stop, read_var)
             err=True,
         )
         raise typer.Exit(code=1)
-    _write_localized(res, out, opts, mov, cam)
+    _write_localized(res, out, opts, mov, job)
     typer.echo(f"wrote {out}")
 
 
-def _write_localized(res, out: Path, opts: dict, mov, cam) -> None:
+def _write_localized(res, out: Path, opts: dict, mov, job) -> None:
     """Write ``localize``'s table with the analysis, movie and camera as metadata."""
     from .io.tables import write_table
 
-    meta = {**res.metadata, "movie": [str(p) for p in mov.paths], "camera": cam.to_dict()}
+    meta = {**res.metadata, "movie": [str(p) for p in mov.paths], "camera": job.camera.to_dict()}
     _run(
         write_table,
         res.table,
         out,
         format=opts["format"],
-        pixel_size=opts["pixel_size"],
+        pixel_size=job.params.pixel_size,
         shape=mov.shape,
         n_frames=len(mov),
         metadata=meta,

@@ -111,7 +111,7 @@ def run_demo(
 
     t0 = time.perf_counter()
     if workers is None:
-        from .pipeline import available_cores
+        from .pool import available_cores
 
         workers = min(2, available_cores())
     frames = sim.movie.astype(np.float64) - sim.camera.offset  # ideal camera: gain 1

@@ -16,11 +16,9 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,6 +26,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from . import __version__
+from .config import METHODS, LocalizeParams
 from .detect import (
     Tile,
     detect_candidates,
@@ -37,156 +36,25 @@ from .detect import (
     z_averaged_psf,
 )
 from .dictionary import Dictionary
-from .engine import check_engine, resolve_engine, set_engine, use_engine
+from .engine import resolve_engine, use_engine
 from .io.tables import LOCS_COLUMNS, empty_locs
+from .pool import in_processes
 from .psf.base import PSFModel
 from .psf.spline import SplinePSF
 from .solvers import WindowSolution, convex_solve, hybrid_solve, matching_pursuit
-from .solvers.frame import RELOCATE, FrameFit, frame_fit, frame_templates, tiled_pursuit
-from .solvers.refine import check_qe, refine_solution
+from .solvers.frame import FrameFit, frame_fit, frame_templates, tiled_pursuit
+from .solvers.refine import refine_solution
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LocalizeParams", "LocalizeResult", "localize", "psf_hash", "work_model_for"]
-
-METHODS = ("frame", "hybrid", "mp", "co")
-
-
-@dataclass(frozen=True)
-class LocalizeParams:
-    """Analysis parameters (all stored with the results).
-
-    Parameters
-    ----------
-    pixel_size : float
-        Pixel size in sample space (nm).
-    method : {"frame", "hybrid", "mp", "co"}
-        ``frame``: pursuit over the whole frame, then maximum-likelihood fits of groups of
-        overlapping emitters with their neighbours' light held fixed
-        (:mod:`sparseloc.solvers.frame`). The others solve fixed windows (tiles) with the
-        paper's hybrid MP+CO, matching pursuit or convex recovery.
-    refine : bool
-        Maximum-likelihood stage with count selection (part of ``hybrid``; applied after
-        ``mp`` and ``co`` too). The ``frame`` solver always fits by maximum likelihood;
-        ``refine=False`` only turns its count selection off.
-    window, margin : int
-        Window size and the margin (pixels) outside each window's owned core.
-    z_range : (float, float), optional
-        Axial range of the dictionaries (nm); default the model's.
-    coarse, fine : (dxy, dz)
-        Grid steps (nm) of the coarse and fine dictionaries. The lateral step must divide
-        the pixel; by default the largest such step up to 80 nm (coarse) and, for the fine
-        grid, 20 nm with ``refine`` (the fit goes beyond the grid) or the paper's 10 nm
-        without; axial steps 120 and 30 (or 15) nm. The frame solver's pursuit uses the
-        coarse steps, with 60 nm planes by default.
-    threshold : float
-        Candidate signal-to-noise threshold (``frame``: of a new emitter in the pursuit).
-    background_frames : int
-        Frames in the sliding block of the temporal background.
-    background_percentile : float
-        Percentile of that block.
-    tabulate : bool
-        Work with a spline table of the model (:meth:`SplinePSF.from_model`, 10 nm planes)
-        instead of the model itself: much faster for pupil models, same precision.
-    background : {"auto", "temporal", "spatial"}
-        Temporal: a per-pixel percentile over a sliding block of frames (blinking
-        molecules). Spatial: a per-frame estimate from each frame's darker pixels (snapshots,
-        short movies, molecules that stay on). Auto: temporal for movies of at least
-        ``min_temporal_frames`` frames.
-    min_temporal_frames : int
-        See ``background``.
-    noise : {"poisson", "emccd", "scmos"}
-        Likelihood of the maximum-likelihood stage.
-    read_variance : float
-        Read-noise variance per pixel in photons^2 (``noise="scmos"``): enters the
-        detection threshold and the likelihood (Huang et al. 2013).
-    qe : float
-        The camera's quantum efficiency in (0, 1]: frames converted to photons hold
-        photoelectrons divided by it, so their shot noise is ``mu / qe``. It weights the
-        likelihood (uncertainties and goodness of fit on the photoelectrons' scale; the
-        windowed solvers' chi-square count selection too), while the detection and the frame
-        solver's empirical add threshold stay on the photon-counting scale they were measured
-        on; 1 treats the frames as photon counts.
-    max_emitters : int
-        Cap per window.
-    engine : {"auto", "numpy", "numba"}
-        Which engine computes the solvers' arithmetic (:mod:`sparseloc.engine`): ``"auto"``
-        runs the compiled numba kernels where numba works, else NumPy; ``"numpy"`` the plain
-        reference. Both give the same table.
-    relocate : int
-        Relocation passes of the frame solver (:func:`~sparseloc.solvers.frame.frame_fit`):
-        each emitter in turn replaced by the best PSF position of what its neighbours leave
-        unexplained, kept where the likelihood rises. On dense double-helix frames (1 /um^2)
-        2 passes raised Jaccard from 76 % to 83 % at about 1.4 times the time; 0 disables.
-    """
-
-    pixel_size: float
-    method: str = "frame"
-    refine: bool = True
-    window: int = 11
-    margin: int = 3
-    z_range: tuple[float, float] | None = None
-    coarse: tuple[float, float] | None = None
-    fine: tuple[float, float] | None = None
-    threshold: float = 5.0
-    background_frames: int = 21
-    background_percentile: float = 30.0
-    background: str = "auto"
-    tabulate: bool = True
-    min_temporal_frames: int = 50
-    noise: str = "poisson"
-    max_emitters: int = 10
-    read_variance: float = 0.0
-    engine: str = "auto"
-    qe: float = 1.0
-    relocate: int = RELOCATE
-
-    def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ValueError(f"method must be one of {', '.join(METHODS)}; got {self.method!r}")
-        if not self.pixel_size > 0:
-            raise ValueError(f"pixel_size must be > 0 nm, got {self.pixel_size}")
-        r = self.relocate
-        if (
-            isinstance(r, bool)
-            or not isinstance(r, int | float | np.integer | np.floating)
-            or not np.isfinite(r)
-            or r < 0
-            or int(r) != r
-        ):
-            raise ValueError(f"relocate must be a whole number >= 0, got {r!r}")
-        object.__setattr__(self, "relocate", int(r))  # frozen: as an int
-        if self.window < 5 or self.margin < 0 or self.window - 2 * self.margin < 1:
-            raise ValueError(f"window {self.window} px and margin {self.margin} px leave no core")
-        if self.background_frames < 1:
-            raise ValueError("background_frames must be >= 1")
-        if self.noise not in ("poisson", "emccd", "scmos"):
-            raise ValueError(f"noise must be poisson, emccd or scmos; got {self.noise!r}")
-        if not (np.isfinite(self.read_variance) and self.read_variance >= 0):
-            raise ValueError(f"read_variance must be >= 0 photons^2, got {self.read_variance}")
-        object.__setattr__(self, "qe", check_qe(self.qe))  # frozen: as a float
-        if self.read_variance > 0 and self.noise != "scmos":
-            raise ValueError(
-                f"read_variance applies to noise='scmos', not {self.noise!r} (it would be ignored)"
-            )
-        check_engine(self.engine)
-        if self.background not in ("auto", "temporal", "spatial"):
-            raise ValueError(
-                f"background must be auto, temporal or spatial; got {self.background!r}"
-            )
-        px = float(self.pixel_size)
-        if self.coarse is None:
-            # The frame solver's pursuit uses 60 nm planes: on dense double-helix frames (1
-            # /um^2, 5 x 4 frames) they cut the RMSE by 4-7 nm laterally and 6-15 nm axially
-            # against 120 nm planes, at 1.3x the time.
-            dz = 60.0 if self.method == "frame" else 120.0
-            object.__setattr__(self, "coarse", (px / np.ceil(px / 80.0 - 1e-9), dz))
-        if self.fine is None:
-            # With the maximum-likelihood stage the fine grid only seeds the fit: 20/30 nm steps
-            # gave the same errors as the paper's 10/15 nm on overlapping pairs (18.5 vs 17.1 nm
-            # mean 3D error, 20 of 20 counts right) at 1/8 of the time.
-            dxy, dz = (20.0, 30.0) if self.refine else (10.0, 15.0)
-            object.__setattr__(self, "fine", (px / np.ceil(px / dxy - 1e-9), dz))
+__all__ = [
+    "METHODS",
+    "LocalizeParams",
+    "LocalizeResult",
+    "localize",
+    "psf_hash",
+    "work_model_for",
+]
 
 
 @dataclass
@@ -208,35 +76,6 @@ class LocalizeResult:
             f"{self.n_frames} frames, {self.n_windows} windows, {len(self.table)} "
             f"localizations in {self.seconds:.1f} s ({self.per_second:.1f} localizations/s)"
         )
-
-
-def _cpu_quota(root: Path = Path("/sys/fs/cgroup")) -> float | None:
-    """CPUs allowed by a Linux cgroup quota (a container's ``--cpus``, a batch job's limit),
-    or None where there is none or it cannot be read. The core affinity does not show it: a
-    container limited to 2 CPUs on a 64-core host sees 64 cores."""
-    try:
-        if (root / "cpu.max").exists():  # cgroup v2: "QUOTA PERIOD" or "max PERIOD"
-            quota, period = (root / "cpu.max").read_text().split()[:2]
-            return None if quota == "max" else int(quota) / int(period)
-        quota = int((root / "cpu" / "cpu.cfs_quota_us").read_text())  # cgroup v1
-        period = int((root / "cpu" / "cpu.cfs_period_us").read_text())
-        return None if quota <= 0 or period <= 0 else quota / period
-    except (OSError, ValueError):
-        return None
-
-
-def available_cores() -> int:
-    """CPU cores this process may use: its affinity (else the CPU count), lowered by a
-    cgroup CPU quota; at least 1. The default worker counts (``localize`` on the command
-    line, ``sparseloc demo``) start from it."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on every platform
-        cores = os.cpu_count() or 1
-    quota = _cpu_quota()
-    if quota is not None:
-        cores = min(cores, int(quota))
-    return max(1, cores)
 
 
 def array_digest(a: NDArray) -> str:
@@ -357,7 +196,7 @@ class _FrameSolver:
             frame,
             background,
             self.templates,
-            threshold=p.threshold,
+            min_snr=p.min_snr,
             noise_factor=_variance_factor(p),
             read_variance=self.noise_kw.get("read_variance", 0.0),
             correlators=self.correlators,
@@ -469,70 +308,93 @@ def localize(
     -------
     LocalizeResult
     """
-    cal_px = getattr(model, "pixel_size", None)
-    if cal_px is not None and abs(float(cal_px) - params.pixel_size) > 1e-3 * float(cal_px):
-        raise ValueError(
-            f"the PSF calibration was made at {float(cal_px):g} nm pixels but the pixel size is "
-            f"{params.pixel_size:g} nm; pass the matching --pixel-size or recalibrate"
-        )
+    _check_pixel_size(model, params)
     n = len(frames)
     stop = n if stop is None else min(stop, n)
     if not 0 <= start < stop:
         raise ValueError(f"frame range {start}:{stop} is empty (the movie has {n} frames)")
     get = frames.frames if hasattr(frames, "frames") else (lambda a, b: np.asarray(frames[a:b]))
-    first = np.asarray(get(start, start + 1), dtype=np.float64)
-    shape = first.shape[-2:]
-    p = params
+    shape = np.asarray(get(start, start + 1), dtype=np.float64).shape[-2:]
     # The frame solver needs no tiles but frames of at least one window all the same.
-    tiles(shape, p.window, p.margin)
+    tiles(shape, params.window, params.margin)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     if read_variance is not None:
-        read_variance = np.asarray(read_variance, dtype=np.float64)
-        if read_variance.shape != tuple(shape):
-            raise ValueError(
-                f"the read-variance map is {read_variance.shape}, the frames are {tuple(shape)}"
-            )
-        if p.noise != "scmos":
-            raise ValueError(
-                "a per-pixel read-variance map (--variance-map) needs the sCMOS likelihood "
-                "(noise 'scmos', --camera scmos)"
-            )
-        if not np.all(np.isfinite(read_variance)) or np.any(read_variance < 0):
-            raise ValueError("the read-variance map must be finite and >= 0 photons^2")
+        read_variance = _checked_read_variance(read_variance, shape, params)
     t0 = time.perf_counter()
-    work_model = work_model_for(model, p)
+    inputs = _frames_and_backgrounds(get, n, start, stop, block, params)
+    work_args = (work_model_for(model, params), params, shape, read_variance)
     parts: list[dict] = []
-    inputs = _frames_and_backgrounds(get, n, start, stop, block, p)
-    if workers == 1:
-        from threadpoolctl import threadpool_limits
-
-        # One BLAS thread, as in the worker processes: the matrices are small (no gain from
-        # threads) and the same arithmetic gives the same table whatever ``workers``.
-        with threadpool_limits(limits=1), use_engine(p.engine):
-            work = _FrameWork(work_model, p, shape, read_variance)
-            results = (work(f, frame, bg) for f, frame, bg in inputs)
-            n_windows = _collect(results, parts, p.method == "frame", progress)
-    else:
-        results = _in_processes(inputs, workers, (work_model, p, shape, read_variance))
-        n_windows = _collect(results, parts, p.method == "frame", progress)
+    n_windows = _collect(
+        _solve(inputs, work_args, workers), parts, params.method == "frame", progress
+    )
     seconds = time.perf_counter() - t0
-    if parts:
-        table = pd.DataFrame({c: np.concatenate([pt[c] for pt in parts]) for c in LOCS_COLUMNS})
-        table["flag"] = table["flag"].astype(str)
-    else:
-        table = empty_locs()
     meta = {
-        "params": asdict(p),
+        "params": asdict(params),
         "psf": getattr(model, "name", type(model).__name__),
-        "psf_hash": psf_hash(model, p.pixel_size),
+        "psf_hash": psf_hash(model, params.pixel_size),
         "sparseloc_version": __version__,
         "frames": [start, stop],
         "shape": list(shape),
     }
     if read_variance is not None:
         meta["read_variance_map_sha256"] = array_digest(read_variance)
-    return LocalizeResult(table, stop - start, n_windows, seconds, meta)
+    return LocalizeResult(_table(parts), stop - start, n_windows, seconds, meta)
+
+
+def _check_pixel_size(model: PSFModel, params: LocalizeParams) -> None:
+    """A calibrated model must be used at the pixel size it was calibrated at."""
+    cal_px = getattr(model, "pixel_size", None)
+    if cal_px is not None and abs(float(cal_px) - params.pixel_size) > 1e-3 * float(cal_px):
+        raise ValueError(
+            f"the PSF calibration was made at {float(cal_px):g} nm pixels but the pixel size is "
+            f"{params.pixel_size:g} nm; pass the matching --pixel-size or recalibrate"
+        )
+
+
+def _checked_read_variance(read_variance: Any, shape, p: LocalizeParams) -> NDArray:
+    """The sCMOS read-variance map (photons^2) as float64, checked against the frames."""
+    rv = np.asarray(read_variance, dtype=np.float64)
+    if rv.shape != tuple(shape):
+        raise ValueError(f"the read-variance map is {rv.shape}, the frames are {tuple(shape)}")
+    if p.noise != "scmos":
+        raise ValueError(
+            "a per-pixel read-variance map (--variance-map) needs the sCMOS likelihood "
+            "(noise 'scmos', --camera scmos)"
+        )
+    if not np.all(np.isfinite(rv)) or np.any(rv < 0):
+        raise ValueError("the read-variance map must be finite and >= 0 photons^2")
+    return rv
+
+
+def _solve(inputs, work_args: tuple, workers: int):
+    """Each frame's table parts and window count, in frame order: in this process, or in a
+    pool of ``workers`` processes, each with its own :class:`_FrameWork` built from
+    ``work_args``."""
+    engine = work_args[1].engine
+    if workers > 1:
+        # Compile (or load) the engine's kernels here once: forked workers inherit them,
+        # and spawned ones find numba's cache filled instead of all compiling at once.
+        resolve_engine(engine)
+        yield from in_processes(inputs, workers, (_FrameWork, work_args, engine))
+        return
+    from threadpoolctl import threadpool_limits
+
+    # One BLAS thread, as in the worker processes: the matrices are small (no gain from
+    # threads) and the same arithmetic gives the same table whatever ``workers``.
+    with threadpool_limits(limits=1), use_engine(engine):
+        work = _FrameWork(*work_args)
+        for f, frame, bg in inputs:
+            yield work(f, frame, bg)
+
+
+def _table(parts: list[dict]) -> pd.DataFrame:
+    """The localization table of the frames' parts (the empty table without any)."""
+    if not parts:
+        return empty_locs()
+    table = pd.DataFrame({c: np.concatenate([pt[c] for pt in parts]) for c in LOCS_COLUMNS})
+    table["flag"] = table["flag"].astype(str)
+    return table
 
 
 def work_model_for(model: PSFModel, p: LocalizeParams) -> PSFModel:
@@ -600,7 +462,7 @@ class _FrameWork:
             frame,
             bg,
             self.template,
-            threshold=p.threshold,
+            threshold=p.min_snr,
             noise_factor=_variance_factor(p),
             read_variance=_noise_kwargs(p, rv).get("read_variance", 0.0),
         )
@@ -632,56 +494,6 @@ def _frames_and_backgrounds(get, n: int, start: int, stop: int, block: int, p: L
             else:
                 bg = spatial_background(chunk[i])
             yield f, chunk[i], bg
-
-
-_WORK: _FrameWork | None = None
-
-
-def _init_worker(
-    work_model: PSFModel,
-    p: LocalizeParams,
-    shape: tuple[int, int],
-    read_variance: NDArray | None = None,
-) -> None:
-    global _WORK
-    # One BLAS thread per process: the processes already share out the cores.
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(limits=1)
-    set_engine(p.engine)
-    _WORK = _FrameWork(work_model, p, shape, read_variance)
-
-
-def _solve_in_worker(f: int, frame: NDArray, bg: NDArray) -> tuple[list[dict], int]:
-    assert _WORK is not None
-    return _WORK(f, frame, bg)
-
-
-def _in_processes(inputs, workers: int, init_args: tuple):
-    """Solve frames in a pool of processes; yield their results in frame order.
-
-    At most ``4 * workers`` frames are in flight, so memory stays bounded on long movies.
-    """
-    import multiprocessing
-    from collections import deque
-    from concurrent.futures import ProcessPoolExecutor
-
-    # Compile (or load) the engine's kernels here once: forked workers inherit them, and
-    # spawned ones find numba's cache filled instead of all compiling at the same time.
-    resolve_engine(init_args[1].engine)
-    # The platform's default: fork on Linux (no re-import of the caller's script), spawn
-    # elsewhere (scripts then need the usual ``if __name__ == "__main__":`` guard).
-    ctx = multiprocessing.get_context()
-    with ProcessPoolExecutor(
-        workers, mp_context=ctx, initializer=_init_worker, initargs=init_args
-    ) as pool:
-        pending: deque = deque()
-        for item in inputs:
-            pending.append(pool.submit(_solve_in_worker, *item))
-            if len(pending) >= 4 * workers:
-                yield pending.popleft().result()
-        while pending:
-            yield pending.popleft().result()
 
 
 def _tiles_to_solve(tiling: list[Tile], cand: NDArray, margin: int) -> list[Tile]:

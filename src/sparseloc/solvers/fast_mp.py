@@ -585,9 +585,9 @@ class AtomSearch:
     # -- the search (PyTorch) ----------------------------------------------------------------------
     def _torch_state(self, device: str) -> dict[str, Any]:
         if device not in self._torch:
-            import torch
+            from ..engine import torch_device
 
-            dev = torch.device(device)
+            torch, dev = torch_device(device)
             # float64 on accelerators: no TF32 shortcuts, and the rounding allowance holds
             dt = torch.float32 if dev.type == "cpu" else torch.float64
             self._torch[device] = {

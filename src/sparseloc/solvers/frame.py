@@ -56,6 +56,7 @@ from scipy.optimize import nnls
 from ..engine import kernels
 from ..psf.base import PSFModel, energy_radius
 from .emitters import Emitters
+from .mp import MIN_PHOTONS
 from .refine import (
     LikelihoodProblem,
     check_qe,
@@ -94,10 +95,11 @@ __all__ = [
 ADD_THRESHOLD = 80.0
 
 
-def add_threshold(threshold: float | None, qe: float = 1.0) -> float:
-    """The count selection's threshold in a frame on the likelihood's scale: ``threshold``
-    (default :data:`ADD_THRESHOLD`, on the photon-counting scale) times ``qe``."""
-    return (ADD_THRESHOLD if threshold is None else float(threshold)) * check_qe(qe)
+def add_threshold(lr_threshold: float | None, qe: float = 1.0) -> float:
+    """The count selection's likelihood-ratio threshold in a frame on the likelihood's scale:
+    ``lr_threshold`` (default :data:`ADD_THRESHOLD`, on the photon-counting scale) times
+    ``qe``."""
+    return (ADD_THRESHOLD if lr_threshold is None else float(lr_threshold)) * check_qe(qe)
 
 
 @dataclass(frozen=True)
@@ -320,7 +322,7 @@ def frame_pursuit(
     background: NDArray | float,
     templates: FrameTemplates,
     *,
-    threshold: float = 5.0,
+    min_snr: float = 5.0,
     min_photons: float = 100.0,
     max_cycles: int = 10,
     max_emitters: int | None = None,
@@ -340,8 +342,8 @@ def frame_pursuit(
         Background (photons/pixel), a map or a constant.
     templates : FrameTemplates
         The pursuit's dictionary (see :func:`frame_templates`).
-    threshold : float
-        A new emitter's correlation must exceed ``threshold`` times its Poisson standard
+    min_snr : float
+        A new emitter's correlation must exceed ``min_snr`` times its Poisson standard
         deviation.
     min_photons : float
         Smallest amplitude (photons) of a new emitter.
@@ -389,7 +391,7 @@ def frame_pursuit(
         # Poisson variance of the correlation, sum(t^2 mu), as (local mean of mu) x sum(t^2):
         # one FFT instead of one per template.
         vb = (cor.local_mean(np.maximum(bg + model, 1e-3)) * noise_factor + rv) * nb
-        ok = (cb / np.sqrt(np.maximum(vb, 1e-12)) > threshold) & (cb / nb > min_photons)
+        ok = (cb / np.sqrt(np.maximum(vb, 1e-12)) > min_snr) & (cb / nb > min_photons)
         peaks = ok & (ndi.maximum_filter(sb, size=3, mode="constant", cval=-np.inf) == sb)
         rc = np.argwhere(peaks)
         if len(rc) == 0:
@@ -1094,8 +1096,8 @@ def frame_fit(
     reach: float,
     sweeps: int = 10,
     count_selection: bool = True,
-    threshold: float | None = None,
-    min_photons: float = 200.0,
+    lr_threshold: float | None = None,
+    min_photons: float = MIN_PHOTONS,
     max_emitters: int = 10,
     z_flip: float = 0.15,
     max_group: int = 8,
@@ -1128,9 +1130,9 @@ def frame_fit(
         Most passes over the groups after the start or after a relocation pass that kept
         one; fewer when a pass leaves every emitter in place. A relocation pass comes after
         at most ``min(sweeps, RELOCATE_AFTER)`` of them (or when they settle).
-    count_selection, threshold, min_photons, max_emitters
+    count_selection, lr_threshold, min_photons, max_emitters
         Count selection in each group (see :func:`fit_with_count_selection`); the default
-        threshold is :data:`ADD_THRESHOLD`, on the photon-counting scale (multiplied by
+        ``lr_threshold`` is :data:`ADD_THRESHOLD`, on the photon-counting scale (multiplied by
         ``qe`` when one is given). A group may always grow by two emitters.
     max_group : int
         Larger groups are halved (across their longer side) until no part exceeds this: a
@@ -1167,7 +1169,7 @@ def frame_fit(
     px = float(pixel_size)
     bg = np.broadcast_to(np.asarray(background, dtype=np.float64), f.shape)
     rv = fit_kwargs.pop("read_variance", None)
-    threshold = add_threshold(threshold, fit_kwargs.get("qe", 1.0))
+    lr_threshold = add_threshold(lr_threshold, fit_kwargs.get("qe", 1.0))
     em = emitters.as_array().reshape(-1, 4)
     info: list[tuple] = [(np.full(4, np.nan), np.nan, np.nan, "ok", -1)] * len(em)
     # A group whose emitters are exactly the output of its last fit, and whose neighbours'
@@ -1233,7 +1235,7 @@ def frame_fit(
                     y,
                     model,
                     start,
-                    threshold=threshold,
+                    lr_threshold=lr_threshold,
                     min_photons=min_photons,
                     max_emitters=max(max_emitters, len(g) + 2),
                     **kw,

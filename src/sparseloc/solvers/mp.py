@@ -39,7 +39,12 @@ from .emitters import MIN_LINK_NM, WindowSolution, group_coefficients
 
 log = logging.getLogger(__name__)
 
+#: Photons of the faintest emitter the solvers report (and of the faintest atom a pursuit adds):
+#: the default ``min_photons`` of every solver.
+MIN_PHOTONS = 200.0
+
 __all__ = [
+    "MIN_PHOTONS",
     "AtomDictionary",
     "count_groups",
     "estimate_background",
@@ -113,7 +118,7 @@ def matching_pursuit(
     background: float | None = None,
     orthogonal: bool = False,
     max_emitters: int = 10,
-    min_photons: float = 200.0,
+    min_photons: float = MIN_PHOTONS,
     chi2_sigma: float = 2.0,
     noise_factor: float = 1.0,
     model_error: float | None = None,

@@ -30,14 +30,14 @@ is kept inside the model's range, photons and background positive, x and y withi
 
 Count selection (:func:`fit_with_count_selection`): after fitting K emitters, the model with the
 weakest emitter removed is refitted; it replaces the K-emitter model when the likelihood ratio
-``2 (logL_K - logL_{K-1})`` is below ``threshold``. (That refit is skipped, and the emitter
+``2 (logL_K - logL_{K-1})`` is below ``lr_threshold``. (That refit is skipped, and the emitter
 kept, when its Wald statistic ``(N / sigma_N)^2``, the quadratic approximation of the same
-ratio, is at or above ``threshold`` and it has at least ``min_photons``:
+ratio, is at or above ``lr_threshold`` and it has at least ``min_photons``:
 :data:`REMOVE_SKIP_FACTOR`.) Otherwise one emitter is added where the
 residual correlates best with the PSF (the two best places are tried, each fitted) and the
 K+1 model is kept when the ratio
-``2 (logL_{K+1} - logL_K)`` exceeds ``threshold``. Each emitter has 4 parameters, so under the
-smaller model the ratio is about chi-square with 4 degrees of freedom: the default threshold
+``2 (logL_{K+1} - logL_K)`` exceeds ``lr_threshold``. Each emitter has 4 parameters, so under the
+smaller model the ratio is about chi-square with 4 degrees of freedom: the default lr_threshold
 18.47 is its 0.1 % tail (a 1-in-1000 chance of adding a spurious emitter per test). ``log L``
 carries the EMCCD weight, so the ratio is on that scale for EMCCD data too.
 
@@ -73,6 +73,7 @@ from ..psf.base import PSFModel
 from ..psf.spline import SplinePSF
 from .emitters import Emitters, WindowSolution
 from .lm import clamp, damped_system, make_levenberg_marquardt
+from .mp import MIN_PHOTONS
 
 log = logging.getLogger(__name__)
 
@@ -92,15 +93,15 @@ NOISE_MODELS = ("poisson", "emccd", "scmos")
 #: 0.1 % tail of a chi-square with 4 degrees of freedom (one emitter's x, y, z, photons).
 LR_THRESHOLD = 18.47
 #: An addition's refits are skipped when the score statistic of the best grid emitter is this
-#: many times below the threshold.
+#: many times below the lr_threshold.
 SKIP_FACTOR = 4.0
 #: The factor for a removal: its refit runs only when the weakest emitter's Wald statistic
-#: ``(N / sigma_N)^2`` is below this many times the threshold. On dense frames (3 frames, 128 x
-#: 128 px, 1 /um^2) no removal with a Wald statistic above the threshold was accepted (0 of
+#: ``(N / sigma_N)^2`` is below this many times the lr_threshold. On dense frames (3 frames, 128 x
+#: 128 px, 1 /um^2) no removal with a Wald statistic above the lr_threshold was accepted (0 of
 #: 503 refits), while 72 of 146 between a quarter of it and it were; 1.0 instead of 4.0 on 10
 #: x 3 such frames: 14 % fewer fits, Jaccard 83.05 -> 83.37 %. On the paper's Figure 2 case
 #: (200 windows, ``benchmarks/precision.py --parts b``) the counts and errors are the same.
-#: At 2 /um^2 (3 frames) 3 of 756 removals between the threshold and twice it were accepted,
+#: At 2 /um^2 (3 frames) 3 of 756 removals between the lr_threshold and twice it were accepted,
 #: 0 of 430 above; ``benchmarks/density.py`` at 2 /um^2 lost 0.2 and 0.6 points of Jaccard
 #: (two 20-frame movies, each value side by side), at 0.5 and 1 /um^2 it was within 0.1.
 REMOVE_SKIP_FACTOR = 1.0
@@ -603,11 +604,13 @@ def residual_candidates(
     return [cand for _, _, cand in out], stat
 
 
-def _addition_passes(more: FitResult, ratio: float, threshold: float, min_photons: float) -> bool:
-    """Whether a fit with one emitter more is kept: likelihood ratio above the threshold, no
+def _addition_passes(
+    more: FitResult, ratio: float, lr_threshold: float, min_photons: float
+) -> bool:
+    """Whether a fit with one emitter more is kept: likelihood ratio above the lr_threshold, no
     diverged emitter, none below ``min_photons``."""
     return bool(
-        ratio > threshold
+        ratio > lr_threshold
         and np.all(more.flags != "diverged")
         and more.emitters.photons.min() >= min_photons
     )
@@ -620,10 +623,10 @@ def fit_with_count_selection(
     *,
     pixel_size: float,
     origin: tuple[float, float] = (0.0, 0.0),
-    threshold: float = LR_THRESHOLD,
+    lr_threshold: float = LR_THRESHOLD,
     max_emitters: int = 10,
     max_changes: int = 4,
-    min_photons: float = 200.0,
+    min_photons: float = MIN_PHOTONS,
     **fit_kwargs,
 ) -> FitResult:
     """Fit K emitters, then test K-1 and K+1 by a likelihood ratio (see the module notes).
@@ -632,8 +635,8 @@ def fit_with_count_selection(
     ----------
     window, model, emitters, pixel_size, origin
         As in :func:`fit_emitters`.
-    threshold : float
-        Likelihood-ratio threshold ``2 * delta log L`` for one emitter more (default: the
+    lr_threshold : float
+        Likelihood-ratio lr_threshold ``2 * delta log L`` for one emitter more (default: the
         0.1 % tail of chi-square with 4 degrees of freedom).
     max_emitters : int
         Never more emitters than this.
@@ -664,11 +667,11 @@ def fit_with_count_selection(
             # the (weighted) likelihood ratio below
             wald = (arr[weakest, 3] / best.sigma[weakest, 3]) ** 2
         # An emitter whose Wald statistic (the quadratic approximation of the removal's
-        # likelihood ratio) is at or above REMOVE_SKIP_FACTOR times the threshold would not be
+        # likelihood ratio) is at or above REMOVE_SKIP_FACTOR times the lr_threshold would not be
         # removed: skip that refit.
         if k >= 1 and (
             not np.isfinite(wald)
-            or wald < REMOVE_SKIP_FACTOR * threshold
+            or wald < REMOVE_SKIP_FACTOR * lr_threshold
             or arr[weakest, 3] < min_photons
         ):
             fewer = fit_emitters(
@@ -678,7 +681,7 @@ def fit_with_count_selection(
                 **{**kw, "background": bg},
             )
             ratio = 2.0 * (best.log_likelihood - fewer.log_likelihood)
-            if ratio < threshold or arr[weakest, 3] < min_photons:
+            if ratio < lr_threshold or arr[weakest, 3] < min_photons:
                 best = fewer
                 best.history.append(f"removed one: K={k - 1}, LR={ratio:.1f}")
                 changes += 1
@@ -689,11 +692,11 @@ def fit_with_count_selection(
             else ([], 0.0)
         )
         # The score statistic of the best grid emitter approximates the likelihood ratio of
-        # adding it; far below the threshold, the refits cannot pass it. Both candidates are
+        # adding it; far below the lr_threshold, the refits cannot pass it. Both candidates are
         # refitted and the likelier is tested (keeping the first that passes instead saved a
         # tenth of a dense frame's fitting work but cost 0.85 points of Jaccard on 6 x 20
         # dense frames and 4.8 nm on the paper's Figure 2 case).
-        if w * stat >= threshold / SKIP_FACTOR:  # stat uses the Poisson variance
+        if w * stat >= lr_threshold / SKIP_FACTOR:  # stat uses the Poisson variance
             more = None
             for cand in cands:
                 arr = np.vstack([best.emitters.as_array().reshape(-1, 4), cand])
@@ -702,7 +705,7 @@ def fit_with_count_selection(
                     more = trial
             if more is not None:
                 ratio = 2.0 * (more.log_likelihood - best.log_likelihood)
-                if _addition_passes(more, ratio, threshold, min_photons):
+                if _addition_passes(more, ratio, lr_threshold, min_photons):
                     best = more
                     best.history.append(f"added one: K={k + 1}, LR={ratio:.1f}")
                     changes += 1
@@ -777,8 +780,8 @@ def split_merge_search(
     *,
     pixel_size: float,
     origin: tuple[float, float] = (0.0, 0.0),
-    threshold: float = LR_THRESHOLD,
-    min_photons: float = 200.0,
+    lr_threshold: float = LR_THRESHOLD,
+    min_photons: float = MIN_PHOTONS,
     max_emitters: int = 10,
     max_moves: int = 4,
     split_offset: float = SPLIT_OFFSET,
@@ -796,7 +799,7 @@ def split_merge_search(
     Each move refits every trial model and keeps the likeliest:
 
     1. one fewer: each emitter dropped, each pair merged (photon-weighted centre, summed
-       photons); taken when ``2 (logL_K - logL_{K-1}) < threshold``;
+       photons); taken when ``2 (logL_K - logL_{K-1}) < lr_threshold``;
     2. one more: each emitter split into two halves ``split_offset`` pixels either side of
        it (along x, then y), and the residual's two best candidates added; taken under the
        count selection's addition test;
@@ -807,12 +810,12 @@ def split_merge_search(
     runs again from the result. They are fitted with ``search_model`` (default
     :func:`search_model_for`: a spline table of a slow model); the result is refitted with
     ``model`` and kept only if it passes the same test against ``fit`` on ``model``'s
-    likelihood (``K`` more emitters: a ratio above ``K * threshold``; fewer: below it; the
+    likelihood (``K`` more emitters: a ratio above ``K * lr_threshold``; fewer: below it; the
     same count: a higher ``log L``).
 
     Parameters
     ----------
-    window, model, pixel_size, origin, threshold, min_photons, max_emitters
+    window, model, pixel_size, origin, lr_threshold, min_photons, max_emitters
         As in :func:`fit_with_count_selection`.
     fit : FitResult
         The fit to improve (e.g. the count selection's), on ``window`` with ``model``.
@@ -858,7 +861,7 @@ def split_merge_search(
         if k >= 2:
             fewer = likeliest(_fewer_starts(arr), bg)
             ratio = 2.0 * (best.log_likelihood - fewer.log_likelihood)
-            if ratio < threshold:
+            if ratio < lr_threshold:
                 best = fewer
                 moves.append(f"merged or dropped one: K={k - 1}, LR={ratio:.1f}")
                 continue
@@ -867,7 +870,7 @@ def split_merge_search(
                 _split_starts(arr, step) + [np.vstack([arr, c]) for c in candidates(best)], bg
             )
             ratio = 2.0 * (more.log_likelihood - best.log_likelihood)
-            if _addition_passes(more, ratio, threshold, min_photons):
+            if _addition_passes(more, ratio, lr_threshold, min_photons):
                 best = more
                 moves.append(f"split or added one: K={k + 1}, LR={ratio:.1f}")
                 continue
@@ -889,7 +892,7 @@ def split_merge_search(
         y,
         sm,
         best.emitters,
-        threshold=threshold,
+        lr_threshold=lr_threshold,
         min_photons=min_photons,
         max_emitters=max_emitters,
         background=float(best.background[0]),
@@ -900,7 +903,7 @@ def split_merge_search(
         final = fit_emitters(y, model, best.emitters, background=float(best.background[0]), **kw)
     dk = len(final.emitters) - len(fit.emitters)
     ratio = 2.0 * (final.log_likelihood - fit.log_likelihood)
-    passes = ratio > dk * threshold and np.all(final.flags != "diverged")
+    passes = ratio > dk * lr_threshold and np.all(final.flags != "diverged")
     if dk > 0:
         passes = passes and final.emitters.photons.min() >= min_photons
     if not passes:
