@@ -38,7 +38,10 @@ import numpy as np
 
 import sparseloc
 import sparseloc.solvers.frame as frame_mod
+import sparseloc.solvers.frame_pursuit as pursuit_mod
+import sparseloc.solvers.frame_windows as windows_mod
 import sparseloc.solvers.refine as refine_mod
+import sparseloc.solvers.relocate as relocate_mod
 from sparseloc.pipeline import localize
 from speed_before_after import benchmark_frames  # this folder is on the path
 
@@ -73,13 +76,14 @@ def _install_timers(acc: collections.Counter, inner: collections.Counter, fits: 
 
         setattr(owner, name, timed)
 
-    wrap(frame_mod, "frame_pursuit", "pursuit")
-    for owner in (refine_mod, frame_mod):
+    wrap(pursuit_mod, "frame_pursuit", "pursuit")
+    for owner in (refine_mod, frame_mod, relocate_mod):
         wrap(owner, "fit_emitters", "maximum-likelihood fits")
+    for owner in (refine_mod, relocate_mod):
         wrap(owner, "residual_candidates", "candidate search")
-    wrap(frame_mod._NeighbourLight, "window", "neighbour light")
-    wrap(frame_mod, "_light_pieces", "neighbour light")
-    wrap(frame_mod, "_sum_pieces", "neighbour light")
+    wrap(windows_mod.NeighbourLight, "window", "neighbour light")
+    wrap(relocate_mod, "light_pieces", "neighbour light")
+    wrap(relocate_mod, "sum_pieces", "neighbour light")
     wrap(frame_mod, "_response", "linear response")
 
     # the compiled loop runs inside fit_emitters: timed on its own, not exclusively

@@ -282,7 +282,7 @@ def test_compiled_scoring_matches_numpy(npar):
 def test_template_selection_is_bit_identical_on_both_engines():
     from dataclasses import replace
 
-    from sparseloc.solvers.frame import _Correlator
+    from sparseloc.solvers.frame_pursuit import Correlator
 
     rng = np.random.default_rng(3)
     imgs = rng.random((7, 9, 9))
@@ -291,7 +291,7 @@ def test_template_selection_is_bit_identical_on_both_engines():
     base = frame_templates(make_psf("dh-analytic"), PX, dxy=PX, dz=2000.0, size=9)
     tmpl = replace(base, images=imgs, dx=z, dy=z, z=z)
     frame = rng.random((30, 26)) - 0.2
-    cor = _Correlator(tmpl, frame.shape, batch=3)  # batches of 3, 3 and 1 templates
+    cor = Correlator(tmpl, frame.shape, batch=3)  # batches of 3, 3 and 1 templates
     fast, ref = _both(None, lambda: cor.best(frame))
     for a, b in zip(fast, ref, strict=True):
         assert a.dtype == b.dtype

@@ -11,12 +11,8 @@ import pytest
 from sparseloc.psf import make_psf
 from sparseloc.psf.spline import SplinePSF
 from sparseloc.solvers import Emitters
-from sparseloc.solvers.frame import (
-    _Correlator,
-    frame_fit,
-    frame_pursuit,
-    frame_templates,
-)
+from sparseloc.solvers.frame import frame_fit, frame_pursuit, frame_templates
+from sparseloc.solvers.frame_pursuit import Correlator
 from sparseloc.solvers.refine import fit_emitters
 
 PX = 100.0
@@ -132,7 +128,7 @@ def test_correlator_matches_a_dense_reference(analytic, side):
     base = frame_templates(analytic, PX, dxy=PX, dz=2000.0, size=side)
     tmpl = replace(base, images=imgs, dx=z, dy=z, z=z)
     frame = rng.random((20, 24)) - 0.3
-    cor = _Correlator(tmpl, frame.shape)
+    cor = Correlator(tmpl, frame.shape)
     got = cor.correlate(frame)
     got2 = cor.correlate(frame, squared=True)
     assert got.shape == got2.shape == cor.norm2.shape == (3, 20, 24)
@@ -148,7 +144,7 @@ def test_correlator_matches_a_dense_reference(analytic, side):
     dense = np.array([dense_correlation(frame, t) for t in imgs])
     n2 = np.array([dense_correlation(np.ones(frame.shape), t**2) for t in imgs])
     score = dense / np.sqrt(n2)
-    sb, jb, cb, nb = _Correlator(tmpl, frame.shape, batch=2).best(frame)
+    sb, jb, cb, nb = Correlator(tmpl, frame.shape, batch=2).best(frame)
     ok = np.sort(score, axis=0)[-1] - np.sort(score, axis=0)[-2] > 1e-4  # no near-ties
     assert ok.mean() > 0.9
     assert np.array_equal(jb[ok], np.argmax(score, axis=0)[ok])
@@ -192,7 +188,7 @@ def test_pursuit_on_the_tabulated_double_helix(dh_table):
     t = frame_templates(dh_table, PX, dxy=50.0, dz=120.0)
     truth = np.array([[1630.0, 2040.0, -300.0, 3000.0], [4720.0, 4380.0, 400.0, 3000.0]])
     frame = poisson_frame(dh_table, truth, (64, 64), seed=1)
-    cor = _Correlator(t, frame.shape)
+    cor = Correlator(t, frame.shape)
     # One atom per cycle: exactly the two emitters.
     est = frame_pursuit(frame, 10.0, t, correlator=cor, per_cycle=1)
     assert len(est) == 2
@@ -211,7 +207,7 @@ def test_pursuit_on_the_tabulated_double_helix(dh_table):
 def test_pursuit_finds_nothing_in_background(analytic, dh_table):
     for model in (analytic, dh_table):
         t = frame_templates(model, PX, dxy=50.0, dz=120.0)
-        cor = _Correlator(t, (64, 64))
+        cor = Correlator(t, (64, 64))
         for seed in range(3):
             frame = np.random.default_rng(100 + seed).poisson(10.0, (64, 64)).astype(float)
             assert len(frame_pursuit(frame, 10.0, t, correlator=cor)) <= 1
@@ -222,7 +218,7 @@ def test_pursuit_arguments_are_checked(analytic):
     with pytest.raises(ValueError, match="2-D"):
         frame_pursuit(np.zeros((2, 20, 20)), 10.0, t)
     with pytest.raises(ValueError, match="correlator"):
-        frame_pursuit(np.zeros((20, 20)), 10.0, t, correlator=_Correlator(t, (20, 21)))
+        frame_pursuit(np.zeros((20, 20)), 10.0, t, correlator=Correlator(t, (20, 21)))
 
 
 # --- fits with a fixed offset ------------------------------------------------------------
@@ -344,7 +340,7 @@ def test_relocation_moves_an_emitter_stuck_in_the_wrong_place(dh_table):
     wrong z, where the sweeps cannot pull it back (of 40 random wrong starts of this kind,
     26 stayed stuck and relocation freed 20). Relocation alone (count selection and z flips
     off) puts it on its image; without relocation it stays wrong."""
-    from sparseloc.solvers.frame import _relocate
+    from sparseloc.solvers.relocate import relocation_pass
 
     t = frame_templates(dh_table, PX, dxy=50.0, dz=120.0)
     kw = frame_fit_kwargs(t)
@@ -369,7 +365,7 @@ def test_relocation_moves_an_emitter_stuck_in_the_wrong_place(dh_table):
 
     # a pass on the stuck solution keeps a relocation; on the fixed one none is left
     def one_pass(fit, failed):
-        return _relocate(
+        return relocation_pass(
             frame,
             dh_table,
             fit.emitters.as_array(),
@@ -590,11 +586,11 @@ def test_tiled_pursuit_finds_what_the_whole_frame_finds(analytic):
 
 def test_light_is_each_emitters_image_within_reach(dh_table):
     """The relocation's frame light: each emitter's image on the pixels within reach of it."""
-    from sparseloc.solvers.frame import _light_pieces, _sum_pieces
+    from sparseloc.solvers.frame_windows import light_pieces, sum_pieces
 
     def _light(model, em, shape, px, origin, reach):
-        return _sum_pieces(
-            _light_pieces(model, em, shape, px, origin, reach), (0, shape[0], 0, shape[1])
+        return sum_pieces(
+            light_pieces(model, em, shape, px, origin, reach), (0, shape[0], 0, shape[1])
         )
 
     em = np.array([[1000.0, 1200.0, -200.0, 3000.0], [2500.0, 1800.0, 300.0, 2000.0]])
@@ -614,19 +610,19 @@ def test_light_is_each_emitters_image_within_reach(dh_table):
     assert not _light(dh_table, far, shape, PX, origin, 500.0).any()
     # the pieces summed over a box are that box of the light (what the relocation trials use)
     both = np.vstack([em, far])
-    pieces = _light_pieces(dh_table, both, shape, PX, origin, 500.0)
+    pieces = light_pieces(dh_table, both, shape, PX, origin, 500.0)
     assert pieces[2] is None
     box = (4, 21, 9, 33)
     np.testing.assert_allclose(
-        _sum_pieces(pieces, box), _light(dh_table, both, shape, PX, origin, 500.0)[4:21, 9:33]
+        sum_pieces(pieces, box), _light(dh_table, both, shape, PX, origin, 500.0)[4:21, 9:33]
     )
-    assert _sum_pieces(pieces[1:2], box).max() > 0.1
+    assert sum_pieces(pieces[1:2], box).max() > 0.1
 
 
 def test_neighbour_light_from_pieces_equals_rendering_into_the_window(dh_table, analytic):
     """The sweeps' offsets: one image per emitter over the box where the spline is non-zero,
     cropped into windows, gives what rendering the emitters into each window gives."""
-    from sparseloc.solvers.frame import _NeighbourLight
+    from sparseloc.solvers.frame_windows import NeighbourLight
 
     ry, rx = dh_table.zero_beyond(PX)
     rng = np.random.default_rng(5)
@@ -647,7 +643,7 @@ def test_neighbour_light_from_pieces_equals_rendering_into_the_window(dh_table, 
         ]
     )
     for model in (dh_table, analytic):  # analytic: no table, rendered into the window
-        light = _NeighbourLight(model, shape, PX)
+        light = NeighbourLight(model, shape, PX)
         for box in [(0, 40, 0, 50), (3, 27, 11, 44), (30, 40, 0, 8)]:
             r0, r1, c0, c1 = box
             ref = model.render(*em.T, (r1 - r0, c1 - c0), PX, origin=(c0 * PX, r0 * PX))

@@ -102,6 +102,40 @@ def _load_map_file(name: str, path: Path) -> NDArray[np.float64]:
     return _check_map_array(name, data, where)
 
 
+def _read_map_arguments(
+    given: dict[str, Any], kw: dict[str, Any]
+) -> tuple[dict[str, NDArray[np.float64]], dict[str, str]]:
+    """The maps of :meth:`Camera.from_map_files` (name -> map) and where each came from.
+
+    ``given`` maps "offset", "variance" and "gain" to a file, an array, a number (a scalar
+    field, set in ``kw``) or None.
+    """
+    maps: dict[str, NDArray[np.float64]] = {}
+    sources: dict[str, str] = {}
+    for name, value in given.items():
+        if value is None:
+            continue
+        if isinstance(value, (str, os.PathLike)):
+            maps[name] = _load_map_file(name, Path(value))
+            sources[name] = f"{name} {str(value)!r}"
+        elif isinstance(value, np.ndarray):
+            arr = _check_map_array(name, value, "array")
+            maps[name] = arr
+            sources[name] = f"{name} array"
+        elif name != "variance" and isinstance(value, (int, float, np.number)):
+            if isinstance(value, (bool, np.bool_)):
+                raise ValueError(f"{name} must be a number or a map file, got {value!r}")
+            if name in kw:
+                raise ValueError(f"{name} given twice")
+            kw[name] = float(value)
+        else:
+            what = "a map file or an array"
+            if name != "variance":
+                what = "a map file, an array or a number"
+            raise ValueError(f"{name} must be {what}, got {type(value).__name__}")
+    return maps, sources
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """Camera parameters that convert between photons and ADU.
@@ -252,29 +286,9 @@ class Camera:
             raise ValueError(
                 f"give the maps as offset=, variance= and gain=, not {', '.join(clash)}"
             )
-        maps: dict[str, NDArray[np.float64]] = {}
-        sources: dict[str, str] = {}
-        for name, value in (("offset", offset), ("variance", variance), ("gain", gain)):
-            if value is None:
-                continue
-            if isinstance(value, (str, os.PathLike)):
-                maps[name] = _load_map_file(name, Path(value))
-                sources[name] = f"{name} {str(value)!r}"
-            elif isinstance(value, np.ndarray):
-                arr = _check_map_array(name, value, "array")
-                maps[name] = arr
-                sources[name] = f"{name} array"
-            elif name != "variance" and isinstance(value, (int, float, np.number)):
-                if isinstance(value, (bool, np.bool_)):
-                    raise ValueError(f"{name} must be a number or a map file, got {value!r}")
-                if name in kw:
-                    raise ValueError(f"{name} given twice")
-                kw[name] = float(value)
-            else:
-                what = "a map file or an array"
-                if name != "variance":
-                    what = "a map file, an array or a number"
-                raise ValueError(f"{name} must be {what}, got {type(value).__name__}")
+        maps, sources = _read_map_arguments(
+            {"offset": offset, "variance": variance, "gain": gain}, kw
+        )
         if not maps:
             raise ValueError("give at least one map file (offset=, variance= or gain=)")
         shapes = {m.shape for m in maps.values()}
@@ -351,6 +365,12 @@ class Camera:
         return self.read_noise**2
 
 
+def check_camera(camera: object) -> None:
+    """Raise a ``TypeError`` unless ``camera`` is a :class:`Camera`."""
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
+
+
 def _check_expected(expected_photons: ArrayLike) -> NDArray[np.float64]:
     mu = np.asarray(expected_photons, dtype=np.float64)
     if mu.ndim not in (2, 3):
@@ -383,8 +403,7 @@ def apply_noise(
     adu : ndarray of uint16, same shape
         Camera counts in ADU, rounded and clipped to [0, 65535].
     """
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
+    check_camera(camera)
     mu = _check_expected(expected_photons)
     offset, gain = camera._pixel_params(mu.shape)
     electrons = rng.poisson(mu * camera.qe).astype(np.float64)
@@ -419,8 +438,7 @@ def to_photons(adu: ArrayLike, camera: Camera) -> NDArray[np.float64]:
     photons : ndarray of float64, same shape
         Photons per pixel (can be negative where noise pulls the counts below the offset).
     """
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
+    check_camera(camera)
     a = np.asarray(adu, dtype=np.float64)
     if a.ndim < 2 and camera.map_shape is not None:
         raise ValueError(f"adu must be at least 2-D (rows, cols) for sCMOS maps, got {a.shape}")
@@ -449,8 +467,7 @@ def noise_variance(expected_photons: ArrayLike, camera: Camera) -> NDArray[np.fl
 
         ADU rounding (``gain^2 / 12`` e-^2) is neglected.
     """
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
+    check_camera(camera)
     mu = np.asarray(expected_photons, dtype=np.float64)
     if np.any(mu < 0):
         raise ValueError("expected_photons must be >= 0")

@@ -63,14 +63,18 @@ _RCOND = 1e-12
 # --------------------------------------------------------------------------------------------
 # Helpers
 # --------------------------------------------------------------------------------------------
+def _check_noise(noise: str) -> None:
+    if noise not in NOISE_MODELS:
+        raise ValueError(f"noise must be one of {', '.join(NOISE_MODELS)}; got {noise!r}")
+
+
 def _variance(
     mu: NDArray[np.float64],
     noise: str,
     read_variance: ArrayLike | None,
 ) -> NDArray[np.float64]:
     """Effective per-pixel variance ``(..., rows, cols)`` for ``noise``."""
-    if noise not in NOISE_MODELS:
-        raise ValueError(f"noise must be one of {', '.join(NOISE_MODELS)}; got {noise!r}")
+    _check_noise(noise)
     if noise == "scmos":
         if read_variance is None:
             raise ValueError("noise='scmos' needs read_variance (photons^2, scalar or per pixel)")
@@ -102,9 +106,21 @@ def _background_map(background: ArrayLike, shape: tuple[int, int]) -> NDArray[np
             f"background must be a scalar or a (rows, cols) = {shape} map in photons per pixel, "
             f"got shape {b.shape}"
         )
+    _check_background_values(b)
+    return np.broadcast_to(b, shape)
+
+
+def _check_background_values(b: NDArray[np.float64]) -> None:
     if not np.all(np.isfinite(b)) or np.any(b < 0):
         raise ValueError("background must be finite and >= 0 photons per pixel")
-    return np.broadcast_to(b, shape)
+
+
+def _with_background(grads: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Gradients ``(B, P, npix)`` followed by the background's (1 in every pixel)."""
+    out = np.empty((grads.shape[0], grads.shape[1] + 1, grads.shape[2]))
+    out[:, :-1] = grads
+    out[:, -1] = 1.0
+    return out
 
 
 def _fisher_batch(grads: NDArray[np.float64], var: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -232,18 +248,14 @@ def fisher_information(
     xs, ys, zs, ns = as_emitters(x, y, z, model.z_range, photons)
     shp = check_shape(shape)
     px = check_pixel_size(pixel_size)
-    if noise not in NOISE_MODELS:
-        raise ValueError(f"noise must be one of {', '.join(NOISE_MODELS)}; got {noise!r}")
+    _check_noise(noise)
     bg = _background_map(background, shp)
     mu = model.render(xs, ys, zs, ns, shp, px, origin=origin) + bg
     var = _variance(mu, noise, read_variance)
     g = np.asarray(model.gradients(xs, ys, zs, ns, shp, px, origin=origin), dtype=np.float64)
-    k = len(xs)
     npix = shp[0] * shp[1]
-    grads = np.empty((4 * k + 1, npix))
-    grads[: 4 * k] = g.reshape(4 * k, npix)
-    grads[4 * k] = 1.0
-    return _fisher_batch(grads[None], var.reshape(1, npix))[0]
+    grads = _with_background(g.reshape(1, 4 * len(xs), npix))
+    return _fisher_batch(grads, var.reshape(1, npix))[0]
 
 
 def crlb(
@@ -361,16 +373,14 @@ def crlb_single(
         shp = check_shape((int(window), int(window)))  # type: ignore[arg-type]
     else:
         shp = check_shape(window)  # type: ignore[arg-type]
-    if noise not in NOISE_MODELS:
-        raise ValueError(f"noise must be one of {', '.join(NOISE_MODELS)}; got {noise!r}")
+    _check_noise(noise)
     try:
         ns, bs = np.broadcast_arrays(
             np.asarray(photons, dtype=np.float64), np.asarray(background, dtype=np.float64), zs
         )[:2]
     except ValueError as exc:
         raise ValueError("photons and background must be scalars or have the length of z") from exc
-    if np.any(bs < 0) or not np.all(np.isfinite(bs)):
-        raise ValueError("background must be finite and >= 0 photons per pixel")
+    _check_background_values(bs)
     nz = len(zs)
     cx, cy = shp[1] * px / 2.0, shp[0] * px / 2.0
     g = np.asarray(
@@ -380,8 +390,5 @@ def crlb_single(
     # g[:, 3] is d mu / d photons = the unit-photon image, so mu = N * g[:, 3] + b.
     mu = ns[:, None, None] * g[:, 3] + bs[:, None, None]
     var = _variance(mu, noise, read_variance).reshape(nz, npix)
-    grads = np.empty((nz, 5, npix))
-    grads[:, :4] = g.reshape(nz, 4, npix)
-    grads[:, 4] = 1.0
-    f = _fisher_batch(grads, var)
+    f = _fisher_batch(_with_background(g.reshape(nz, 4, npix)), var)
     return crlb_from_fisher(f, singular=singular)[:, :4]

@@ -57,12 +57,18 @@ def temporal_background(
     arr = np.asarray(frames, dtype=np.float64)
     if arr.ndim != 3:
         raise ValueError(f"frames must be (n, rows, cols), got shape {arr.shape}")
-    q = np.percentile(arr, percentile, axis=0)
-    # A low percentile of Poisson counts sits below the mean: with q = lam + z sqrt(lam)
-    # (normal approximation, z the standard normal quantile), lam = (sqrt(z^2/4 + q) - z/2)^2.
-    z = float(ndtri(percentile / 100.0))
-    bg = (np.sqrt(z * z / 4 + np.maximum(q, 0.0)) - z / 2) ** 2
+    bg = _poisson_mean(np.percentile(arr, percentile, axis=0), percentile)
     return ndi.gaussian_filter(bg, smooth) if smooth > 0 else bg
+
+
+def _poisson_mean(q: NDArray[np.float64], percentile: float) -> NDArray[np.float64]:
+    """The Poisson mean whose ``percentile`` is ``q``.
+
+    A low percentile of Poisson counts sits below the mean: with ``q = lam + z sqrt(lam)``
+    (normal approximation, ``z`` the standard normal quantile), ``lam = (sqrt(z^2/4 + q) - z/2)^2``.
+    """
+    z = float(ndtri(percentile / 100.0))
+    return (np.sqrt(z * z / 4 + np.maximum(q, 0.0)) - z / 2) ** 2
 
 
 def spatial_background(
@@ -102,8 +108,7 @@ def spatial_background(
             q[i, j] = np.percentile(
                 arr[redges[i] : redges[i + 1], cedges[j] : cedges[j + 1]], percentile
             )
-    z = float(ndtri(percentile / 100.0))
-    lam = (np.sqrt(z * z / 4 + np.maximum(q, 0.0)) - z / 2) ** 2
+    lam = _poisson_mean(q, percentile)
     # Block centres -> every pixel (bilinear, constant beyond the outer centres).
     rc = 0.5 * (redges[:-1] + redges[1:]) - 0.5
     cc = 0.5 * (cedges[:-1] + cedges[1:]) - 0.5

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import erfc
 
-from .base import PSFBase
+from .base import PSFBase, parse_pair
 
 __all__ = ["GaussianAstigPSF", "TwoLobeDHPSF"]
 
@@ -35,10 +35,7 @@ _INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
 
 def _check_z_range(z_range: tuple[float, float]) -> tuple[float, float]:
     """Return a validated ``(z_min, z_max)`` in nm."""
-    try:
-        lo, hi = (float(v) for v in z_range)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"z_range must be (z_min, z_max) in nm, got {z_range!r}") from exc
+    lo, hi = parse_pair(z_range, float, f"z_range must be (z_min, z_max) in nm, got {z_range!r}")
     if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
         raise ValueError(f"z_range must be finite (z_min, z_max) with z_min < z_max, got {z_range}")
     return lo, hi
@@ -108,7 +105,33 @@ def _gauss_pixels(
     return g, dg_dc, dg_ds
 
 
-class GaussianAstigPSF(PSFBase):
+class _SeparableGaussianPSF(PSFBase):
+    """What both analytic models share: images from the window's pixel edges.
+
+    Subclasses implement ``_edge_images(x, y, z, ex, ey, derivatives)`` with ``ex`` (cols+1,)
+    and ``ey`` (rows+1,) the pixel edges in nm; it returns what :meth:`PSFBase._images` does.
+    """
+
+    def _images(self, x, y, z, shape, pixel_size, origin, derivatives):
+        rows, cols = shape
+        ex = _pixel_edges(cols, pixel_size, origin[0])
+        ey = _pixel_edges(rows, pixel_size, origin[1])
+        return self._edge_images(x, y, z, ex, ey, derivatives)
+
+    def _edge_images(
+        self,
+        x: NDArray[np.float64],
+        y: NDArray[np.float64],
+        z: NDArray[np.float64],
+        ex: NDArray[np.float64],
+        ey: NDArray[np.float64],
+        derivatives: bool,
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Unit-photon images (K, rows, cols) and optionally derivatives (K, 3, rows, cols)."""
+        raise NotImplementedError
+
+
+class GaussianAstigPSF(_SeparableGaussianPSF):
     """Astigmatic elliptical Gaussian with the width curves of Huang et al. (2008).
 
     The image of an emitter at ``(x, y, z)`` is a normalised 2-D Gaussian with widths
@@ -210,20 +233,7 @@ class GaussianAstigPSF(PSFBase):
         zz = np.atleast_1d(np.asarray(z, dtype=np.float64))
         return self._width(zz, -self.c)[0], self._width(zz, self.c)[0]
 
-    def _images(
-        self,
-        x: NDArray[np.float64],
-        y: NDArray[np.float64],
-        z: NDArray[np.float64],
-        shape: tuple[int, int],
-        pixel_size: float,
-        origin: tuple[float, float],
-        derivatives: bool,
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Unit-photon images (K, rows, cols) and optionally derivatives (K, 3, rows, cols)."""
-        rows, cols = shape
-        ex = _pixel_edges(cols, pixel_size, origin[0])
-        ey = _pixel_edges(rows, pixel_size, origin[1])
+    def _edge_images(self, x, y, z, ex, ey, derivatives):
         sx, dsx = self._width(z, -self.c)
         sy, dsy = self._width(z, self.c)
         if not derivatives:
@@ -233,7 +243,7 @@ class GaussianAstigPSF(PSFBase):
         gx, gx_c, gx_s = _gauss_pixels(ex, x, sx, True)
         gy, gy_c, gy_s = _gauss_pixels(ey, y, sy, True)
         img = gy[:, :, None] * gx[:, None, :]
-        der = np.empty((len(x), 3, rows, cols))
+        der = np.empty((len(x), 3, ey.size - 1, ex.size - 1))
         der[:, 0] = gy[:, :, None] * gx_c[:, None, :]
         der[:, 1] = gy_c[:, :, None] * gx[:, None, :]
         gx_z = gx_s * dsx[:, None]
@@ -242,7 +252,7 @@ class GaussianAstigPSF(PSFBase):
         return img, der
 
 
-class TwoLobeDHPSF(PSFBase):
+class TwoLobeDHPSF(_SeparableGaussianPSF):
     """Analytic double-helix PSF: two rotating isotropic Gaussian lobes.
 
     Each lobe holds half of the photons and has width ``lobe_sigma``. The lobes sit at
@@ -332,20 +342,7 @@ class TwoLobeDHPSF(PSFBase):
         cy = np.atleast_1d(np.asarray(y, dtype=np.float64))[:, None] + half * np.sin(th)
         return cx, cy
 
-    def _images(
-        self,
-        x: NDArray[np.float64],
-        y: NDArray[np.float64],
-        z: NDArray[np.float64],
-        shape: tuple[int, int],
-        pixel_size: float,
-        origin: tuple[float, float],
-        derivatives: bool,
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Unit-photon images (K, rows, cols) and optionally derivatives (K, 3, rows, cols)."""
-        rows, cols = shape
-        ex = _pixel_edges(cols, pixel_size, origin[0])
-        ey = _pixel_edges(rows, pixel_size, origin[1])
+    def _edge_images(self, x, y, z, ex, ey, derivatives):
         cx, cy = self.lobe_centres(x, y, z)  # (K, 2)
         s = np.full_like(cx, self.lobe_sigma)
         # Per lobe: gx (K, 2, cols), gy (K, 2, rows); image = 0.5 * sum_lobes outer(gy, gx).
@@ -357,7 +354,7 @@ class TwoLobeDHPSF(PSFBase):
         gy, gy_c, _ = _gauss_pixels(ey, cy, s, True)
         gy_t = gy.transpose(0, 2, 1)  # (K, rows, 2)
         img = 0.5 * (gy_t @ gx)
-        der = np.empty((len(x), 3, rows, cols))
+        der = np.empty((len(x), 3, ey.size - 1, ex.size - 1))
         der[:, 0] = 0.5 * (gy_t @ gx_c)
         der[:, 1] = 0.5 * (gy_c.transpose(0, 2, 1) @ gx)
         # d(centre)/dz per lobe: +/- (separation/2) * (-sin theta, cos theta) * dtheta/dz.

@@ -8,7 +8,8 @@ Coordinates follow design.md: the window's outer corner of pixel (0, 0) sits at 
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+from collections.abc import Callable
+from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -20,8 +21,11 @@ __all__ = [
     "as_emitters",
     "check_pixel_size",
     "check_shape",
+    "parse_pair",
     "pixel_centres",
 ]
+
+T = TypeVar("T")
 
 
 @runtime_checkable
@@ -97,14 +101,22 @@ def check_pixel_size(pixel_size: float) -> float:
     return p
 
 
+def parse_pair(value: Any, convert: Callable[[Any], T], error: str) -> tuple[T, T]:
+    """``value`` as two items converted by ``convert``; ``ValueError(error)`` when it does not
+    hold exactly two items or one of them does not convert."""
+    try:
+        a, b = (convert(v) for v in value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(error) from exc
+    return a, b
+
+
 def check_shape(shape: tuple[int, int]) -> tuple[int, int]:
     """Return a validated ``(rows, cols)`` window shape."""
-    try:
-        rows, cols = (int(s) for s in shape)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"shape must be (rows, cols) of positive integers, got {shape!r}") from exc
+    error = f"shape must be (rows, cols) of positive integers, got {shape!r}"
+    rows, cols = parse_pair(shape, int, error)
     if rows <= 0 or cols <= 0:
-        raise ValueError(f"shape must be (rows, cols) of positive integers, got {shape!r}")
+        raise ValueError(error)
     return rows, cols
 
 
@@ -246,6 +258,12 @@ class PSFBase:
             raise ValueError(f"origin must be two finite numbers (nm), got {origin!r}")
         return check_shape(shape), check_pixel_size(pixel_size), (ox, oy)
 
+    def _checked_images(self, x, y, z, photons, shape, pixel_size, origin, derivatives):
+        """Validated emitters ``(x, y, z, photons)`` and their :meth:`_images`."""
+        xs, ys, zs, ns = as_emitters(x, y, z, self.z_range, photons)
+        window = self._check_window(shape, pixel_size, origin)
+        return (xs, ys, zs, ns), self._images(xs, ys, zs, *window, derivatives)
+
     def render(
         self,
         x: ArrayLike,
@@ -261,8 +279,9 @@ class PSFBase:
 
         See :meth:`images` for the parameters; ``photons`` has shape (K,).
         """
-        xs, ys, zs, ns = as_emitters(x, y, z, self.z_range, photons)
-        imgs = self._images(xs, ys, zs, *self._check_window(shape, pixel_size, origin), False)
+        (_, _, _, ns), imgs = self._checked_images(
+            x, y, z, photons, shape, pixel_size, origin, False
+        )
         return np.tensordot(ns, imgs, axes=(0, 0))
 
     def gradients(
@@ -280,9 +299,10 @@ class PSFBase:
 
         Index 0..2 are d/dx, d/dy, d/dz (photons per pixel per nm) and 3 is d/dphotons.
         """
-        xs, ys, zs, ns = as_emitters(x, y, z, self.z_range, photons)
-        imgs, der = self._images(xs, ys, zs, *self._check_window(shape, pixel_size, origin), True)
-        out = np.empty((len(xs), 4, *imgs.shape[1:]))
+        (_, _, _, ns), (imgs, der) = self._checked_images(
+            x, y, z, photons, shape, pixel_size, origin, True
+        )
+        out = np.empty((len(ns), 4, *imgs.shape[1:]))
         out[:, :3] = der * ns[:, None, None, None]
         out[:, 3] = imgs
         return out

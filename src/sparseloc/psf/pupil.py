@@ -29,10 +29,41 @@ import numpy as np
 import scipy.fft as sfft
 from numpy.typing import NDArray
 
-from .base import PSFBase, pixel_centres
+from .base import PSFBase, as_emitters, pixel_centres
 from .masks import Mask
 
 __all__ = ["PupilPSF"]
+
+
+def _check_args(
+    na: float,
+    wavelength: float,
+    n_immersion: float,
+    z_range: tuple[float, float],
+    pupil_samples: int,
+    n_sample: float | None,
+    focal_depth: float,
+    blur: float,
+) -> None:
+    """Raise a ``ValueError`` naming the first invalid :class:`PupilPSF` argument."""
+    if not (np.isfinite(blur) and blur >= 0):
+        raise ValueError(f"blur must be a standard deviation >= 0 nm, got {blur}")
+    if not (0 < na < n_immersion):
+        raise ValueError(f"na must be in (0, n_immersion={n_immersion}), got {na}")
+    if wavelength <= 0:
+        raise ValueError(f"wavelength must be > 0 nm, got {wavelength}")
+    if pupil_samples < 16:
+        raise ValueError(f"pupil_samples must be >= 16, got {pupil_samples}")
+    if not z_range[0] < z_range[1]:
+        raise ValueError(f"z_range must be (z_min, z_max) with z_min < z_max, got {z_range}")
+    if n_sample is not None:
+        if not n_sample > 0:
+            raise ValueError(f"n_sample must be > 0, got {n_sample}")
+        if focal_depth + z_range[0] < -1e-6:
+            raise ValueError(
+                f"z_range starts {-z_range[0]:g} nm below the focal plane but the focal "
+                f"plane is only {focal_depth:g} nm above the coverslip"
+            )
 
 
 class PupilPSF(PSFBase):
@@ -90,24 +121,9 @@ class PupilPSF(PSFBase):
         blur: float = 0.0,
     ) -> None:
         super().__init__()
-        if not (np.isfinite(blur) and blur >= 0):
-            raise ValueError(f"blur must be a standard deviation >= 0 nm, got {blur}")
-        if not (0 < na < n_immersion):
-            raise ValueError(f"na must be in (0, n_immersion={n_immersion}), got {na}")
-        if wavelength <= 0:
-            raise ValueError(f"wavelength must be > 0 nm, got {wavelength}")
-        if pupil_samples < 16:
-            raise ValueError(f"pupil_samples must be >= 16, got {pupil_samples}")
-        if not z_range[0] < z_range[1]:
-            raise ValueError(f"z_range must be (z_min, z_max) with z_min < z_max, got {z_range}")
-        if n_sample is not None:
-            if not n_sample > 0:
-                raise ValueError(f"n_sample must be > 0, got {n_sample}")
-            if focal_depth + z_range[0] < -1e-6:
-                raise ValueError(
-                    f"z_range starts {-z_range[0]:g} nm below the focal plane but the focal "
-                    f"plane is only {focal_depth:g} nm above the coverslip"
-                )
+        _check_args(
+            na, wavelength, n_immersion, z_range, pupil_samples, n_sample, focal_depth, blur
+        )
         self.n_sample = None if n_sample is None else float(n_sample)
         self.focal_depth = float(focal_depth)
         self.mask = mask
@@ -118,44 +134,58 @@ class PupilPSF(PSFBase):
         self.aplanatic = aplanatic
         self.name = name
         self.pupil_samples = int(pupil_samples)
-
-        k_max = 2 * np.pi * self.na / self.wavelength
         self.field_size = self.pupil_samples * self.wavelength / (2 * self.na)  # period L, nm
-        dk = 2 * np.pi / self.field_size
+        self._dk = 2 * np.pi / self.field_size
         # FFT size: the intensity's spectrum spans 2 * pupil_samples bins; leave a small guard.
         self._m = sfft.next_fast_len(2 * self.pupil_samples + 8)
-        m = self._m
-        idx = np.fft.fftfreq(m, d=1.0 / m)  # integer frequency indices in FFT order
-        kx, ky = np.meshgrid(idx * dk, idx * dk)  # pupil grid in FFT order
-        kr = np.hypot(kx, ky)
-        inside = kr <= k_max
-        rho = np.where(inside, kr / k_max, 0.0)
-        phi = np.arctan2(ky, kx)
-        kn = 2 * np.pi * self.n_immersion / self.wavelength
-        kz = np.sqrt(np.maximum(kn**2 - kr**2, 0.0))
-        amp = np.where(inside, 1.0, 0.0)
-        if aplanatic:
-            amp = amp / np.sqrt(np.maximum(kz / kn, 1e-12))
-        phase = np.zeros_like(kr)
-        if mask is not None:
-            phase = np.where(inside, np.asarray(mask(rho, phi), dtype=np.float64), 0.0)
-        self._pupil0 = amp * np.exp(1j * phase)
-        self._kz = np.where(inside, kz, 0.0)
-        if self.n_sample is not None:
-            ks = 2 * np.pi * self.n_sample / self.wavelength
-            # Complex beyond the sample's critical angle: exp(i kz_s depth) decays there.
-            kzs = np.where(inside, np.sqrt(ks**2 - kr**2 + 0j), 0.0)
-            self._pupil0 = self._pupil0 * np.exp(1j * (kzs - self._kz) * self.focal_depth)
-            self._kz = kzs
+        self._pupil0, self._kz = self._pupil_at_focus()
         # Keep only the OTF's support (|index| <= half) for the matrix DFT.
-        half = min(self.pupil_samples + 2, m // 2 - 1)
+        half = min(self.pupil_samples + 2, self._m // 2 - 1)
         self._otf_idx = np.arange(-half, half + 1)
-        self._k = self._otf_idx * dk  # angular spatial frequencies (rad/nm) of kept OTF bins
-        self._dk = dk
+        self._k = self._otf_idx * self._dk  # angular spatial frequencies (rad/nm) of kept bins
         self.blur = float(blur)
         # The Gaussian's transfer function on the kept OTF bins (row = ky, col = kx).
         g = np.exp(-0.5 * (self.blur * self._k) ** 2)
         self._blur_tf = g[:, None] * g[None, :]
+
+    def pupil_coordinates(
+        self,
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]]:
+        """The pupil grid (M, M) in FFT order: ``|k|`` (rad/nm), the disc ``|k| <= k_max``, and
+        the normalised polar coordinates ``rho`` (0 outside the disc) and ``phi`` (radians)."""
+        m = self._m
+        idx = np.fft.fftfreq(m, d=1.0 / m)  # integer frequency indices in FFT order
+        kx, ky = np.meshgrid(idx * self._dk, idx * self._dk)
+        k_max = 2 * np.pi * self.na / self.wavelength
+        kr = np.hypot(kx, ky)
+        inside = kr <= k_max
+        rho = np.where(inside, kr / k_max, 0.0)
+        phi = np.arctan2(ky, kx)
+        return kr, inside, rho, phi
+
+    def _pupil_at_focus(self) -> tuple[NDArray[np.complex128], NDArray]:
+        """The pupil ``P(k)`` of an emitter at ``z = 0`` and the ``kz`` (rad/nm) that defocuses it.
+
+        With a sample index, ``kz`` is the sample's (complex beyond its critical angle) and the
+        pupil carries the phase of the nominal focal depth.
+        """
+        kr, inside, rho, phi = self.pupil_coordinates()
+        kn = 2 * np.pi * self.n_immersion / self.wavelength
+        kz = np.sqrt(np.maximum(kn**2 - kr**2, 0.0))
+        amp = np.where(inside, 1.0, 0.0)
+        if self.aplanatic:
+            amp = amp / np.sqrt(np.maximum(kz / kn, 1e-12))
+        phase = np.zeros_like(kr)
+        if self.mask is not None:
+            phase = np.where(inside, np.asarray(self.mask(rho, phi), dtype=np.float64), 0.0)
+        pupil0 = amp * np.exp(1j * phase)
+        kz = np.where(inside, kz, 0.0)
+        if self.n_sample is None:
+            return pupil0, kz
+        ks = 2 * np.pi * self.n_sample / self.wavelength
+        # Complex beyond the sample's critical angle: exp(i kz_s depth) decays there.
+        kzs = np.where(inside, np.sqrt(ks**2 - kr**2 + 0j), 0.0)
+        return pupil0 * np.exp(1j * (kzs - kz) * self.focal_depth), kzs
 
     def __repr__(self) -> str:
         return (
@@ -189,18 +219,45 @@ class PupilPSF(PSFBase):
         e = sfft.ifft2(p, axes=(-2, -1), workers=-1)
         inten = (e * e.conj()).real
         norm = inten.sum(axis=(-2, -1), keepdims=True)
-        sel = self._otf_idx % self._m
-        c = sfft.fft2(inten / norm, axes=(-2, -1), workers=-1)[:, sel][:, :, sel]
-        if self.blur:
-            c = c * self._blur_tf
+        c = self._kept_bins(inten / norm)
         if not derivative:
             return c
         de = sfft.ifft2(1j * self._kz[None] * p, axes=(-2, -1), workers=-1)
         dinten = 2.0 * (e.conj() * de).real
-        dc = sfft.fft2(dinten / norm, axes=(-2, -1), workers=-1)[:, sel][:, :, sel]
+        return c, self._kept_bins(dinten / norm)
+
+    def _kept_bins(self, inten: NDArray[np.float64]) -> NDArray[np.complex128]:
+        """The kept, centred OTF bins (K, B, B) of intensities (K, M, M), blurred if asked."""
+        sel = self._otf_idx % self._m
+        c = sfft.fft2(inten, axes=(-2, -1), workers=-1)[:, sel][:, :, sel]
         if self.blur:
-            dc = dc * self._blur_tf
-        return c, dc
+            c = c * self._blur_tf
+        return c
+
+    def _pixel_offsets(
+        self,
+        x: NDArray[np.float64],
+        y: NDArray[np.float64],
+        shape: tuple[int, int],
+        a: float,
+        origin: tuple[float, float],
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Pixel centres minus emitter positions (nm): ``u`` (K, cols) and ``v`` (K, rows)."""
+        rows, cols = shape
+        u = pixel_centres(cols, a, origin[0])[None, :] - x[:, None]
+        v = pixel_centres(rows, a, origin[1])[None, :] - y[:, None]
+        return u, v
+
+    def shift_factors(self, d: NDArray[np.float64], pixel_size: float) -> NDArray[np.complex128]:
+        """Row or column factors ``exp(i k d) sinc(k a / 2)`` of the matrix DFT, shape
+        ``(*d.shape, B)``, for offsets ``d`` (nm) of pixel centres from the emitter.
+
+        The sinc is the transfer function of a pixel of side ``a = pixel_size`` (exact pixel
+        integration; ``np.sinc(t) = sin(pi t)/(pi t)``).
+        """
+        k = self._k
+        box = np.sinc(k * pixel_size / (2 * np.pi))
+        return np.exp(1j * d[..., None] * k) * box
 
     def images_on_grid(
         self,
@@ -218,21 +275,17 @@ class PupilPSF(PSFBase):
         that share the OTF of each plane and the row/column factors of each x and y (this is
         what makes building a dictionary of a million atoms take seconds).
         """
-        from .base import as_emitters
-
         x = np.atleast_1d(np.asarray(x, dtype=np.float64))
         y = np.atleast_1d(np.asarray(y, dtype=np.float64))
         z = as_emitters(np.zeros_like(np.atleast_1d(z)), 0.0 * np.atleast_1d(z), z, self.z_range)[2]
         shape, a, origin = self._check_window(shape, pixel_size, origin)
         rows, cols = shape
         k = self._k
-        box = np.sinc(k * a / (2 * np.pi))
-        u = pixel_centres(cols, a, origin[0])[None, :] - x[:, None]  # (nx, cols)
-        v = pixel_centres(rows, a, origin[1])[None, :] - y[:, None]  # (ny, rows)
+        u, v = self._pixel_offsets(x, y, shape, a, origin)  # (nx, cols), (ny, rows)
         if np.any(np.abs(u) >= self.field_size / 2) or np.any(np.abs(v) >= self.field_size / 2):
             raise ValueError("the grid window is larger than half the model's field_size")
-        ex = (np.exp(1j * u[:, :, None] * k) * box).reshape(-1, k.size)  # (nx*cols, B)
-        ey = np.exp(1j * v[:, :, None] * k) * box  # (ny, rows, B)
+        ex = self.shift_factors(u, a).reshape(-1, k.size)  # (nx*cols, B)
+        ey = self.shift_factors(v, a)  # (ny, rows, B)
         scale = (a / self.field_size) ** 2
         out = np.empty((z.size, y.size, x.size, rows, cols))
         for iz, c in enumerate(self.otf(z)):
@@ -246,12 +299,9 @@ class PupilPSF(PSFBase):
         a = pixel_size
         L = self.field_size
         k = self._k
-        # Pixel box transfer; np.sinc(t) = sin(pi t)/(pi t).
-        box = np.sinc(k * a / (2 * np.pi))
-        u = pixel_centres(cols, a, origin[0])[None, :] - x[:, None]  # (K, cols)
-        v = pixel_centres(rows, a, origin[1])[None, :] - y[:, None]  # (K, rows)
-        ex = np.exp(1j * u[:, :, None] * k[None, None, :]) * box  # (K, cols, B)
-        ey = np.exp(1j * v[:, :, None] * k[None, None, :]) * box  # (K, rows, B)
+        u, v = self._pixel_offsets(x, y, shape, a, origin)  # (K, cols), (K, rows)
+        ex = self.shift_factors(u, a)  # (K, cols, B)
+        ey = self.shift_factors(v, a)  # (K, rows, B)
         scale = (a / L) ** 2
         # Emitters often share planes (dictionaries, simulations at fixed z): one OTF per plane.
         zu, inv = np.unique(z, return_inverse=True)

@@ -39,10 +39,20 @@ Starting point
 The fit is local. It starts from ``initial`` (default zero) on top of ``base_mask``; a short
 multi-start on a coarse model (11 planes, 32 pupil samples) first tries primary astigmatism
 ``(2, +-2)`` offsets of 0 and +-0.15 waves (the even term whose sign a fit from zero can get
-wrong in a strongly aberrated stack) and keeps the best. In simulations (NA 1.45, 31 planes
-over +-600 nm) this recovered 0.15 waves of astigmatism plus random aberrations of up to
-0.3 waves RMS in total, but failed in two of three cases near 0.3 waves; for such stacks pass
-a better ``initial``.
+wrong in a strongly aberrated stack) and keeps the best. Stacks with aberrations near
+0.3 waves RMS in total can still end in a wrong minimum; for such stacks pass a better
+``initial``.
+
+Threads
+-------
+While :func:`fit_pupil` runs, BLAS is limited to one thread (threadpoolctl): the fit's matrix
+products are many and mid-sized, which multithreaded BLAS on a busy machine handles slowly
+(FFTs still use all cores).
+
+Example
+-------
+>>> res = fit_pupil(stack, z, 100.0, na=1.45, wavelength=670.0)  # doctest: +SKIP
+>>> res.coefficients[(2, 2)], res.z0, res.residual_rms  # doctest: +SKIP
 """
 
 from __future__ import annotations
@@ -51,7 +61,7 @@ import functools
 import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 import scipy.fft as sfft
@@ -144,14 +154,9 @@ class _StackModel:
         pixel_size: float,
     ) -> None:
         self.psf = psf
+        self.terms = terms
         m = psf._m
-        idx = np.fft.fftfreq(m, d=1.0 / m)
-        kx, ky = np.meshgrid(idx * psf._dk, idx * psf._dk)
-        k_max = 2 * np.pi * psf.na / psf.wavelength
-        kr = np.hypot(kx, ky)
-        inside = kr <= k_max
-        rho = np.where(inside, kr / k_max, 0.0)
-        phi = np.arctan2(ky, kx)
+        _, inside, rho, phi = psf.pupil_coordinates()
         # 2 pi Z_j on the pupil grid (zero outside, where the pupil vanishes anyway).
         self.basis = (
             np.stack(
@@ -166,9 +171,7 @@ class _StackModel:
         norm = float(np.sum(np.abs(self.pupil0) ** 2)) / m**2
         self.rows, self.cols = shape
         self.a = pixel_size
-        k = psf._k
-        self.k = k
-        self.box = np.sinc(k * pixel_size / (2 * np.pi))
+        self.k = psf._k
         # fft2 restricted to the kept OTF bins, as a matrix: F[p, s] = exp(-2 pi i idx_p s / M).
         self.F = np.exp(-2j * np.pi * np.outer(psf._otf_idx, np.arange(m)) / m)
         self.scale = (pixel_size / psf.field_size) ** 2 / norm
@@ -177,10 +180,8 @@ class _StackModel:
     # -- building blocks ---------------------------------------------------------------------
     def factors(self, x0: float, y0: float):
         """Row/column factors ``G`` (n, M) and their derivatives with respect to x0/y0."""
-        u = pixel_centres(self.cols, self.a) - x0
-        v = pixel_centres(self.rows, self.a) - y0
-        ex = np.exp(1j * u[:, None] * self.k[None, :]) * self.box
-        ey = np.exp(1j * v[:, None] * self.k[None, :]) * self.box
+        ex = self.psf.shift_factors(pixel_centres(self.cols, self.a) - x0, self.a)
+        ey = self.psf.shift_factors(pixel_centres(self.rows, self.a) - y0, self.a)
         gx, gy = ex @ self.F, ey @ self.F
         dgx, dgy = (ex * (-1j * self.k)) @ self.F, (ey * (-1j * self.k)) @ self.F
         return gx, gy, dgx, dgy
@@ -446,12 +447,9 @@ def fit_pupil(
         plane ``i`` is modelled at defocus ``z[i] + z0``.
     pixel_size : float
         Pixel size in nm (sample space).
-    na : float
-        Numerical aperture.
-    wavelength : float
-        Emission wavelength in nm.
-    n_immersion : float
-        Refractive index of the immersion medium.
+    na, wavelength, n_immersion : float
+        Numerical aperture, emission wavelength (nm) and refractive index of the immersion
+        medium.
     base_mask : callable, optional
         Known phase mask ``phase(rho, phi)`` in radians (e.g. :class:`~.masks.DoubleHelixMask`);
         the fitted Zernike phase is added to it. ``None``: clear pupil.
@@ -485,22 +483,25 @@ def fit_pupil(
 
     Notes
     -----
-    The fit is local; see the module documentation for the coarse multi-start over primary
-    astigmatism that precedes it, and for the sign convention of ``z`` (a reversed ``z`` axis
-    returns the mirrored pupil). The weights are scale-free, so a normalised stack gives the
-    same fit as the same stack in photons.
-
-    While it runs, BLAS is limited to one thread (threadpoolctl): the fit's
-    matrix products are many and mid-sized, and multithreaded OpenBLAS on a busy machine made
-    it up to ten times slower (FFTs still use all cores).
-
-    Examples
-    --------
-    >>> res = fit_pupil(stack, z, 100.0, na=1.45, wavelength=670.0)  # doctest: +SKIP
-    >>> res.coefficients[(2, 2)], res.z0, res.residual_rms  # doctest: +SKIP
+    The fit is local: see the module notes on the multi-start that precedes it and on the sign
+    of ``z``. The weights are scale-free: a normalised stack gives the same fit as in photons.
     """
     data, zs, px = _validate(stack, z, pixel_size)
-    nz, rows, cols = data.shape
+    terms = _check_options(max_order, weights, max_iter, z_range)
+    coef0 = _initial_coefficients(initial, terms, max_order)
+    optics = _Optics(na, wavelength, n_immersion)
+    model, coarse = _stack_models(optics, base_mask, pupil_samples, terms, data.shape[1:], px)
+    beads = _Beads(zs, data.reshape(len(zs), -1), weights, 1e-3 * float(data.max()))
+    sw = beads.root_weights(beads.d)
+    coef, pos = _multi_start(coarse, beads, sw, coef0, _centroid(data, px))
+    fit = _refine(model, beads, sw, coef, pos, int(max_iter))
+    return _result(model, beads, fit, optics, base_mask, pupil_samples, z_range)
+
+
+def _check_options(
+    max_order: int, weights: str, max_iter: int, z_range: tuple[float, float] | None
+) -> list[tuple[int, int]]:
+    """Check :func:`fit_pupil`'s options; return the fitted Zernike terms."""
     if int(max_order) != max_order or max_order < 2:
         raise ValueError(f"max_order must be an integer >= 2, got {max_order!r}")
     if weights not in ("poisson", "uniform"):
@@ -509,7 +510,13 @@ def fit_pupil(
         raise ValueError(f"max_iter must be >= 1, got {max_iter!r}")
     if z_range is not None and not float(z_range[0]) < float(z_range[1]):
         raise ValueError(f"z_range must be (z_min, z_max) with z_min < z_max, got {z_range}")
-    terms = zernike_terms(int(max_order))
+    return zernike_terms(int(max_order))
+
+
+def _initial_coefficients(
+    initial: Mapping[tuple[int, int], float] | None, terms: list[tuple[int, int]], max_order: int
+) -> NDArray[np.float64]:
+    """Starting coefficients (waves RMS) of ``terms``: ``initial`` where given, else 0."""
     coef0 = np.zeros(len(terms))
     if initial:
         for key, val in initial.items():
@@ -520,22 +527,57 @@ def fit_pupil(
                     f"2 <= n <= {max_order} without (2, 0)"
                 )
             coef0[terms.index(key)] = float(val)
+    return coef0
 
-    psf0 = PupilPSF(
-        base_mask,
-        na=na,
-        wavelength=wavelength,
-        n_immersion=n_immersion,
-        pupil_samples=pupil_samples,
-    )
+
+@dataclass(frozen=True)
+class _Optics:
+    """What every :class:`PupilPSF` of one fit shares."""
+
+    na: float
+    wavelength: float
+    n_immersion: float
+
+    def psf(self, mask: Mask | None, pupil_samples: int, **kwargs) -> PupilPSF:
+        return PupilPSF(
+            mask,
+            na=self.na,
+            wavelength=self.wavelength,
+            n_immersion=self.n_immersion,
+            pupil_samples=pupil_samples,
+            **kwargs,
+        )
+
+
+def _stack_models(
+    optics: _Optics,
+    base_mask: Mask | None,
+    pupil_samples: int,
+    terms: list[tuple[int, int]],
+    shape: tuple[int, int],
+    px: float,
+) -> tuple[_StackModel, _StackModel]:
+    """The full model and the coarse one of the multi-start (the full one when the coarse
+    grid's period is too short for the ROI)."""
+    rows, cols = shape
+    psf0 = optics.psf(base_mask, pupil_samples)
     if max(rows, cols) * px >= psf0.field_size / 2:
         raise ValueError(
             f"the ROI ({rows} x {cols} pixels of {px} nm) must be smaller than half the model "
             f"period ({psf0.field_size:.0f} nm); increase pupil_samples"
         )
     model = _StackModel(psf0, terms, (rows, cols), px)
+    coarse = model
+    if pupil_samples > _COARSE_SAMPLES:
+        small = optics.psf(base_mask, _COARSE_SAMPLES)
+        if max(rows, cols) * px < small.field_size / 2:
+            coarse = _StackModel(small, terms, (rows, cols), px)
+    return model, coarse
 
-    # Initial lateral position: centroid of the background-subtracted sum of the planes.
+
+def _centroid(data: NDArray[np.float64], px: float) -> tuple[float, float]:
+    """Initial lateral position (nm): centroid of the background-subtracted sum of the planes."""
+    nz, rows, cols = data.shape
     border = np.concatenate(
         [data[:, 0].ravel(), data[:, -1].ravel(), data[:, :, 0].ravel(), data[:, :, -1].ravel()]
     )
@@ -545,31 +587,43 @@ def fit_pupil(
         yi = float((tot.sum(axis=1) * pixel_centres(rows, px)).sum() / tot.sum())
     else:
         xi, yi = cols * px / 2, rows * px / 2
+    return xi, yi
 
-    d = data.reshape(nz, -1)
-    floor = 1e-3 * float(data.max())
 
-    def root_weights(values: NDArray) -> NDArray:
-        if weights == "uniform":
-            return np.ones_like(d)
-        return 1.0 / np.sqrt(np.maximum(values, floor))
+@dataclass(frozen=True)
+class _Beads:
+    """The stack being fitted: stage positions ``zs`` (Nz,), data ``d`` (Nz, npix), the
+    weighting (``"poisson"`` or ``"uniform"``) and the floor of the Poisson weights."""
 
-    sw = root_weights(d)
+    zs: NDArray[np.float64]
+    d: NDArray[np.float64]
+    weights: str
+    floor: float
 
-    # Multi-start on a coarse model (fewer planes, coarser pupil grid): the primary astigmatism
-    # is the dominant even aberration of most systems and its sign is what a local fit started
-    # at zero can get wrong for strongly aberrated stacks; try it both ways along both axes.
-    coarse = model
-    if pupil_samples > _COARSE_SAMPLES:
-        small = PupilPSF(
-            base_mask,
-            na=na,
-            wavelength=wavelength,
-            n_immersion=n_immersion,
-            pupil_samples=_COARSE_SAMPLES,
-        )
-        if max(rows, cols) * px < small.field_size / 2:
-            coarse = _StackModel(small, terms, (rows, cols), px)
+    def root_weights(self, values: NDArray) -> NDArray:
+        """Square roots of the weights for expected values ``values`` (Nz, npix)."""
+        if self.weights == "uniform":
+            return np.ones_like(self.d)
+        return 1.0 / np.sqrt(np.maximum(values, self.floor))
+
+
+def _multi_start(
+    coarse: _StackModel,
+    beads: _Beads,
+    sw: NDArray,
+    coef0: NDArray[np.float64],
+    xy: tuple[float, float],
+) -> tuple[NDArray[np.float64], tuple[float, float, float]]:
+    """The best of short fits on the coarse model (fewer planes, coarser pupil grid) started
+    from ``coef0`` plus each primary-astigmatism offset of :data:`_ASTIG_STARTS`.
+
+    The primary astigmatism is the dominant even aberration of most systems, and its sign is
+    what a local fit started at zero can get wrong for strongly aberrated stacks; it is tried
+    both ways along both axes. Returns the coefficients and the position (nm).
+    """
+    xi, yi = xy
+    zs, d, terms = beads.zs, beads.d, coarse.terms
+    nz = zs.size
     sub = np.unique(np.round(np.linspace(0, nz - 1, min(nz, _COARSE_PLANES))).astype(int))
     i_c, i_s = terms.index((2, 2)), terms.index((2, -2))
     best: tuple[float, NDArray, tuple[float, float, float]] | None = None
@@ -585,17 +639,41 @@ def fit_pupil(
         if best is None or cost < best[0]:
             best = (cost, c, pos)
     assert best is not None
-    _, coef, pos = best
+    return best[1], best[2]
 
-    passes = 2 if weights == "poisson" else 1
+
+class _Fit(NamedTuple):
+    """End of the full-resolution fit: coefficients, position (nm), the square roots of the
+    last weights, Levenberg-Marquardt iterations over all passes and convergence."""
+
+    coef: NDArray[np.float64]
+    pos: tuple[float, float, float]
+    sw: NDArray[np.float64]
+    n_iter: int
+    converged: bool
+
+
+def _refine(
+    model: _StackModel,
+    beads: _Beads,
+    sw: NDArray,
+    coef: NDArray[np.float64],
+    pos: tuple[float, float, float],
+    max_iter: int,
+) -> _Fit:
+    """The full-resolution fit: one pass, and with Poisson weights a second one with the
+    weights of the first pass's model."""
+    zs, d = beads.zs, beads.d
+    nz = zs.size
+    passes = 2 if beads.weights == "poisson" else 1
     converged = False
     n_iter = 0
     for ipass in range(passes):
         if ipass > 0:
             f = model.images(coef, pos[0], pos[1], zs + pos[2]).reshape(nz, -1)
             lin = _linear(f, sw, d)[0]
-            sw = root_weights(f * lin[:, :1] + lin[:, 1:])
-        coef, pos, cost, iters, converged = _solve(model, zs, d, sw, coef, pos, int(max_iter))
+            sw = beads.root_weights(f * lin[:, :1] + lin[:, 1:])
+        coef, pos, cost, iters, converged = _solve(model, zs, d, sw, coef, pos, max_iter)
         n_iter += iters
         logger.info(
             "fit_pupil pass %d: cost %.6g after %d iterations (converged: %s)",
@@ -604,13 +682,26 @@ def fit_pupil(
             iters,
             converged,
         )
+    return _Fit(coef, pos, sw, n_iter, converged)
 
-    x0, y0, z0 = pos
-    f = model.images(coef, x0, y0, zs + z0).reshape(nz, -1)
-    lin = _linear(f, sw, d)[0]
+
+def _result(
+    model: _StackModel,
+    beads: _Beads,
+    fit: _Fit,
+    optics: _Optics,
+    base_mask: Mask | None,
+    pupil_samples: int,
+    z_range: tuple[float, float] | None,
+) -> RetrievalResult:
+    """The fitted model and the per-plane photons and background of the fit."""
+    zs, d = beads.zs, beads.d
+    x0, y0, z0 = fit.pos
+    f = model.images(fit.coef, x0, y0, zs + z0).reshape(zs.size, -1)
+    lin = _linear(f, fit.sw, d)[0]
     mu = f * lin[:, :1] + lin[:, 1:]
     residual_rms = float(np.linalg.norm(d - mu) / np.linalg.norm(d))
-    coefficients = {t: float(c) for t, c in zip(terms, coef, strict=True)}
+    coefficients = {t: float(c) for t, c in zip(model.terms, fit.coef, strict=True)}
     zmask = ZernikeMask(dict(coefficients))
     mask = zmask if base_mask is None else combine([base_mask, zmask])
     zr = (
@@ -618,15 +709,7 @@ def fit_pupil(
         if z_range is None
         else (float(z_range[0]), float(z_range[1]))
     )
-    psf = PupilPSF(
-        mask,
-        na=na,
-        wavelength=wavelength,
-        n_immersion=n_immersion,
-        z_range=zr,
-        pupil_samples=pupil_samples,
-        name="retrieved",
-    )
+    psf = optics.psf(mask, pupil_samples, z_range=zr, name="retrieved")
     return RetrievalResult(
         psf=psf,
         coefficients=coefficients,
@@ -636,6 +719,6 @@ def fit_pupil(
         photons=lin[:, 0].copy(),
         background=lin[:, 1].copy(),
         residual_rms=residual_rms,
-        n_iterations=n_iter,
-        converged=converged,
+        n_iterations=fit.n_iter,
+        converged=fit.converged,
     )

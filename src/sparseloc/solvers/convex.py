@@ -47,21 +47,22 @@ conditions of the full problem at the same ``lam`` with one product ``B' r``. Th
 last active set and ``lam``; when none violates, the restricted solution *is* the full one, with
 the same certificate as without the working set (an unsafe screening rule made exact by the
 check: atoms are only ever added, so nothing the solution needs can be discarded). This
-replaces one product with the whole dictionary per active-set iteration by one per round
-(typically 1-2 on the coarse dictionary, 5-9 on the hybrid's fine boxes).
+replaces one product with the whole dictionary per active-set iteration by one per round, and
+the rounds are few. The problem, the active-set solver and the working set's bookkeeping live
+in :mod:`sparseloc.solvers.convex_active`.
 
 Edge cases of the constrained form: when the background alone fits (``||y - b_0|| <= eps``)
 the answer is ``x = 0`` (``lam`` is then reported as the smallest penalty that gives it); when
 even the non-negative least-squares fit (``lam -> 0``) leaves ``||r|| > eps`` the problem is
 infeasible: by default (``on_infeasible="nnls"``) that fit is returned with ``feasible=False``
-and a warning is logged; ``on_infeasible="raise"`` raises ``ValueError`` with the numbers.
+and logged (at info level: restricted dictionaries are often infeasible by design);
+``on_infeasible="raise"`` raises ``ValueError`` with the numbers.
 
 Cost: each outer iteration is one product ``B' r`` (``O(m n)``, ``n`` the working set's size
 when there is one) plus a Cholesky of the passive set (``O(k^3)``, ``k`` at most a few tens
-here); a first-order method (FISTA) on these strongly correlated atoms needs tens of thousands
-of such products for a 1e-7 KKT accuracy, so none is offered. On the paper's coarse dictionary
-(2904 atoms, 11 x 11 windows) a window takes a few milliseconds, a few hundred times less than
-CVXPY (``benchmarks/speed_co.py``).
+here); a first-order method (FISTA) on these strongly correlated atoms needs far more such
+products to reach the same KKT accuracy, so none is offered. On the paper's coarse dictionary a
+window takes a few milliseconds (``benchmarks/speed_co.py``).
 """
 
 from __future__ import annotations
@@ -74,7 +75,15 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg.lapack import dposv as _posv
+
+from .convex_active import GRAM_CACHE_MAX as GRAM_CACHE_MAX
+from .convex_active import (
+    Problem,
+    WorkingSet,
+    active_set,
+    face_inverse,
+    kkt_violation,
+)
 
 log = logging.getLogger(__name__)
 
@@ -85,8 +94,6 @@ __all__ = [
     "solve_penalized",
 ]
 
-#: Cache the full Gram matrix ``B' B`` when there are at most this many atoms.
-GRAM_CACHE_MAX = 512
 #: Solve on a working set of atoms (see the module notes) when there are more atoms than this.
 WORKING_SET_MIN_ATOMS = 1024
 #: Initial size of the working set.
@@ -95,10 +102,6 @@ WORKING_SET_SIZE = 256
 WORKING_SET_GROW = 128
 #: Most penalties tried by :func:`solve_constrained` before it gives up.
 MAX_LAMBDA_EVALUATIONS = 200
-# Relative eigenvalue threshold below which a face's Gram matrix is treated as singular.
-_SINGULAR_RTOL = 1e-12
-# Cholesky is trusted when min(diag L) / max(diag L) exceeds this (condition number <~ 1e14).
-_CHOL_DIAG_RATIO = 1e-7
 
 
 # -- result ----------------------------------------------------------------------------------
@@ -168,6 +171,12 @@ def _check_y(y: ArrayLike, m: int) -> NDArray[np.float64]:
     return arr.reshape(-1)
 
 
+def _check_system(A: ArrayLike, y: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The dictionary ``A`` (m, n) and the window ``y`` as its m values."""
+    Am = _check_matrix(A)
+    return Am, _check_y(y, Am.shape[0])
+
+
 def _check_scalar(value: float, name: str, *, nonneg: bool = True) -> float:
     try:
         v = float(value)
@@ -221,335 +230,6 @@ def _check_max_iter(max_iter: int | None, default: int) -> int:
     return int(max_iter)
 
 
-# -- the problem -----------------------------------------------------------------------------
-class _Problem:
-    """``B = [A, 1]`` (or ``A`` with a fixed background subtracted from ``y``), ``z = [x, b]``.
-
-    ``B`` is held as one C-ordered matrix (a copy of ``A`` with the column of ones appended
-    when the background is estimated) unless ``copy=False``: the working set's parent problem
-    only needs products with ``A``.
-    """
-
-    def __init__(
-        self,
-        A: NDArray,
-        y: NDArray,
-        background: float | None,
-        *,
-        cache_gram: bool = True,
-        copy: bool = True,
-        B: NDArray | None = None,
-        Bty: NDArray | None = None,
-        bty_max: float = 0.0,
-    ) -> None:
-        self.A = A
-        self.m, self.n = A.shape
-        self.has_bg = background is None
-        self.b_fixed = 0.0 if background is None else float(background)
-        self.y_raw = y
-        self.y = y - self.b_fixed if self.b_fixed else y
-        self.N = self.n + int(self.has_bg)
-        self.B: NDArray | None = B
-        if B is None and not self.has_bg:
-            self.B = A
-        elif B is None and copy:
-            self.B = np.empty((self.m, self.N))
-            self.B[:, : self.n] = A
-            self.B[:, self.n] = 1.0
-        self.Bty = self.rmatvec(self.y) if Bty is None else Bty
-        # the tolerances' scale: a sub-problem inherits its parent's, so both certify alike
-        self._bty_max = max(float(np.max(np.abs(self.Bty))), bty_max)
-        self._gram = None
-        if cache_gram and self.N <= GRAM_CACHE_MAX:
-            C = self.cols(np.arange(self.N))
-            self._gram = C.T @ C
-
-    def matvec(self, z: NDArray) -> NDArray:
-        """``B z`` (only the non-zero columns are used when ``z`` is sparse)."""
-        if self.B is not None:
-            nz = np.flatnonzero(z)
-            return self.B[:, nz] @ z[nz] if nz.size < self.N // 4 else self.B @ z
-        x = z[: self.n]
-        nz = np.flatnonzero(x)
-        out = self.A[:, nz] @ x[nz] if nz.size < self.n // 4 else self.A @ x
-        return out + z[self.n]
-
-    def rmatvec(self, r: NDArray) -> NDArray:
-        """``B' r`` for ``r`` of shape (m,) or (m, k)."""
-        if r.ndim == 2:  # column by column: narrow matrix products are slow in BLAS
-            return np.stack([self.rmatvec(r[:, i]) for i in range(r.shape[1])], axis=1)
-        if self.B is not None:
-            return r @ self.B  # row-vector GEMV on the C-ordered matrix
-        out = np.empty(self.N)
-        out[: self.n] = r @ self.A
-        out[self.n] = r.sum()
-        return out
-
-    def cols(self, idx: NDArray | Sequence[int]) -> NDArray:
-        if self.B is not None:
-            return self.B[:, idx]
-        idx = np.asarray(idx, dtype=np.intp)
-        out = np.empty((self.m, idx.size))
-        atom = idx < self.n
-        out[:, atom] = self.A[:, idx[atom]]
-        out[:, ~atom] = 1.0
-        return out
-
-    def gram(self, idx: NDArray | Sequence[int]) -> NDArray:
-        if self._gram is not None:
-            idx = np.asarray(idx, dtype=np.intp)
-            return self._gram[np.ix_(idx, idx)]
-        C = self.cols(idx)
-        return C.T @ C
-
-    def neg_gradient(self, z: NDArray, P: Sequence[int], q_all: NDArray, c: NDArray) -> NDArray:
-        """``-(B'(Bz - y) + c)`` for ``z`` supported on ``P``."""
-        if self._gram is not None:
-            idx = np.asarray(P, dtype=np.intp)
-            return q_all - self._gram[:, idx] @ z[idx]
-        r = self.y - self.cols(P) @ z[P] if P else self.y
-        return self.rmatvec(r) - c
-
-    def penalty(self, lam: float | NDArray) -> NDArray:
-        """``c`` of shape (N,): the penalty on every atom, 0 on the background."""
-        c = np.zeros(self.N)
-        c[: self.n] = lam
-        return c
-
-    def split(self, z: NDArray) -> tuple[NDArray, float]:
-        x = z[: self.n].copy()
-        b = float(z[self.n]) if self.has_bg else self.b_fixed
-        return x, b
-
-    def residual(self, z: NDArray) -> NDArray:
-        return self.y - self.matvec(z)
-
-    def scale(self, c: NDArray) -> float:
-        """Magnitude of the gradient's terms (for absolute tolerances)."""
-        s = max(self._bty_max, float(np.max(np.abs(c))) if c.size else 0.0)
-        return s if s > 0 else 1.0
-
-
-class _WorkingSet:
-    """A growing set of a problem's atoms and its sub-problem (atoms in the order added).
-
-    The sub-problem's matrix ``[A_W, 1]`` lives in a buffer with spare columns, so adding
-    atoms copies only the new columns (the background column moves to the end).
-    """
-
-    def __init__(self, prob: _Problem, atoms: NDArray) -> None:
-        self.prob = prob
-        self.atoms = np.empty(0, dtype=np.intp)
-        self.pos = np.full(prob.n, -1, dtype=np.intp)  # atom -> its index in the sub-problem
-        self._buf = np.empty((prob.m, 0))
-        self.add(atoms)
-
-    @property
-    def size(self) -> int:
-        return self.atoms.size
-
-    def add(self, new: NDArray) -> None:
-        """Append the atoms ``new`` (not yet in the set)."""
-        prob = self.prob
-        k, a = self.atoms.size, new.size
-        need = k + a + int(prob.has_bg)
-        if need > self._buf.shape[1]:
-            buf = np.empty((prob.m, max(need, 2 * self._buf.shape[1])))
-            buf[:, :k] = self._buf[:, :k]
-            self._buf = buf
-        self._buf[:, k : k + a] = prob.A[:, new]
-        if prob.has_bg:
-            self._buf[:, k + a] = 1.0
-        self.pos[new] = np.arange(k, k + a)
-        self.atoms = np.concatenate([self.atoms, new])
-
-    def problem(self) -> _Problem:
-        """The problem restricted to the set (same ``y``, background and tolerance scale)."""
-        prob, k = self.prob, self.atoms.size
-        B = self._buf[:, : k + int(prob.has_bg)]
-        Bty = np.concatenate([prob.Bty[self.atoms], prob.Bty[prob.n :]])
-        bg = None if prob.has_bg else prob.b_fixed
-        return _Problem(
-            B[:, :k], prob.y_raw, bg, cache_gram=False, B=B, Bty=Bty, bty_max=prob._bty_max
-        )
-
-    def to_sub(self, P: Sequence[int]) -> list[int]:
-        """Indices ``P`` of the full ``z`` (background at ``n``) that lie in the set, as
-        indices of the sub-problem's ``z`` (background at ``size``)."""
-        n = self.prob.n
-        out = []
-        for p in P:
-            if p == n:
-                out.append(self.atoms.size)
-            elif self.pos[p] >= 0:
-                out.append(int(self.pos[p]))
-        return out
-
-    def to_full(self, z_sub: NDArray) -> NDArray:
-        """The sub-problem's ``z`` as the full problem's."""
-        prob, k = self.prob, self.atoms.size
-        z = np.zeros(prob.N)
-        z[self.atoms] = z_sub[:k]
-        if prob.has_bg:
-            z[prob.n] = z_sub[k]
-        return z
-
-    def to_full_index(self, idx: Sequence[int]) -> list[int]:
-        """Indices of the sub-problem's ``z`` as indices of the full one."""
-        k, n = self.atoms.size, self.prob.n
-        return [int(self.atoms[i]) if i < k else n for i in idx]
-
-
-# -- face solves -----------------------------------------------------------------------------
-def _cholesky_solve(G: NDArray, rhs: NDArray) -> NDArray | None:
-    """``G^-1 rhs`` by Cholesky (LAPACK ``posv``), or None when ``G`` is not safely definite."""
-    L, s, info = _posv(G, rhs, lower=1)
-    if info != 0:
-        return None
-    dg = np.diagonal(L)
-    if not dg.min() > _CHOL_DIAG_RATIO * dg.max():
-        return None
-    return s
-
-
-def _face_solve(G: NDArray, q: NDArray) -> tuple[NDArray | None, NDArray | None]:
-    """Minimise ``0.5 z'Gz - q'z`` without constraints.
-
-    Returns ``(s, None)`` with a minimiser (the minimum-norm one if ``G`` is singular but ``q``
-    lies in its range) or ``(None, d)`` with a direction ``G d = 0, q'd > 0`` along which the
-    objective decreases without bound.
-    """
-    s = _cholesky_solve(G, q)
-    if s is not None and np.isfinite(s).all():
-        return s, None
-    vals, vecs = np.linalg.eigh(G)
-    keep = vals > _SINGULAR_RTOL * max(float(vals[-1]), 1e-300) * G.shape[0]
-    proj = vecs.T @ q
-    null = ~keep
-    qn = proj[null]
-    qnorm = float(np.linalg.norm(q))
-    if qn.size and float(np.linalg.norm(qn)) > 1e-9 * max(qnorm, 1e-300):
-        return None, vecs[:, null] @ qn
-    return vecs[:, keep] @ (proj[keep] / vals[keep]), None
-
-
-def _face_inverse(G: NDArray, rhs: NDArray) -> NDArray:
-    """``G^+ rhs`` (Cholesky, or eigen-decomposition when ``G`` is singular)."""
-    s = _cholesky_solve(G, rhs)
-    if s is not None:
-        return s
-    vals, vecs = np.linalg.eigh(G)
-    keep = vals > _SINGULAR_RTOL * max(float(vals[-1]), 1e-300) * G.shape[0]
-    return vecs[:, keep] @ ((vecs[:, keep].T @ rhs) / vals[keep].reshape(-1, *[1] * (rhs.ndim - 1)))
-
-
-# -- the active-set solver -------------------------------------------------------------------
-@dataclass
-class _ASState:
-    z: NDArray
-    passive: list[int]
-    n_iter: int
-    converged: bool
-
-
-def _active_set(
-    prob: _Problem,
-    c: NDArray,
-    init: Sequence[int],
-    tol_abs: float,
-    max_iter: int,
-) -> _ASState:
-    """Lawson-Hanson for ``min 0.5||Bz - y||^2 + c'z, z >= 0`` from the passive set ``init``."""
-    N = prob.N
-    q_all = prob.Bty - c
-    z = np.zeros(N)
-    P: list[int] = sorted({int(i) for i in init})
-    it = 0
-    # Warm start: solve on the initial face and drop the non-positive entries until feasible.
-    while P:
-        it += 1
-        s, d = _face_solve(prob.gram(P), q_all[P])
-        if s is None:
-            P = []
-            break
-        if s.min() > 0:
-            z[P] = s
-            break
-        P = [p for p, v in zip(P, s, strict=True) if v > 0]
-    excluded: set[int] = set()
-    converged = False
-    while True:
-        w = prob.neg_gradient(z, P, q_all, c)
-        w[P] = -np.inf
-        if excluded:
-            w[list(excluded)] = -np.inf
-        j = int(np.argmax(w))
-        if not w[j] > tol_abs:
-            converged = True
-            break
-        if it >= max_iter:
-            break
-        P.append(j)
-        first = True
-        progressed = False
-        while it < max_iter:
-            it += 1
-            idx = np.asarray(P)
-            zP = z[idx]
-            s, d = _face_solve(prob.gram(idx), q_all[idx])
-            if s is not None and s.min() > 0:
-                z[idx] = s
-                progressed = True
-                break
-            if s is not None:
-                if first and s[-1] <= 0:  # the new atom cannot enter (round-off): skip it
-                    break
-                neg = s <= 0
-                ratio = zP[neg] / (zP[neg] - s[neg])
-                alpha = float(ratio.min())
-                znew = zP + alpha * (s - zP)
-                drop = np.zeros(idx.size, bool)
-                drop[np.flatnonzero(neg)[np.argmin(ratio)]] = True
-            else:  # unbounded face: move along d to the boundary
-                if first and d[-1] <= 0:
-                    break
-                neg = d < 0
-                if not np.any(neg):
-                    raise RuntimeError("the penalised problem is unbounded below (negative lam?)")
-                ratio = zP[neg] / -d[neg]
-                t = float(ratio.min())
-                znew = zP + t * d
-                drop = np.zeros(idx.size, bool)
-                drop[np.flatnonzero(neg)[np.argmin(ratio)]] = True
-            drop |= znew <= 0
-            znew[drop] = 0.0
-            z[idx] = znew
-            progressed = progressed or np.any(znew != zP)
-            P = [p for p, dr in zip(P, drop, strict=True) if not dr]
-            first = False
-        if first and not progressed and P and P[-1] == j:
-            P.pop()
-            excluded.add(j)
-            log.debug("active set: atom %d rejected by its face solve", j)
-        elif progressed:
-            excluded.clear()
-        if it >= max_iter:
-            break
-    off = np.ones(N, bool)
-    off[P] = False
-    z[off] = 0.0
-    return _ASState(z=z, passive=P, n_iter=it, converged=converged)
-
-
-def _kkt_violation(prob: _Problem, z: NDArray, c: NDArray) -> float:
-    """Largest violation of the KKT conditions (gradient units)."""
-    g = prob.rmatvec(prob.matvec(z) - prob.y) + c
-    on = z > 0
-    v_on = float(np.max(np.abs(g[on]))) if np.any(on) else 0.0
-    v_off = float(np.max(-g[~on])) if np.any(~on) else 0.0
-    return max(v_on, v_off, 0.0)
-
-
 # -- penalised form --------------------------------------------------------------------------
 def solve_penalized(
     A: ArrayLike,
@@ -592,9 +272,8 @@ def solve_penalized(
     ValueError
         On invalid input (the message names the argument).
     """
-    Am = _check_matrix(A)
-    m, n = Am.shape
-    yv = _check_y(y, m)
+    Am, yv = _check_system(A, y)
+    n = Am.shape[1]
     lam_v = _check_lam(lam, n)
     bg = None if background is None else _check_scalar(background, "background", nonneg=False)
     tol = _check_tol(tol)
@@ -605,17 +284,17 @@ def solve_penalized(
         if x0a.shape != (n,) or not np.all(np.isfinite(x0a)):
             raise ValueError(f"x0 must be a finite array of shape ({n},), got shape {x0a.shape}")
         init = list(np.flatnonzero(x0a > 0))
-    prob = _Problem(Am, yv, bg)
+    prob = Problem(Am, yv, bg)
     if prob.has_bg:
         init.append(n)
     c = prob.penalty(lam_v)
     tol_abs = tol * prob.scale(c)
-    st = _active_set(prob, c, init, tol_abs, max_it)
+    st = active_set(prob, c, init, tol_abs, max_it)
     return _penalized_result(prob, st.z, c, lam_v, st.n_iter, st.converged, tol_abs)
 
 
 def _penalized_result(
-    prob: _Problem,
+    prob: Problem,
     z: NDArray,
     c: NDArray,
     lam: float | NDArray,
@@ -626,7 +305,7 @@ def _penalized_result(
     x, b = prob.split(z)
     rn = float(np.linalg.norm(prob.residual(z)))
     obj = 0.5 * rn**2 + float(c[: prob.n] @ x)
-    viol = _kkt_violation(prob, z, c)
+    viol = kkt_violation(prob, z, c)
     ok = converged and viol <= 10 * tol_abs
     if not ok:
         log.warning("penalised solve not converged (KKT violation %.3g, tol %.3g)", viol, tol_abs)
@@ -676,7 +355,7 @@ class _Piece:
         return t if t >= 0 else None
 
 
-def _piece(prob: _Problem, P: Sequence[int], wts: NDArray, tol_abs: float) -> _Piece:
+def _piece(prob: Problem, P: Sequence[int], wts: NDArray, tol_abs: float) -> _Piece:
     """The piece of the path through the active set ``P`` and the ``lam`` where it is optimal."""
     idx = np.asarray(sorted(P), dtype=np.intp)
     if idx.size == 0:
@@ -685,7 +364,7 @@ def _piece(prob: _Problem, P: Sequence[int], wts: NDArray, tol_abs: float) -> _P
         a = g = np.zeros(0)
     else:
         C = prob.cols(idx)
-        sol = _face_inverse(C.T @ C, np.stack([prob.Bty[idx], wts[idx]], axis=1))
+        sol = face_inverse(C.T @ C, np.stack([prob.Bty[idx], wts[idx]], axis=1))
         a, g = sol[:, 0], sol[:, 1]
         r0 = prob.y - C @ a
         v = C @ g
@@ -772,7 +451,7 @@ def solve_constrained(
         Most face solves per penalised solve; default ``5 * n + 100``.
     on_infeasible : {"nnls", "raise"}
         What to do when even the non-negative least-squares fit has ``||r|| > eps``: return it
-        with ``feasible=False`` (and ``lam = 0``), logging a warning, or raise ``ValueError``.
+        with ``feasible=False`` (and ``lam = 0``), logging it, or raise ``ValueError``.
     working_set : bool, optional
         Solve on a working set of atoms that grows until the KKT conditions hold on every atom
         (see the module notes); same answer, fewer products with the whole dictionary. Default
@@ -791,9 +470,8 @@ def solve_constrained(
     ValueError
         On invalid input, or (``on_infeasible="raise"``) when the problem has no feasible point.
     """
-    Am = _check_matrix(A)
-    m, n = Am.shape
-    yv = _check_y(y, m)
+    Am, yv = _check_system(A, y)
+    n = Am.shape[1]
     e = _check_scalar(eps, "eps")
     bg = None if background is None else _check_scalar(background, "background", nonneg=False)
     w = _check_weights(weights, n)
@@ -802,10 +480,30 @@ def solve_constrained(
     if on_infeasible not in ("nnls", "raise"):
         raise ValueError(f"on_infeasible must be 'nnls' or 'raise', got {on_infeasible!r}")
     use_ws = _use_working_set(working_set, n)
-    prob = _Problem(Am, yv, bg, cache_gram=not use_ws, copy=not use_ws)
+    prob = Problem(Am, yv, bg, cache_gram=not use_ws, copy=not use_ws)
     wts = prob.penalty(w)  # (N,) weights with 0 on the background
+    z, P, rn, score = _background_fit(prob, w)
+    lam_max = float(np.max(score))
+    if rn <= e:
+        return _background_result(prob, z, rn, e, lam_max)
+    if lam_max <= 0:  # x = 0 is the non-negative least-squares fit and it does not reach eps
+        return _infeasible(prob, z, rn, e, wts, 0, on_infeasible)
+    r_tol = 1e-9 * max(float(np.linalg.norm(prob.y)), 1.0)  # photons: "||r|| = eps" tolerance
+    search = _SearchArgs(e, lam_max, rn, tol, max_it, r_tol)
+    if use_ws:
+        out = _search_working_set(prob, w, score, P, search)
+    else:
+        out = _search(prob, wts, P, search)
+    return _constrained_result(prob, out, e, wts, on_infeasible)
 
-    # x = 0: the background alone
+
+def _background_fit(
+    prob: Problem, w: NDArray
+) -> tuple[NDArray, list[int], float, NDArray[np.float64]]:
+    """The solution ``x = 0`` (the background alone): ``z``, its passive set, its residual norm
+    and each atom's correlation with the residual over its weight (the largest is ``lam_max``,
+    the smallest penalty that keeps ``x = 0``)."""
+    n = prob.n
     z = np.zeros(prob.N)
     P: list[int] = []
     if prob.has_bg:
@@ -815,44 +513,60 @@ def solve_constrained(
     r = prob.residual(z)
     rn = float(np.linalg.norm(r))
     corr = prob.Bty[:n] if not prob.has_bg else r @ prob.A  # r = y there: B'y is known
-    score = corr / w
-    lam_max = float(np.max(score))
-    if rn <= e:
-        x, b = prob.split(z)
-        log.debug("constrained: the background alone fits (||r|| = %.4g <= eps = %.4g)", rn, e)
-        return ConvexResult(
-            coef=x,
-            background=b,
-            lam=max(lam_max, 0.0),
-            objective=0.0,
-            residual_norm=rn,
-            n_iter=0,
-            converged=True,
-        )
-    if lam_max <= 0:  # x = 0 is the non-negative least-squares fit and it does not reach eps
-        return _infeasible(prob, z, rn, e, wts, 0, on_infeasible)
+    return z, P, rn, corr / w
 
-    r_tol = 1e-9 * max(float(np.linalg.norm(prob.y)), 1.0)  # photons: "||r|| = eps" tolerance
-    if not use_ws:
-        out = _search(prob, e, wts, lam_max, rn, P, tol, max_it, r_tol)
-        return _constrained_result(prob, out, e, wts, on_infeasible)
 
-    # Working set: the atoms best correlated with the background-only residual, grown by the
-    # atoms that violate the KKT conditions of the restricted solution until none does.
-    ws = _WorkingSet(prob, _top(score, min(n, WORKING_SET_SIZE)))
+def _background_result(
+    prob: Problem, z: NDArray, rn: float, eps: float, lam_max: float
+) -> ConvexResult:
+    x, b = prob.split(z)
+    log.debug("constrained: the background alone fits (||r|| = %.4g <= eps = %.4g)", rn, eps)
+    return ConvexResult(
+        coef=x,
+        background=b,
+        lam=max(lam_max, 0.0),
+        objective=0.0,
+        residual_norm=rn,
+        n_iter=0,
+        converged=True,
+    )
+
+
+@dataclass(frozen=True)
+class _SearchArgs:
+    """What the penalty search needs besides the problem: the bound ``eps``, the smallest
+    penalty ``lam_max`` with ``x = 0`` and the residual norm ``rn_max`` there, the relative KKT
+    tolerance, the face solves per penalised solve and the tolerance of ``||r|| = eps``."""
+
+    eps: float
+    lam_max: float
+    rn_max: float
+    tol: float
+    max_it: int
+    r_tol: float
+
+
+def _search_working_set(
+    prob: Problem, w: NDArray, score: NDArray, P: list[int], args: _SearchArgs
+) -> _Outcome:
+    """:func:`_search` on a working set: the atoms best correlated with the background-only
+    residual, grown by the atoms that violate the KKT conditions of the restricted solution
+    until none does (see the module notes)."""
+    n = prob.n
+    wts = prob.penalty(w)
+    ws = WorkingSet(prob, _top(score, min(n, WORKING_SET_SIZE)))
     lam0 = None
     total_it = 0
     for n_round in range(1, n + 2):
         sub = ws.problem()
-        w_sub = sub.penalty(w[ws.atoms])
-        out = _search(sub, e, w_sub, lam_max, rn, ws.to_sub(P), tol, max_it, r_tol, lam0)
+        out = _search(sub, sub.penalty(w[ws.atoms]), ws.to_sub(P), args, lam0)
         total_it += out.n_iter
         z = ws.to_full(out.z)
         P = ws.to_full_index(out.passive)
         if ws.size == n:
             break
         lam = out.lam
-        tol_abs = tol * prob.scale(lam * wts if lam > 0 else wts * lam_max)
+        tol_abs = args.tol * prob.scale(lam * wts if lam > 0 else wts * args.lam_max)
         g = prob.rmatvec(prob.residual(z))[:n] - lam * w  # minus the gradient, atoms only
         g[ws.atoms] = -np.inf
         viol = np.flatnonzero(g > tol_abs)
@@ -865,8 +579,7 @@ def solve_constrained(
         grow = max(WORKING_SET_GROW, ws.size // 2)
         ws.add(viol if viol.size <= grow else _top(g, grow))
         lam0 = lam if out.kind == "found" and lam > 0 else None
-    out = _Outcome(out.kind, z, out.lam, P, total_it, out.converged, out.rn)
-    return _constrained_result(prob, out, e, wts, on_infeasible)
+    return _Outcome(out.kind, z, out.lam, P, total_it, out.converged, out.rn)
 
 
 def _use_working_set(working_set: bool | None, n: int) -> bool:
@@ -896,7 +609,7 @@ class _Outcome:
 
 
 def _constrained_result(
-    prob: _Problem, out: _Outcome, eps: float, wts: NDArray, on_infeasible: str
+    prob: Problem, out: _Outcome, eps: float, wts: NDArray, on_infeasible: str
 ) -> ConvexResult:
     if out.kind == "infeasible":
         return _infeasible(prob, out.z, out.rn, eps, wts, out.n_iter, on_infeasible)
@@ -915,36 +628,25 @@ def _constrained_result(
 
 
 def _search(
-    prob: _Problem,
-    e: float,
+    prob: Problem,
     wts: NDArray,
-    lam_max: float,
-    rn_max: float,
     P: list[int],
-    tol: float,
-    max_it: int,
-    r_tol: float,
+    args: _SearchArgs,
     lam0: float | None = None,
 ) -> _Outcome:
-    """The penalty ``lam`` whose penalised solution has ``||r|| = e`` (see the module notes).
+    """The penalty ``lam`` whose penalised solution has ``||r|| = eps`` (see the module notes).
 
-    ``lam_max`` is the smallest penalty with ``x = 0`` and ``rn_max`` the residual norm there;
-    ``P`` the initial passive set; ``lam0`` an optional first guess in ``(0, lam_max)``.
+    ``wts`` are the weights (N,) with 0 on the background, ``P`` the initial passive set and
+    ``lam0`` an optional first guess in ``(0, lam_max)``.
     """
-    # Bracket [lo, hi] on lam with g = ||r||^2 - eps^2 at both ends; while lo = 0, g_lo is its
-    # lower bound -eps^2 (a zero residual).
-    lo, g_lo = 0.0, -e * e
-    hi, g_hi = lam_max, rn_max * rn_max - e * e  # at lam_max the solution is x = 0 (known)
-    lam = lam_max * (e * e) / (e * e + g_hi)  # regula falsi
-    if lam0 is not None and 0 < lam0 < lam_max:
-        lam = lam0
-    side = 0
-    newton_streak = 0
+    e = args.eps
+    br = _Bracket.start(e, args.lam_max, args.rn_max)
+    lam = br.first_guess(lam0)
     total_it = 0
     for n_eval in range(1, MAX_LAMBDA_EVALUATIONS + 1):
         c = lam * wts
-        tol_abs = tol * prob.scale(c if lam > 0 else wts * lam_max)
-        st = _active_set(prob, c, P, tol_abs, max_it)
+        tol_abs = args.tol * prob.scale(c if lam > 0 else wts * args.lam_max)
+        st = active_set(prob, c, P, tol_abs, args.max_it)
         total_it += st.n_iter
         P = list(st.passive)
         pc = _piece(prob, P, wts, tol_abs)
@@ -954,67 +656,114 @@ def _search(
             "constrained eval %d: lam=%.6g ||r||=%.6g eps=%.6g piece=[%.6g, %.6g] root=%s |P|=%d",
             n_eval, lam, rn, e, pc.lo, pc.hi, root, len(P),
         )  # fmt: skip
-        if abs(rn - e) <= r_tol:  # this penalised solution already meets the bound
+        if abs(rn - e) <= args.r_tol:  # this penalised solution already meets the bound
             return _Outcome("found", st.z, float(lam), P, total_it, st.converged, rn)
         rejected = False
         if root is not None:
             slack = 1e-9 * max(root, lam)
             if pc.lo - slack <= root <= pc.hi + slack:
-                done = _finish(prob, pc, root, e, wts, tol_abs, r_tol)
+                done = _finish(prob, pc, root, e, wts, tol_abs, args.r_tol)
                 if done is not None:
                     z, rn_f, ok = done
                     return _Outcome("found", z, float(root), list(pc.P), total_it, ok, rn_f)
                 rejected = True
         if pc.lo <= 0 and root is None and rn > e:
-            # this active set is optimal down to lam = 0: its lam = 0 end is the NNLS fit
-            z0 = np.zeros(prob.N)
-            if pc.P.size:
-                z0[pc.P] = np.maximum(pc.a, 0.0)
-            r0n = float(np.linalg.norm(prob.residual(z0)))
-            kind = "found" if r0n <= e + r_tol else "infeasible"  # found: eps = 0, exact fit
-            return _Outcome(kind, z0, 0.0, list(pc.P), total_it, True, r0n)
-        # shrink the bracket past the whole piece (only to lam itself if its root failed or the
-        # piece, by round-off, does not contain lam); Illinois rule: when the same end moves
-        # twice, halve the other end's g
+            return _nnls_end(prob, pc, e, args.r_tol, total_it)
+        if br.shrink(pc, lam, rn, rejected):
+            break
+        lam = br.next_guess(root)
+    # not found: the closest evaluated solution
+    log.debug("constrained search: the penalty was not found (bracket [%.6g, %.6g])", br.lo, br.hi)
+    c = br.hi * wts
+    st = active_set(prob, c, P, args.tol * prob.scale(c), args.max_it)
+    total_it += st.n_iter
+    rn = float(np.linalg.norm(prob.residual(st.z)))
+    return _Outcome("not_found", st.z, float(br.hi), list(st.passive), total_it, False, rn)
+
+
+def _nnls_end(prob: Problem, pc: _Piece, eps: float, r_tol: float, total_it: int) -> _Outcome:
+    """The ``lam = 0`` end (the NNLS fit) of a piece that is optimal down to ``lam = 0``:
+    infeasible unless it fits exactly (``eps = 0``)."""
+    z0 = np.zeros(prob.N)
+    if pc.P.size:
+        z0[pc.P] = np.maximum(pc.a, 0.0)
+    r0n = float(np.linalg.norm(prob.residual(z0)))
+    kind = "found" if r0n <= eps + r_tol else "infeasible"  # found: eps = 0, exact fit
+    return _Outcome(kind, z0, 0.0, list(pc.P), total_it, True, r0n)
+
+
+@dataclass
+class _Bracket:
+    """Bracket ``[lo, hi]`` on ``lam`` with ``g = ||r||^2 - eps^2`` at both ends.
+
+    While ``lo = 0``, ``g_lo`` is its lower bound ``-eps^2`` (a zero residual); at ``hi =
+    lam_max`` the solution is ``x = 0`` (known). ``side`` is the end that moved last (1: hi,
+    -1: lo) for the Illinois rule.
+    """
+
+    eps: float
+    lam_max: float
+    lo: float
+    g_lo: float
+    hi: float
+    g_hi: float
+    side: int = 0
+    newton_streak: int = 0
+
+    @classmethod
+    def start(cls, e: float, lam_max: float, rn_max: float) -> _Bracket:
+        return cls(e, lam_max, 0.0, -e * e, lam_max, rn_max * rn_max - e * e)
+
+    def first_guess(self, lam0: float | None) -> float:
+        """``lam0`` when it lies in ``(0, lam_max)``, otherwise regula falsi on the bracket."""
+        e = self.eps
+        lam = self.lam_max * (e * e) / (e * e + self.g_hi)  # regula falsi
+        if lam0 is not None and 0 < lam0 < self.lam_max:
+            lam = lam0
+        return lam
+
+    def shrink(self, pc: _Piece, lam: float, rn: float, rejected: bool) -> bool:
+        """Move the end on ``lam``'s side past the whole piece; True when the bracket closed.
+
+        Only to ``lam`` itself if its root failed or the piece, by round-off, does not contain
+        ``lam``. Illinois rule: when the same end moves twice, halve the other end's ``g``.
+        """
+        e = self.eps
         slack = 1e-9 * lam
         rejected = rejected or not (pc.lo - slack <= lam <= pc.hi + slack)
         g = rn * rn - e * e
         if rn > e:
-            new = lam if rejected else min(lam, max(pc.lo, lo))
-            hi, g_hi = new, (g if new == lam else pc.sq_norm(new) - e * e)
-            if side == 1:
-                g_lo *= 0.5
-            side = 1
+            new = lam if rejected else min(lam, max(pc.lo, self.lo))
+            self.hi, self.g_hi = new, (g if new == lam else pc.sq_norm(new) - e * e)
+            if self.side == 1:
+                self.g_lo *= 0.5
+            self.side = 1
         else:
-            new = lam if rejected else max(lam, min(pc.hi, hi))
-            lo, g_lo = new, (g if new == lam else pc.sq_norm(new) - e * e)
-            if side == -1:
-                g_hi *= 0.5
-            side = -1
-        if hi <= lo * (1 + 1e-15):
-            break
-        # next lam: this piece's root (a Newton step) when it lies inside the bracket, at most
-        # three times in a row; otherwise regula falsi on g(lam), kept inside the bracket
-        if lo > 0 and root is not None and lo < root < hi and newton_streak < 3:
+            new = lam if rejected else max(lam, min(pc.hi, self.hi))
+            self.lo, self.g_lo = new, (g if new == lam else pc.sq_norm(new) - e * e)
+            if self.side == -1:
+                self.g_hi *= 0.5
+            self.side = -1
+        return self.hi <= self.lo * (1 + 1e-15)
+
+    def next_guess(self, root: float | None) -> float:
+        """The piece's root (a Newton step) when it lies inside the bracket, at most three
+        times in a row; otherwise regula falsi on ``g(lam)``, kept inside the bracket."""
+        lo, hi = self.lo, self.hi
+        if lo > 0 and root is not None and lo < root < hi and self.newton_streak < 3:
             lam = float(root)
-            newton_streak += 1
+            self.newton_streak += 1
         else:
-            t = -g_lo / (g_hi - g_lo) if g_hi > g_lo else 0.5
+            t = -self.g_lo / (self.g_hi - self.g_lo) if self.g_hi > self.g_lo else 0.5
             lam = lo + min(max(t, 1e-3), 1 - 1e-3) * (hi - lo)
-            newton_streak = 0
-        if lo == 0 and hi <= 1e-12 * lam_max:
+            self.newton_streak = 0
+        if lo == 0 and hi <= 1e-12 * self.lam_max:
             lam = 0.0  # the non-negative least-squares end
-    # not found: the closest evaluated solution
-    log.debug("constrained search: the penalty was not found (bracket [%.6g, %.6g])", lo, hi)
-    c = hi * wts
-    st = _active_set(prob, c, P, tol * prob.scale(c), max_it)
-    total_it += st.n_iter
-    rn = float(np.linalg.norm(prob.residual(st.z)))
-    return _Outcome("not_found", st.z, float(hi), list(st.passive), total_it, False, rn)
+        return lam
 
 
 def _finish(
-    prob: _Problem,
+    prob: Problem,
     pc: _Piece,
     lam: float,
     eps: float,
@@ -1029,7 +778,7 @@ def _finish(
         zp = pc.a - lam * pc.g
         z[pc.P] = np.where(zp > 0, zp, 0.0)
     c = lam * wts
-    viol = _kkt_violation(prob, z, c)
+    viol = kkt_violation(prob, z, c)
     tol_kkt = 10 * tol_abs + 1e-9 * prob.scale(wts * max(lam, 1e-300))
     if viol > tol_kkt:
         log.debug("piece root lam=%.6g rejected: KKT violation %.3g", lam, viol)
@@ -1039,7 +788,7 @@ def _finish(
 
 
 def _infeasible(
-    prob: _Problem,
+    prob: Problem,
     z: NDArray,
     rn: float,
     eps: float,

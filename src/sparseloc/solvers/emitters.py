@@ -127,17 +127,9 @@ def group_coefficients(
         return Emitters.empty()
     lxy = max(link * steps[0], MIN_LINK_NM[0])
     lz = max(link * steps[1], MIN_LINK_NM[1])
-    d = np.abs(pos[:, None, :] - pos[None, :, :])
-    adj = (d[..., 0] <= lxy + 1e-9) & (d[..., 1] <= lxy + 1e-9) & (d[..., 2] <= lz + 1e-9)
-    n_groups, labels = connected_components(coo_matrix(adj), directed=False)
+    n_groups, labels = _linked_groups(pos, lxy + 1e-9, lz + 1e-9)
     photons = np.bincount(labels, weights=c, minlength=n_groups)
-    centre = (
-        np.stack(
-            [np.bincount(labels, weights=c * pos[:, i], minlength=n_groups) for i in range(3)],
-            axis=1,
-        )
-        / photons[:, None]
-    )
+    centre = _weighted_sums(labels, c, pos, n_groups) / photons[:, None]
     order = np.argsort(-photons)
     order = order[photons[order] >= min_photons]
     return Emitters(centre[order, 0], centre[order, 1], centre[order, 2], photons[order])
@@ -186,31 +178,32 @@ def group_by_boxes(
     m = cen.shape[0]
     photons = np.bincount(label, weights=c, minlength=m)
     used = photons > 0
-    centre = (
-        np.stack(
-            [np.bincount(label, weights=c * pos[:, i], minlength=m) for i in range(3)], axis=1
-        )[used]
-        / photons[used, None]
-    )
+    centre = _weighted_sums(label, c, pos, m)[used] / photons[used, None]
     merged = group_coefficients(centre, photons[used], (0.0, 0.0), link=0.0)
     if merge_nm != MIN_LINK_NM:
-        dd = np.abs(centre[:, None] - centre[None])
-        adj = (
-            (dd[..., 0] <= merge_nm[0]) & (dd[..., 1] <= merge_nm[0]) & (dd[..., 2] <= merge_nm[1])
-        )
-        n, lab = connected_components(coo_matrix(adj), directed=False)
+        n, lab = _linked_groups(centre, merge_nm[0], merge_nm[1])
         ph = np.bincount(lab, weights=photons[used], minlength=n)
-        ctr = (
-            np.stack(
-                [
-                    np.bincount(lab, weights=photons[used] * centre[:, i], minlength=n)
-                    for i in range(3)
-                ],
-                axis=1,
-            )
-            / ph[:, None]
-        )
+        ctr = _weighted_sums(lab, photons[used], centre, n) / ph[:, None]
         merged = Emitters(ctr[:, 0], ctr[:, 1], ctr[:, 2], ph)
     order = np.argsort(-merged.photons)
     order = order[merged.photons[order] >= min_photons]
     return Emitters(merged.x[order], merged.y[order], merged.z[order], merged.photons[order])
+
+
+def _linked_groups(pos: NDArray[np.float64], lxy: float, lz: float) -> tuple[int, NDArray]:
+    """Connected components of points (k, 3) linked when ``|dx|, |dy| <= lxy``, ``|dz| <= lz``.
+
+    Returns the number of groups and each point's group label.
+    """
+    d = np.abs(pos[:, None, :] - pos[None, :, :])
+    adj = (d[..., 0] <= lxy) & (d[..., 1] <= lxy) & (d[..., 2] <= lz)
+    return connected_components(coo_matrix(adj), directed=False)
+
+
+def _weighted_sums(
+    labels: NDArray, weights: NDArray[np.float64], pos: NDArray[np.float64], n: int
+) -> NDArray[np.float64]:
+    """Per-group sums of ``weights * pos`` (x, y, z), shape (n, 3)."""
+    return np.stack(
+        [np.bincount(labels, weights=weights * pos[:, i], minlength=n) for i in range(3)], axis=1
+    )

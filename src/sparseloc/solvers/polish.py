@@ -56,12 +56,16 @@ class PointModel:
             if not self.fixed_bg:
                 self.background = float(max(y.mean(), 0.0))
             return
-        a = self.atoms.reshape(self.index.size, -1).T
+        a = self._matrix()
         if self.fixed_bg:
             self.photons, _ = nnls(a, y - self.background)
         else:
             x, _ = nnls(np.column_stack([a, np.ones(y.size)]), y)
             self.photons, self.background = x[:-1], float(x[-1])
+
+    def _matrix(self) -> NDArray:
+        """The atoms as the columns of a (pixels, K) matrix."""
+        return self.atoms.reshape(self.index.size, -1).T
 
     @property
     def signal(self) -> NDArray:
@@ -86,7 +90,7 @@ class PointModel:
             return np.zeros(0)
         sig = self.signal
         var = noise_factor * np.maximum(sig + self.background, 1.0) + (model_error * sig) ** 2
-        a = self.atoms.reshape(self.index.size, -1).T
+        a = self._matrix()
         if not self.fixed_bg:
             a = np.column_stack([a, np.ones(a.shape[0])])
         fisher = a.T @ (a / var.ravel()[:, None])
