@@ -24,7 +24,7 @@ from .engine import check_engine
 from .psf import make_psf
 from .psf.base import PSFModel
 from .solvers.frame import RELOCATE
-from .solvers.refine import check_qe
+from .solvers.mle import check_qe
 
 __all__ = [
     "LOCALIZE_DEFAULTS",

@@ -43,13 +43,9 @@ from .frame_windows import (
     near_window,
     window_box,
 )
+from .mle import LikelihoodProblem, check_qe, fit_emitters
 from .mp import MIN_PHOTONS
-from .refine import (
-    LikelihoodProblem,
-    check_qe,
-    fit_emitters,
-    fit_with_count_selection,
-)
+from .refine import fit_with_count_selection
 from .relocate import RELOCATE, RELOCATE_AFTER, relocation_pass
 
 log = logging.getLogger(__name__)
@@ -181,7 +177,7 @@ def _response(model: PSFModel, y: NDArray, fit, kw: dict) -> NDArray[np.float64]
     offset (photons/pixel) moves the optimum by about ``-F^-1 J' (w d / mu)`` (nm): more known
     light on one side pushes the emitters away from it. ``J``, ``F``, the weight ``w`` and
     ``mu`` (with the sCMOS read variance) are the fit's own
-    (:class:`~sparseloc.solvers.refine.LikelihoodProblem`). None if ``F`` is singular.
+    (:class:`~sparseloc.solvers.mle.LikelihoodProblem`). None if ``F`` is singular.
     """
     prob = LikelihoodProblem(
         y,

@@ -24,7 +24,8 @@ from .frame_windows import (
     window_data,
     window_kwargs,
 )
-from .refine import fit_emitters, residual_candidates
+from .mle import fit_emitters
+from .refine import residual_candidates
 
 __all__ = [
     "RELOCATE",

@@ -1,0 +1,448 @@
+"""The multi-emitter maximum-likelihood fit of one window, its uncertainties and flags.
+
+Model: ``mu = sum_k N_k psf(x_k, y_k, z_k) + b`` with a constant background ``b`` or a tilted
+plane ``b0 + bx * u + by * v`` (``u``, ``v``: pixel offsets from the window centre divided by
+half the window size, so the three background parameters share one scale).
+
+Likelihoods (``noise``):
+
+- ``"poisson"``: ``-log L = sum(mu - y log mu)``.
+- ``"emccd"``: EM multiplication doubles the variance; the data are modelled as
+  ``y / 2 ~ Poisson(mu / 2)``, i.e. the Poisson objective divided by 2. The estimate is the
+  same as Poisson's, the Fisher information halves (uncertainties grow by sqrt 2).
+- ``"scmos"``: per-pixel read noise (Huang et al. 2013): ``y + v ~ Poisson(mu + v)`` with
+  ``v`` the read-noise variance in photons^2 (a scalar or a map).
+
+Quantum efficiency (``qe``): a camera counts photoelectrons, ``e ~ Poisson(qe mu)``, and the
+frames hold ``e / qe`` photons, whose variance is ``mu / qe``, not ``mu``. The likelihood of
+the photoelectrons is ``qe`` times the Poisson objective in photons (times 1/2 for EMCCD), and
+the sCMOS read variance ``v`` (photons^2, ``v_e / qe^2``) enters as ``qe v``. The estimate is
+unchanged; the Fisher information, the uncertainties, the likelihood ratios of the count
+selection and the deviance are those of the detected photoelectrons. ``qe = 1`` (the default)
+is the plain photon-counting model.
+
+The fit is Levenberg-Marquardt with Fisher scoring (:mod:`sparseloc.solvers.lm`, one rule for
+every engine): the step solves ``(F + lam diag F) d = -grad`` with ``F = sum(w dmu dmu' / mu)``;
+a step is taken only if the likelihood improves (then ``lam`` shrinks), else ``lam`` grows. z
+is kept inside the model's range, photons and background positive, x and y within
+``xy_margin`` pixels of the window. Spline tables fit on the numba engine where it runs
+(:mod:`sparseloc.engine`), every other model on NumPy.
+
+Uncertainties: the Cramer-Rao bound at the fitted parameters, ``sqrt(diag(F^-1))`` (x, y, z in
+nm, photons), with the background parameters in ``F``. Goodness of fit: the deviance
+``2 w sum(y log(y / mu) - (y - mu))`` per degree of freedom, with the likelihood's weight ``w``
+(EMCCD, ``qe``), about 1 for a good fit.
+
+Flags (one string per emitter, ``"ok"`` when fine): ``"z_edge"`` (z within 1 nm of the model's
+range, where the true z may lie outside), ``"outside"`` (x or y outside the window),
+``"not_converged"``, ``"diverged"`` (non-finite or vanishing photons).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..dictionary import check_window
+from ..engine import kernels
+from ..psf.base import PSFModel
+from ..psf.spline import SplinePSF
+from .emitters import Emitters
+from .lm import clamp, damped_system, make_levenberg_marquardt
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "NOISE_MODELS",
+    "FitResult",
+    "LikelihoodProblem",
+    "check_qe",
+    "fit_emitters",
+    "likelihood_weight",
+]
+
+NOISE_MODELS = ("poisson", "emccd", "scmos")
+_MIN_PHOTONS = 1.0
+_MIN_BG = 1e-3
+
+
+@dataclass
+class FitResult:
+    """A maximum-likelihood fit of K emitters and a background in one window.
+
+    Attributes
+    ----------
+    emitters : Emitters
+        Fitted positions (nm) and photons.
+    sigma : ndarray, shape (K, 4)
+        CRLB standard errors of x, y, z (nm) and photons at the fit.
+    background : ndarray, shape (1,) or (3,)
+        Background: ``b`` or ``(b0, bx, by)`` (photons/pixel; see the module notes).
+    background_sigma : ndarray
+        Standard errors of the background parameters.
+    model_image : ndarray, shape (rows, cols)
+        Expected photons per pixel at the fit.
+    log_likelihood : float
+        ``log L`` up to a data-only constant (``-sum(w (mu - y log mu))``).
+    deviance_per_dof : float
+        Goodness of fit (about 1 for a good fit).
+    flags : ndarray of str, shape (K,)
+        ``"ok"`` or the reason the emitter is doubtful.
+    converged : bool
+    n_iter : int
+    """
+
+    emitters: Emitters
+    sigma: NDArray[np.float64]
+    background: NDArray[np.float64]
+    background_sigma: NDArray[np.float64]
+    model_image: NDArray[np.float64]
+    log_likelihood: float
+    deviance_per_dof: float
+    flags: NDArray[np.str_]
+    converged: bool
+    n_iter: int
+    history: list[str] = field(default_factory=list)
+
+    @property
+    def n_params(self) -> int:
+        return 4 * len(self.emitters) + self.background.size
+
+
+def check_qe(qe: float) -> float:
+    """``qe`` as a float in (0, 1]; ValueError naming the value otherwise."""
+    try:
+        q = float(qe)
+    except (TypeError, ValueError):
+        raise ValueError(f"qe must be a number in (0, 1]; got {qe!r}") from None
+    if not (np.isfinite(q) and 0.0 < q <= 1.0):
+        raise ValueError(f"qe must be in (0, 1] (the fraction of photons detected); got {qe!r}")
+    return q
+
+
+def likelihood_weight(noise: str, qe: float = 1.0) -> float:
+    """The weight ``w`` of the Poisson objective in photons (see the module notes): ``qe``,
+    halved for EMCCD data (excess noise factor 2)."""
+    return (0.5 if noise == "emccd" else 1.0) * check_qe(qe)
+
+
+class LikelihoodProblem:
+    """The window, the PSF and the noise model: likelihood, gradient and Fisher matrix."""
+
+    def __init__(
+        self,
+        y,
+        model,
+        pixel_size,
+        origin,
+        noise,
+        read_variance,
+        plane,
+        xy_margin,
+        offset=None,
+        qe=1.0,
+    ):
+        if noise not in NOISE_MODELS:
+            raise ValueError(f"noise must be one of {', '.join(NOISE_MODELS)}; got {noise!r}")
+        self.y = y
+        self.model = model
+        self.px = float(pixel_size)
+        self.origin = (float(origin[0]), float(origin[1]))
+        self.shape = y.shape
+        self.weight = likelihood_weight(noise, qe)
+        if noise == "scmos":
+            if read_variance is None:
+                raise ValueError("noise='scmos' needs read_variance (photons^2, scalar or map)")
+            # on the photoelectron scale of the likelihood: qe * v (see the module notes)
+            self.v = check_qe(qe) * np.broadcast_to(
+                np.asarray(read_variance, dtype=np.float64), y.shape
+            )
+            if np.any(self.v < 0):
+                raise ValueError("read_variance must be >= 0")
+        else:
+            if read_variance is not None:
+                raise ValueError("read_variance is only used with noise='scmos'")
+            self.v = np.zeros(y.shape)
+        self.yv = y + self.v
+        # Known light that is not fitted (neighbours' emitters fitted elsewhere), photons/pixel.
+        self.offset = 0.0 if offset is None else np.broadcast_to(np.asarray(offset, float), y.shape)
+        rows, cols = y.shape
+        self.plane = plane
+        self.n_bg = 3 if plane else 1
+        u = (np.arange(cols) - (cols - 1) / 2) / max(cols / 2, 1)
+        v = (np.arange(rows) - (rows - 1) / 2) / max(rows / 2, 1)
+        self.bg_basis = [np.ones(y.shape)]
+        if plane:
+            self.bg_basis += [
+                np.broadcast_to(u[None, :], y.shape),
+                np.broadcast_to(v[:, None], y.shape),
+            ]
+        self.zlo, self.zhi = model.z_range
+        m = xy_margin * self.px
+        self.xlo = self.origin[0] - m
+        self.xhi = self.origin[0] + cols * self.px + m
+        self.ylo = self.origin[1] - m
+        self.yhi = self.origin[1] + rows * self.px + m
+        # data-only constant so that the deviance is available: sum(y log y - y)
+        yy = self.yv
+        self._sat = float(
+            np.sum(np.where(yy > 0, yy * np.log(np.where(yy > 0, yy, 1.0)), 0.0) - yy)
+        )
+
+    # theta = [x0, y0, z0, N0, x1, ..., b...]
+    def split(self, theta):
+        k = (theta.size - self.n_bg) // 4
+        em = theta[: 4 * k].reshape(k, 4)
+        return em, theta[4 * k :]
+
+    def background(self, b):
+        return sum(bi * basis for bi, basis in zip(b, self.bg_basis, strict=True))
+
+    def mu(self, theta):
+        em, b = self.split(theta)
+        img = self.background(b) + self.offset
+        if len(em):
+            img = img + self.model.render(
+                em[:, 0], em[:, 1], em[:, 2], em[:, 3], self.shape, self.px, origin=self.origin
+            )
+        return img
+
+    def nll(self, mu):
+        """Negative log-likelihood (without the data-only constant); inf if mu <= 0 anywhere."""
+        muv = mu + self.v
+        if np.any(muv <= 0) or not np.all(np.isfinite(muv)):
+            return np.inf
+        return float(self.weight * np.sum(muv - self.yv * np.log(muv)))
+
+    def jacobian(self, theta):
+        em, _ = self.split(theta)
+        k = len(em)
+        cols = []
+        if k:
+            g = self.model.gradients(
+                em[:, 0], em[:, 1], em[:, 2], em[:, 3], self.shape, self.px, origin=self.origin
+            )
+            cols.append(g.reshape(4 * k, -1))
+        cols.append(np.stack([basis.ravel() for basis in self.bg_basis]))
+        return np.concatenate(cols, axis=0)  # (P, pixels)
+
+    def fisher(self, jac, mu):
+        muv = (mu + self.v).ravel()
+        return self.weight * (jac / muv) @ jac.T
+
+    def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Lower and upper bounds of each emitter's x, y, z (nm) and photons."""
+        lo = np.array([self.xlo, self.ylo, self.zlo, _MIN_PHOTONS])
+        hi = np.array([self.xhi, self.yhi, self.zhi, np.inf])
+        return lo, hi
+
+    def deviance(self, mu):
+        muv = mu + self.v
+        return 2.0 * self.weight * (self._sat - float(np.sum(self.yv * np.log(muv) - muv)))
+
+
+def fit_emitters(
+    window: ArrayLike,
+    model: PSFModel,
+    emitters: Emitters,
+    *,
+    pixel_size: float,
+    origin: tuple[float, float] = (0.0, 0.0),
+    background: float | None = None,
+    plane: bool = False,
+    noise: str = "poisson",
+    read_variance: float | ArrayLike | None = None,
+    max_iter: int = 60,
+    tol: float = 1e-6,
+    xy_margin: float = 1.0,
+    offset: ArrayLike | None = None,
+    qe: float = 1.0,
+) -> FitResult:
+    """Maximum-likelihood fit of K emitters plus a background in one window.
+
+    Parameters
+    ----------
+    window : ndarray, shape (rows, cols)
+        Window in photons.
+    model : PSFModel
+        The continuous PSF model (with gradients).
+    emitters : Emitters
+        Starting positions (nm) and photons, e.g. a sparse solution.
+    pixel_size : float
+        Pixel size (nm).
+    origin : (float, float)
+        Position (nm) of the window's outer corner.
+    background : float, optional
+        Starting background (photons/pixel); estimated from the window when ``None``.
+    plane : bool
+        Fit a tilted-plane background instead of a constant.
+    noise : {"poisson", "emccd", "scmos"}
+        Likelihood (see the module notes).
+    read_variance : float or ndarray, optional
+        sCMOS read-noise variance (photons^2), scalar or (rows, cols).
+    max_iter : int
+        Levenberg-Marquardt iterations.
+    tol : float
+        Stop when the relative decrease of ``-log L`` is below this.
+    xy_margin : float
+        How far (pixels) an emitter may leave the window.
+    offset : float or ndarray, shape (rows, cols), optional
+        Known expected light (photons/pixel) added to the model and not fitted, such as the
+        images of neighbouring emitters fitted in other windows.
+    qe : float
+        Quantum efficiency in (0, 1]: the frames hold photoelectrons divided by it, so their
+        variance is ``mu / qe`` (see the module notes); 1 for photon-counting data.
+
+    Returns
+    -------
+    FitResult
+    """
+    y = check_window(window)
+    if y.ndim != 2:
+        raise ValueError("fit_emitters takes one window (rows, cols)")
+    if np.any(y < -1e-9) and noise != "scmos":
+        raise ValueError("the window has negative photon counts; convert ADU to photons first")
+    prob = LikelihoodProblem(
+        y, model, pixel_size, origin, noise, read_variance, plane, xy_margin, offset, qe
+    )
+    em0 = emitters.as_array()
+    if background is None:
+        resid = y - prob.mu(np.concatenate([em0.ravel(), np.zeros(prob.n_bg)]))
+        background = float(max(np.median(resid), 1.0))
+    b0 = np.zeros(prob.n_bg)
+    b0[0] = background
+    theta = np.concatenate([em0.ravel(), b0])
+    if not np.all(np.isfinite(theta)):
+        raise ValueError("the starting positions, photons and background must be finite")
+    lo, hi = prob.bounds()
+    clamp(theta, len(em0), lo, hi, _MIN_BG)
+    if isinstance(model, SplinePSF) and kernels() is not None:
+        out = _numba_fit(prob, theta, lo, hi, max_iter, tol)
+    else:
+        out = _numpy_fit(prob, theta, lo, hi, max_iter, tol)
+    return _result(prob, *out)
+
+
+class _NumpyFit:
+    """The NumPy engine's state of one fit (any PSF model): the operations of
+    :func:`~sparseloc.solvers.lm.make_levenberg_marquardt` are the functions below."""
+
+    def __init__(self, prob: LikelihoodProblem, theta: NDArray, lo: NDArray, hi: NDArray) -> None:
+        self.prob, self.theta, self.lo, self.hi = prob, theta, lo, hi
+        self.k = (theta.size - prob.n_bg) // 4
+        self.a = np.empty((theta.size, theta.size))
+
+
+def _numpy_evaluate(s: _NumpyFit) -> float:
+    s.mu = s.prob.mu(s.theta)
+    s.jac = s.prob.jacobian(s.theta)
+    return s.prob.nll(s.mu)
+
+
+def _numpy_score(s: _NumpyFit) -> None:
+    prob = s.prob
+    muv = (s.mu + prob.v).ravel()
+    s.grad = prob.weight * s.jac @ (1.0 - prob.yv.ravel() / muv)
+    s.fisher = prob.fisher(s.jac, s.mu)
+
+
+def _numpy_trial(s: _NumpyFit, lam: float) -> float:
+    damped_system(s.fisher, lam, s.a)
+    try:
+        step = np.linalg.solve(s.a, -s.grad)
+    except np.linalg.LinAlgError:
+        return np.inf
+    if not np.all(np.isfinite(step)):
+        return np.inf
+    s.trial = s.theta + step
+    clamp(s.trial, s.k, s.lo, s.hi, _MIN_BG)
+    s.mu_t = s.prob.mu(s.trial)
+    return s.prob.nll(s.mu_t)
+
+
+def _numpy_accept(s: _NumpyFit) -> None:
+    s.theta, s.mu = s.trial, s.mu_t
+    s.jac = s.prob.jacobian(s.theta)
+
+
+_numpy_levenberg_marquardt = make_levenberg_marquardt(
+    _numpy_evaluate, _numpy_score, _numpy_trial, _numpy_accept
+)
+
+
+def _numpy_fit(prob: LikelihoodProblem, theta, lo, hi, max_iter: int, tol: float):
+    """The fit on the NumPy engine: theta, mu, -log L, Fisher matrix, converged, n_iter."""
+    s = _NumpyFit(prob, theta, lo, hi)
+    f, converged, n_iter = _numpy_levenberg_marquardt(s, max_iter, tol)
+    return s.theta, s.mu, f, s.fisher, converged, n_iter
+
+
+def _numba_fit(prob: LikelihoodProblem, theta, lo, hi, max_iter: int, tol: float):
+    """The fit on the numba engine (spline tables): the same loop, compiled."""
+    from ._fit_numba import lm_fit
+
+    m = prob.model
+    m._check_pixel(prob.px)
+    base = np.ascontiguousarray(np.broadcast_to(prob.offset, prob.shape), dtype=np.float64)
+    theta, mu, f, fisher, converged, n_iter = lm_fit(
+        m._coef,
+        m.node_geometry(prob.origin, prob.px),
+        np.ascontiguousarray(prob.yv, dtype=np.float64),
+        np.ascontiguousarray(prob.v, dtype=np.float64),
+        base,
+        np.ascontiguousarray(np.stack(prob.bg_basis), dtype=np.float64),
+        float(prob.weight),
+        np.ascontiguousarray(theta, dtype=np.float64),
+        (theta.size - prob.n_bg) // 4,
+        lo,
+        hi,
+        _MIN_BG,
+        int(max_iter),
+        float(tol),
+    )
+    return theta, mu, float(f), fisher, bool(converged), int(n_iter)
+
+
+def _result(prob: LikelihoodProblem, theta, mu, f, fisher, converged, n_iter) -> FitResult:
+    """The :class:`FitResult` of a fit that ended at ``theta`` (``fisher``: its Fisher
+    matrix, from which the standard errors come)."""
+    em, b = prob.split(theta)
+    try:
+        cov = np.linalg.inv(fisher)
+        var = np.diag(cov)
+    except np.linalg.LinAlgError:
+        var = np.diag(np.linalg.pinv(fisher))
+    sd = np.sqrt(np.where(var > 0, var, np.nan))
+    k = len(em)
+    flags = np.full(k, "ok", dtype="<U16")
+    if k:
+        at_edge = (em[:, 2] <= prob.zlo + 1.0) | (em[:, 2] >= prob.zhi - 1.0)
+        rows, cols = prob.shape
+        outside = (
+            (em[:, 0] < prob.origin[0])
+            | (em[:, 0] > prob.origin[0] + cols * prob.px)
+            | (em[:, 1] < prob.origin[1])
+            | (em[:, 1] > prob.origin[1] + rows * prob.px)
+        )
+        bad = ~np.all(np.isfinite(em), axis=1) | (em[:, 3] <= _MIN_PHOTONS * 1.01)
+        flags[at_edge] = "z_edge"
+        flags[outside] = "outside"
+        if not converged:
+            flags[flags == "ok"] = "not_converged"
+        flags[bad] = "diverged"
+    dof = max(prob.y.size - theta.size, 1)
+    return FitResult(
+        emitters=Emitters.from_array(em),
+        sigma=sd[: 4 * k].reshape(k, 4),
+        background=b.copy(),
+        background_sigma=sd[4 * k :],
+        model_image=mu,
+        log_likelihood=-f,
+        deviance_per_dof=prob.deviance(mu) / dof,
+        flags=flags,
+        converged=converged,
+        n_iter=n_iter,
+    )
