@@ -3,7 +3,7 @@
 The steps (each a function over NumPy arrays; file reading only in :func:`calibrate_file`):
 
 1. ADU to photons; per-frame background (median of the frame: beads cover a small fraction
-   of the field).
+   of the field); see :mod:`sparseloc.calibrate_scan`.
 2. Find beads on the z-averaged frame, smoothed at the scale of the PSF. An engineered PSF
    (double helix, tetrapod) may show several maxima per bead; maxima closer than half an ROI
    are merged and the bead's centre is the centroid of its z-averaged image (the midpoint of
@@ -37,6 +37,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
+from .calibrate_scan import BeadScan, read_scan, read_z_file
 from .psf.spline import SplinePSF
 
 __all__ = [
@@ -108,61 +109,6 @@ class Calibration:
     @property
     def n_used(self) -> int:
         return int(self.beads["used"].sum())
-
-
-def read_z_file(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Read per-frame z positions from a CSV (storm-analysis style or one column).
-
-    Accepted columns: ``z_um`` or ``z_nm`` (or a single unnamed column in nm), optional
-    ``valid`` (0/1) and ``frame_0based``/``frame``. Returns z in nm and the valid flags, in
-    frame order.
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise ValueError(f"z file {str(p)!r} does not exist")
-    try:
-        df = pd.read_csv(p)
-    except (ValueError, OSError, pd.errors.ParserError) as exc:
-        raise ValueError(f"cannot read z file {p.name}: {exc}") from exc
-    cols = {c.strip().lower(): c for c in df.columns}
-    if "z_um" in cols:
-        z = df[cols["z_um"]].to_numpy(dtype=float) * 1000.0
-    elif "z_nm" in cols:
-        z = df[cols["z_nm"]].to_numpy(dtype=float)
-    elif "z" in cols:
-        z = df[cols["z"]].to_numpy(dtype=float)
-    else:
-        try:
-            z = np.loadtxt(p, delimiter=",", ndmin=1).astype(float)
-        except ValueError as exc:
-            raise ValueError(
-                f"z file {p.name} needs a z_um or z_nm column (or one column of nm)"
-            ) from exc
-        if z.ndim != 1:
-            raise ValueError(
-                f"z file {p.name} has {z.shape[1]} columns but no header; name them "
-                "(z_um or z_nm, and valid)"
-            )
-        if not np.all(np.isfinite(z)):
-            raise ValueError(f"z file {p.name} holds non-numeric or missing z values")
-        return z, np.ones(z.size, bool)
-    if "valid" in cols:
-        flags = pd.to_numeric(df[cols["valid"]], errors="coerce").to_numpy(dtype=float)
-        valid = np.nan_to_num(flags, nan=0.0) != 0  # missing or unreadable: not valid
-    else:
-        valid = np.ones(z.size, dtype=bool)
-    for key in ("frame_0based", "frame"):
-        if key in cols:
-            order = np.argsort(df[cols[key]].to_numpy(), kind="stable")
-            z, valid = z[order], valid[order]
-            break
-    if not np.all(np.isfinite(z[valid])):
-        raise ValueError(f"z file {p.name} holds non-numeric or missing z values")
-    return z, valid
-
-
-def _frame_background(photons: NDArray[np.float64]) -> NDArray[np.float64]:
-    return np.median(photons.reshape(photons.shape[0], -1), axis=1)
 
 
 def _centroid(img: NDArray[np.float64], r: float, c: float, radius: float) -> tuple[float, float]:
@@ -390,84 +336,81 @@ def calibrate_beads(
         For a stack that is not 3-D or has one frame, a bad z step, no usable beads, fewer
         than ``min_beads``, all beads saturated, NaNs; each message says what to try.
     """
-    raw = np.asarray(stack)
-    if raw.ndim != 3:
+    scan = read_scan(stack, pixel_size, z_step, z, valid, z0_slice, offset, gain, saturation)
+    cal = _calibrate_scan(
+        scan, roi_size, threshold, detect_sigma, min_beads, iterations, name, z_smooth
+    )
+    if fit_pupil:
+        cal.pupil = _fit_pupil_in_frame(cal.psf, cal.z, cal.pixel_size, pupil_options)
+    log.info("calibrated from %d of %d beads, %d planes", cal.n_used, len(cal.beads), cal.z.size)
+    return cal
+
+
+# -- from the scan to the model -------------------------------------------------------------
+
+
+def _calibrate_scan(
+    scan: BeadScan,
+    roi_size: int | None,
+    threshold: float,
+    detect_sigma: float,
+    min_beads: int,
+    iterations: int,
+    name: str,
+    z_smooth: bool,
+) -> Calibration:
+    """Find the beads, vet them, register and average them, and build the spline model."""
+    p, step = scan.pixel_size, scan.step
+    centres = _detect(scan.projection, detect_sigma, threshold, roi_size)
+    roi, half = _roi_size(scan.data, centres, roi_size)
+    reason, used = _vet_beads(centres, half, roi, scan)
+    nb = centres.shape[0]
+    residual = dict.fromkeys(range(nb), np.nan)
+    stacks = _BeadStacks(scan.data, centres, used, half, p, step)
+    used, avg = _register_beads(
+        stacks, used, reason, residual, scan.zplanes, iterations, min_beads, name
+    )
+    if len(used) < min_beads:
         raise ValueError(
-            f"a bead z-stack must be 3-D (frames, rows, cols), got shape {raw.shape}; "
-            "save the scan as a multi-frame TIFF"
+            f"only {len(used)} usable bead(s) (of {nb} found); a calibration needs at least "
+            f"{min_beads} to average and cross-check: image more beads in the field"
         )
-    if raw.shape[0] < 2:
-        raise ValueError(
-            "the bead stack has only one frame; a calibration needs a z-scan through focus "
-            "(typically 50-200 frames)"
-        )
-    if not np.all(np.isfinite(raw)):
-        raise ValueError("the bead stack contains NaN or inf values")
-    p = float(pixel_size)
-    if not np.isfinite(p) or p <= 0:
-        raise ValueError(f"--pixel-size must be a positive number of nm, got {pixel_size}")
-    if gain <= 0:
-        raise ValueError(f"gain must be > 0 photons per ADU, got {gain}")
-    if saturation is None and raw.dtype.kind in "ui":
-        saturation = float(np.iinfo(raw.dtype).max)
-    n = raw.shape[0]
+    max_dz = max(abs(stacks.shifts[i][2]) for i in used)
+    clean, zplanes, sl, zwin = _model_stack(avg, scan.zplanes, max_dz, step, z_smooth)
+    bead_ncc = np.array([_ncc_planes(stacks.aligned(i)[sl], clean) for i in used])
+    # Lateral origin: the centroid of the z-averaged image (the lobes' midpoint for a DH).
+    proj = clean.mean(axis=0)
+    cr, cc = _centroid(proj, half, half, half)
+    psf = SplinePSF(clean, p, zplanes, centre=(cr, cc), name=name)
+    params = {
+        "pixel_size_nm": p,
+        "z_step_nm": step,
+        "roi_size_px": roi,
+        "offset_adu": float(scan.offset),
+        "gain": float(scan.gain),
+        "threshold": float(threshold),
+        "detect_sigma_px": float(detect_sigma),
+        "iterations": int(iterations),
+        "z_smooth_planes": int(zwin),
+        "n_beads_found": nb,
+        "n_beads_used": len(used),
+    }
+    return Calibration(
+        psf=psf,
+        average=psf.stack,
+        z=zplanes,
+        pixel_size=p,
+        beads=_bead_table(centres, used, reason, residual, stacks, (cr, cc), half),
+        projection=scan.projection,
+        params=params,
+        bead_ncc=bead_ncc,
+    )
 
-    # -- z positions ---------------------------------------------------------------------
-    if z is not None:
-        zf = np.asarray(z, dtype=np.float64).ravel()
-        vf = np.ones(zf.size, bool) if valid is None else np.asarray(valid, bool).ravel()
-        if zf.size != n or vf.size != n:
-            raise ValueError(f"the z file lists {zf.size} frames but the stack has {n}")
-        keep = np.nonzero(vf)[0]
-        if not np.all(np.isfinite(zf[keep])):
-            raise ValueError("the z file holds missing or non-finite z for frames marked valid")
-        if keep.size < 4:
-            raise ValueError("fewer than 4 frames are marked valid in the z file")
-        zk = zf[keep]
-        order = np.argsort(zk, kind="stable")
-        keep, zk = keep[order], zk[order]
-        steps = np.diff(zk)
-        if np.any(steps <= 0):
-            raise ValueError("the z file repeats a z value; each frame needs its own z")
-        step = float(z_step) if z_step else float(np.median(steps))
-        if step <= 0:
-            raise ValueError(f"z step must be > 0 nm, got {step}")
-        photons = (raw[keep].astype(np.float64) - offset) * gain
-        sat_frames = raw[keep]
-        if np.ptp(steps) > 1e-3 * step or z_step:
-            grid = np.arange(zk[0], zk[-1] + 1e-6 * step, step)
-            from scipy.interpolate import interp1d
 
-            photons = interp1d(zk, photons, axis=0, assume_sorted=True)(grid)
-            log.info(
-                "resampled %d uneven planes onto %d planes %.1f nm apart", zk.size, grid.size, step
-            )
-            zk = grid
-        zplanes = zk
-    else:
-        if z_step is None or not np.isfinite(z_step) or z_step <= 0:
-            raise ValueError(
-                f"the z step must be a positive number of nm, got {z_step}; "
-                "pass --z-step or a z file"
-            )
-        step = float(z_step)
-        z0 = (n - 1) / 2.0 if z0_slice is None else float(z0_slice)
-        if not 0 <= z0 <= n - 1:
-            raise ValueError(f"--z0-slice {z0_slice} is outside the stack's 0..{n - 1} slices")
-        zplanes = (np.arange(n) - z0) * step
-        photons = (raw.astype(np.float64) - offset) * gain
-        sat_frames = raw
-    if photons.shape[0] < 4:
-        raise ValueError(f"a calibration needs at least 4 z planes, got {photons.shape[0]}")
-
-    bg = _frame_background(photons)
-    if np.median(bg) < 0 and offset > 0:
-        raise ValueError(f"the offset {offset:g} ADU is above most pixel values; check --offset")
-    data = photons - bg[:, None, None]
-    projection = data.mean(axis=0)
-    h, w = projection.shape
-
-    # -- detection -----------------------------------------------------------------------
+def _detect(
+    projection: NDArray[np.float64], detect_sigma: float, threshold: float, roi_size: int | None
+) -> NDArray[np.float64]:
+    """Bead centres (row, col; px) on the z-averaged frame; ``ValueError`` when none."""
     merge = max(3.0 * detect_sigma, (roi_size or 0) / 2.0)
     centres = find_beads(projection, sigma=detect_sigma, threshold=threshold, merge_radius=merge)
     if centres.shape[0] == 0:
@@ -475,7 +418,15 @@ def calibrate_beads(
             "no beads found in the stack; check the offset, use a lower --threshold, or "
             "check that the file is a bead z-scan"
         )
-    # -- ROI size --------------------------------------------------------------------------
+    return centres
+
+
+def _roi_size(
+    data: NDArray[np.float64], centres: NDArray[np.float64], roi_size: int | None
+) -> tuple[int, int]:
+    """ROI side and half side (px): ``roi_size`` made odd, or from the PSF's extent around
+    the five brightest beads."""
+    h, w = data.shape[1:]
     if roi_size is None:
         max_r = int(min(40, max(6, min(h, w) // 2 - 1)))
         extents = []
@@ -496,8 +447,15 @@ def calibrate_beads(
             raise ValueError(f"--roi-size must be at least 7 px, got {roi_size}")
         roi += 1 - roi % 2
         half = roi // 2
+    return roi, half
 
-    # -- rejection -------------------------------------------------------------------------
+
+def _vet_beads(
+    centres: NDArray[np.float64], half: int, roi: int, scan: BeadScan
+) -> tuple[list[str], list[int]]:
+    """The rejection reason of each bead ("" when usable: not at the edge, not closer than
+    an ROI to another bead, not saturated) and the usable ones; ``ValueError`` when none is."""
+    h, w = scan.projection.shape
     nb = centres.shape[0]
     reason = [""] * nb
     for i, (r, c) in enumerate(centres):
@@ -510,9 +468,9 @@ def calibrate_beads(
         if np.any(d < roi):
             reason[i] = "too close to another bead"
             continue
-        if saturation is not None:
-            sub = sat_frames[:, ri - half : ri + half + 1, ci - half : ci + half + 1]
-            if np.any(sub >= saturation):
+        if scan.saturation is not None:
+            sub = scan.sat_frames[:, ri - half : ri + half + 1, ci - half : ci + half + 1]
+            if np.any(sub >= scan.saturation):
                 reason[i] = "saturated"
     used = [i for i in range(nb) if not reason[i]]
     if not used:
@@ -524,61 +482,101 @@ def calibrate_beads(
             else "image a sparser bead sample or pass a smaller --roi-size"
         )
         raise ValueError(f"found {nb} bead(s) but none is usable ({detail}); {hint}")
+    return reason, used
 
-    # -- registration and averaging ------------------------------------------------------
-    from scipy.ndimage import gaussian_filter
 
-    rois = {}
-    shifts = {}
-    for i in used:
-        r, c = centres[i]
-        ri, ci = int(np.round(r)), int(np.round(c))
-        rois[i] = _roi(data, ri, ci, half).copy()
-        shifts[i] = np.array([(c - ci) * p, (r - ri) * p, 0.0])
-    photons_per_plane = {i: float(rois[i].sum() / rois[i].shape[0]) for i in used}
-    residual = dict.fromkeys(range(nb), np.nan)
+class _BeadStacks:
+    """The ROI stacks of the usable beads and their shifts (x, y, z; nm) from the ROIs'
+    centre pixels to the common average."""
 
-    def average(ids: list[int]) -> NDArray[np.float64]:
-        acc = sum(_shift_stack(rois[i], shifts[i], p, step) for i in ids)
+    def __init__(
+        self,
+        data: NDArray[np.float64],
+        centres: NDArray[np.float64],
+        used: list[int],
+        half: int,
+        p: float,
+        step: float,
+    ) -> None:
+        self.p, self.step = p, step
+        self.rois: dict[int, NDArray[np.float64]] = {}
+        self.shifts: dict[int, NDArray[np.float64]] = {}
+        for i in used:
+            r, c = centres[i]
+            ri, ci = int(np.round(r)), int(np.round(c))
+            self.rois[i] = _roi(data, ri, ci, half).copy()
+            self.shifts[i] = np.array([(c - ci) * p, (r - ri) * p, 0.0])
+        self.photons = {i: float(self.rois[i].sum() / self.rois[i].shape[0]) for i in used}
+        self.init_shift = {i: v.copy() for i, v in self.shifts.items()}
+
+    def aligned(self, i: int) -> NDArray[np.float64]:
+        """Bead ``i``'s stack resampled onto the average's frame."""
+        return _shift_stack(self.rois[i], self.shifts[i], self.p, self.step)
+
+    def average(self, ids: list[int]) -> NDArray[np.float64]:
+        acc = sum(self.aligned(i) for i in ids)
         return acc / len(ids)
 
-    def register(ids: list[int]) -> NDArray[np.float64]:
+    def register(
+        self, ids: list[int], zplanes: NDArray[np.float64], iterations: int, name: str
+    ) -> NDArray[np.float64]:
+        """Fit every bead's shift to the spline of the current average, ``iterations`` times,
+        and return the registered average."""
+        from scipy.ndimage import gaussian_filter
+
         # First reference: one bead alone, of median brightness (the brightest may be two
         # beads seen as one). An average of unregistered beads is blurred in z, and
         # registering to a blurred reference shrinks the shifts (slow convergence).
-        ranked = sorted(ids, key=lambda i: photons_per_plane[i])
+        ranked = sorted(ids, key=lambda i: self.photons[i])
         first = ranked[len(ranked) // 2]
-        shifts[first] = init_shift[first].copy()
-        avg = _shift_stack(rois[first], shifts[first], p, step)
+        self.shifts[first] = self.init_shift[first].copy()
+        avg = self.aligned(first)
         for _ in range(max(1, iterations)):
             # A noisy reference has noisy derivatives, and a least-squares fit against it
             # shrinks the shifts (regression dilution); a light symmetric smoothing removes
             # most of that noise without moving the reference's centre.
             smooth = gaussian_filter(avg, (1.0, 0.5, 0.5), mode="nearest")
-            ref = SplinePSF(_clean_average(smooth), p, zplanes, normalise=False, name=name)
+            ref = SplinePSF(_clean_average(smooth), self.p, zplanes, normalise=False, name=name)
             for i in ids:
-                shifts[i], _ = _fit_shift(ref, rois[i], zplanes)
+                self.shifts[i], _ = _fit_shift(ref, self.rois[i], zplanes)
             # Keep the scan's z frame: the beads' mean z is z = 0.
-            mean_z = np.mean([shifts[i][2] for i in ids])
+            mean_z = np.mean([self.shifts[i][2] for i in ids])
             for i in ids:
-                shifts[i] = shifts[i] - np.array([0.0, 0.0, mean_z])
-            avg = average(ids)
+                self.shifts[i] = self.shifts[i] - np.array([0.0, 0.0, mean_z])
+            avg = self.average(ids)
         return avg
 
-    init_shift = {i: v.copy() for i, v in shifts.items()}
-    avg = register(used)
-    # Outliers (dirt, aggregates, two beads seen as one): compare each bead with the average
-    # of the others; drop clear outliers and register the rest again from scratch, so that
-    # nothing fitted against a bad bead remains.
+    def residuals(self, ids: list[int]) -> dict[int, float]:
+        """Relative difference of each bead from the average of the others."""
+        aligned = {i: self.aligned(i) for i in ids}
+        total = sum(aligned.values())
+        out = {}
+        for i in ids:
+            others = (total - aligned[i]) / (len(ids) - 1)
+            bi = aligned[i] * (others.sum() / max(aligned[i].sum(), 1e-12))
+            out[i] = float(np.linalg.norm(bi - others) / np.linalg.norm(others))
+        return out
+
+
+def _register_beads(
+    stacks: _BeadStacks,
+    used: list[int],
+    reason: list[str],
+    residual: dict[int, float],
+    zplanes: NDArray[np.float64],
+    iterations: int,
+    min_beads: int,
+    name: str,
+) -> tuple[list[int], NDArray[np.float64]]:
+    """Register the beads, then drop clear outliers (dirt, aggregates, two beads seen as
+    one) and register the rest again; returns the beads kept and their average."""
+    avg = stacks.register(used, zplanes, iterations, name)
+    # Each bead is compared with the average of the others; the rest are registered again
+    # from scratch, so that nothing fitted against a bad bead remains.
     for _ in range(3):
         if len(used) < 3:
             break
-        aligned = {i: _shift_stack(rois[i], shifts[i], p, step) for i in used}
-        total = sum(aligned.values())
-        for i in used:
-            others = (total - aligned[i]) / (len(used) - 1)
-            bi = aligned[i] * (others.sum() / max(aligned[i].sum(), 1e-12))
-            residual[i] = float(np.linalg.norm(bi - others) / np.linalg.norm(others))
+        residual.update(stacks.residuals(used))
         res = np.array([residual[i] for i in used])
         med = np.median(res)
         mad = 1.4826 * np.median(np.abs(res - med))
@@ -587,16 +585,22 @@ def calibrate_beads(
             break
         for i in bad:
             reason[i] = "outlier"
-            shifts.pop(i, None)
+            stacks.shifts.pop(i, None)
         used = [i for i in used if i not in bad]
-        avg = register(used)
-    if len(used) < min_beads:
-        raise ValueError(
-            f"only {len(used)} usable bead(s) (of {nb} found); a calibration needs at least "
-            f"{min_beads} to average and cross-check: image more beads in the field"
-        )
-    # Trim planes that some bead's z shift pushed beyond its data.
-    max_dz = max(abs(shifts[i][2]) for i in used)
+        avg = stacks.register(used, zplanes, iterations, name)
+    return used, avg
+
+
+def _model_stack(
+    avg: NDArray[np.float64],
+    zplanes: NDArray[np.float64],
+    max_dz: float,
+    step: float,
+    z_smooth: bool,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], slice, int]:
+    """The average trimmed of the planes some bead's z shift pushed beyond its data,
+    cleaned and (``z_smooth``) smoothed along z; its planes' z, where they lie in the
+    untrimmed stacks, and the smoothing window (planes, 0 for none)."""
     trim = int(np.ceil(max_dz / step - 1e-6))
     if avg.shape[0] - 2 * trim < 4:
         trim = 0
@@ -608,21 +612,31 @@ def calibrate_beads(
     zwin = _z_smoothing_window(step, clean.shape[0]) if z_smooth else 0
     if zwin:
         # Fine z steps make the spline's z-derivative follow the photon noise of each plane,
-        # and that noise costs axial precision (1.7x the CRLB on storm-analysis's astigmatic
-        # grid without it). A cubic Savitzky-Golay filter over ~80 nm removes the noise and
-        # keeps every feature that spans more than a few planes (as SMAP's smoothing spline).
+        # and that noise costs axial precision. A cubic Savitzky-Golay filter over ~80 nm
+        # removes the noise and keeps every feature that spans more than a few planes (as
+        # SMAP's smoothing spline).
         from scipy.signal import savgol_filter
 
         clean = _clean_average(savgol_filter(clean, zwin, 3, axis=0, mode="interp"))
-    bead_ncc = np.array(
-        [_ncc_planes(_shift_stack(rois[i], shifts[i], p, step)[sl], clean) for i in used]
-    )
-    # Lateral origin: the centroid of the z-averaged image (the lobes' midpoint for a DH).
-    proj = clean.mean(axis=0)
-    cr, cc = _centroid(proj, half, half, half)
-    psf = SplinePSF(clean, p, zplanes, centre=(cr, cc), name=name)
+    return clean, zplanes, sl, zwin
 
-    # Bead positions: the fitted shift from the ROI's centre pixel, in the model's frame.
+
+def _bead_table(
+    centres: NDArray[np.float64],
+    used: list[int],
+    reason: list[str],
+    residual: dict[int, float],
+    stacks: _BeadStacks,
+    centre: tuple[float, float],
+    half: int,
+) -> pd.DataFrame:
+    """One row per bead found (:data:`BEAD_COLUMNS`). Positions of registered beads: the
+    fitted shift from the ROI's centre pixel, in the model's frame (its ``centre``, row and
+    col in px); of the others, the detected centre."""
+    nb = centres.shape[0]
+    p = stacks.p
+    cr, cc = centre
+    shifts = stacks.shifts
     bx = (np.round(centres[:, 1]) + 0.5) * p + (cc - half) * p
     by = (np.round(centres[:, 0]) + 0.5) * p + (cr - half) * p
     for i in used:
@@ -631,13 +645,13 @@ def calibrate_beads(
     unreg = [i for i in range(nb) if i not in used]
     bx[unreg] = (centres[unreg, 1] + 0.5) * p
     by[unreg] = (centres[unreg, 0] + 0.5) * p
-    beads = pd.DataFrame(
+    return pd.DataFrame(
         {
             "x_nm": bx,
             "y_nm": by,
             "used": [i in used for i in range(nb)],
             "reason": reason,
-            "photons": [photons_per_plane.get(i, np.nan) for i in range(nb)],
+            "photons": [stacks.photons.get(i, np.nan) for i in range(nb)],
             "shift_x_nm": [shifts[i][0] if i in shifts else np.nan for i in range(nb)],
             "shift_y_nm": [shifts[i][1] if i in shifts else np.nan for i in range(nb)],
             "shift_z_nm": [shifts[i][2] if i in shifts else np.nan for i in range(nb)],
@@ -645,45 +659,25 @@ def calibrate_beads(
         },
         columns=BEAD_COLUMNS,
     )
-    params = {
-        "pixel_size_nm": p,
-        "z_step_nm": step,
-        "roi_size_px": roi,
-        "offset_adu": float(offset),
-        "gain": float(gain),
-        "threshold": float(threshold),
-        "detect_sigma_px": float(detect_sigma),
-        "iterations": int(iterations),
-        "z_smooth_planes": int(zwin),
-        "n_beads_found": nb,
-        "n_beads_used": len(used),
-    }
-    cal = Calibration(
-        psf=psf,
-        average=psf.stack,
-        z=zplanes,
-        pixel_size=p,
-        beads=beads,
-        projection=projection,
-        params=params,
-        bead_ncc=bead_ncc,
-    )
-    if fit_pupil:
-        from .psf.base import ShiftedPSF
-        from .psf.retrieval import fit_pupil as _fit_pupil
 
-        opts = dict(pupil_options or {})
-        opts.setdefault("z_range", (float(zplanes[0]) - 500.0, float(zplanes[-1]) + 500.0))
-        res = _fit_pupil(psf.stack, zplanes, p, **opts)
-        # The same frame as the spline: an emitter at (x, y, z) renders its image where the
-        # spline puts it (lateral origin at the spline's centre, z = 0 at the scan's zero).
-        xc, yc = (psf.centre[1] + 0.5) * p, (psf.centre[0] + 0.5) * p
-        res.frame_model = ShiftedPSF(
-            res.psf, res.x0 - xc, res.y0 - yc, res.z0, z_range=(zplanes[0], zplanes[-1])
-        )
-        cal.pupil = res
-    log.info("calibrated from %d of %d beads, %d planes", len(used), nb, zplanes.size)
-    return cal
+
+def _fit_pupil_in_frame(
+    psf: SplinePSF, zplanes: NDArray[np.float64], p: float, pupil_options: dict[str, Any] | None
+) -> Any:
+    """The pupil phase fitted to the model's stack, with its ``frame_model`` in the spline's
+    frame: an emitter at (x, y, z) renders its image where the spline puts it (lateral origin
+    at the spline's centre, z = 0 at the scan's zero)."""
+    from .psf.base import ShiftedPSF
+    from .psf.retrieval import fit_pupil as _fit_pupil
+
+    opts = dict(pupil_options or {})
+    opts.setdefault("z_range", (float(zplanes[0]) - 500.0, float(zplanes[-1]) + 500.0))
+    res = _fit_pupil(psf.stack, zplanes, p, **opts)
+    xc, yc = (psf.centre[1] + 0.5) * p, (psf.centre[0] + 0.5) * p
+    res.frame_model = ShiftedPSF(
+        res.psf, res.x0 - xc, res.y0 - yc, res.z0, z_range=(zplanes[0], zplanes[-1])
+    )
+    return res
 
 
 def _z_smoothing_window(step: float, n_planes: int) -> int:

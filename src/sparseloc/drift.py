@@ -8,23 +8,40 @@ the table (``drift[0] == 0``).
 Methods
 -------
 :func:`rcc_drift`
-    Redundant cross-correlation (RCC; Wang et al., Opt. Express 22, 15982, 2014): the movie is
-    split into time segments, each rendered as a histogram image; every pair of segments is
-    cross-correlated, the over-determined system ``s_j - s_i = d_ij`` is solved by least squares
-    with iterative rejection of inconsistent pairs, and the segment shifts are interpolated to
-    every frame. z follows from the xy-corrected localizations.
-:func:`fiducial_drift`
-    Tracks of spots present in most frames (beads), averaged.
+    Redundant cross-correlation (RCC; Wang et al., Opt. Express 22, 15982, 2014). The frames
+    are split into ``segments`` consecutive blocks of (nearly) equal length. Each block is
+    rendered as an xy histogram (``bin_nm`` bins) blurred by a Gaussian of about the
+    localization precision; every pair ``i < j`` is cross-correlated by FFT inside
+    ``+-max_shift_nm``, and the peak is located to sub-bin precision by a least-squares
+    quadratic fit to the logarithm of the 3 x 3 bins around the maximum (exact for a Gaussian
+    peak of any orientation, which matters for the elongated peaks of filaments). The system
+    ``s_j - s_i = d_ij`` is solved by least squares with ``s_0 = 0``; pairs whose residual
+    exceeds ``max(3 x 1.4826 MAD of the residuals, one bin)`` in any axis are dropped one at a
+    time, worst first, re-solving after each. z is then estimated the same way from the
+    xy-corrected localizations: for every pair the z histograms of coincident xy bins are
+    correlated at zero xy shift (a 3D correlation restricted to the known xy alignment, held
+    as sparse matrices so that memory does not grow with the field).
 
-Both return a :class:`DriftResult` whose ``reliable`` flag and ``warnings`` say when the
-estimate should not be trusted. Lengths are in nm, frames are 0-based integers.
+    The segment shifts, placed at the mean frame of each segment's localizations, are
+    interpolated to every frame by a natural cubic spline (smooth like real stage drift, no
+    kinks at segment centres, and it follows curvature better than straight lines); before the
+    first and after the last segment centre the spline's end tangent is extended linearly, so
+    the half segment at each end keeps drifting instead of freezing (which would offset the
+    whole curve once it is referenced to frame 0). Two segments give a straight line.
+:func:`fiducial_drift`
+    Tracks of spots present in most frames (beads), averaged; see
+    :mod:`sparseloc.drift_fiducial`.
+
+Both return a :class:`DriftResult` (defined in :mod:`sparseloc.drift_common`) whose
+``reliable`` flag and ``warnings`` say when the estimate should not be trusted. Lengths are in
+nm, frames are 0-based integers.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,9 +51,11 @@ import scipy.fft as sfft
 from numpy.typing import ArrayLike, NDArray
 from scipy import sparse
 from scipy.interpolate import CubicSpline
-from scipy.ndimage import gaussian_filter1d, median_filter, uniform_filter1d
+from scipy.ndimage import gaussian_filter1d
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
+
+from .drift_common import DriftLocs, DriftResult, positive, read_locs
+from .drift_fiducial import fiducial_drift
 
 __all__ = ["DriftResult", "apply_drift", "fiducial_drift", "plot_drift", "rcc_drift"]
 
@@ -61,175 +80,6 @@ SPECTRA_BUDGET_BYTES: int = 128 * 2**20
 #: Largest xy correlation image (pixels): 8192^2 float32 is 256 MiB.
 MAX_IMAGE_PIXELS: int = 8192 * 8192
 
-
-# --------------------------------------------------------------------------------------------
-# result
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class DriftResult:
-    """A drift estimate for every frame of a localization table.
-
-    Attributes
-    ----------
-    frames : ndarray of int, shape (F,)
-        Every frame from the table's first to its last.
-    drift : ndarray of float, shape (F, 3)
-        ``dx, dy, dz`` (nm) to subtract from the localizations of each frame; zero at
-        ``frames[0]``. ``dz`` is zero where z was not estimated (2D tables).
-    method : str
-        ``"rcc"`` or ``"fiducial"``.
-    reliable : bool
-        False when a check failed; ``warnings`` says which.
-    warnings : list of str
-        Human-readable notes (also logged); non-empty whenever ``reliable`` is False.
-    segment_frames : ndarray, shape (S,), optional
-        RCC: mean frame of each time segment's localizations.
-    segment_shifts : ndarray, shape (S, 3), optional
-        RCC: shift of each segment (nm), in the same reference as ``drift``.
-    pairs : ndarray of int, shape (P, 2), optional
-        RCC: segment indices ``i < j`` of every correlated pair.
-    pair_shifts : ndarray, shape (P, 3), optional
-        RCC: measured ``d_ij`` (nm), NaN where no valid peak was found.
-    pair_residuals : ndarray, shape (P, 3), optional
-        RCC: ``d_ij - (s_j - s_i)`` (nm) of the final solution.
-    pair_used : ndarray of bool, shape (P, 2), optional
-        RCC: whether each pair entered the final xy (column 0) and z (column 1) solution.
-    pair_contrast : ndarray, shape (P, 2), optional
-        RCC: peak height above the window median in robust noise units, xy and z.
-    fiducials : ndarray, shape (K, 3), optional
-        Fiducial: median position of each fiducial (nm).
-    raw_drift : ndarray, shape (F, 3), optional
-        Fiducial: per-frame drift before smoothing (NaN in frames without a fiducial).
-    details : dict
-        Parameters in effect and summary numbers (bins, blur, residual scales, counts).
-    """
-
-    frames: NDArray[np.int64]
-    drift: NDArray[np.float64]
-    method: str
-    reliable: bool = True
-    warnings: list[str] = field(default_factory=list)
-    segment_frames: NDArray[np.float64] | None = None
-    segment_shifts: NDArray[np.float64] | None = None
-    pairs: NDArray[np.int64] | None = None
-    pair_shifts: NDArray[np.float64] | None = None
-    pair_residuals: NDArray[np.float64] | None = None
-    pair_used: NDArray[np.bool_] | None = None
-    pair_contrast: NDArray[np.float64] | None = None
-    fiducials: NDArray[np.float64] | None = None
-    raw_drift: NDArray[np.float64] | None = None
-    details: dict[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        self.frames = np.asarray(self.frames, dtype=np.int64)
-        self.drift = np.asarray(self.drift, dtype=np.float64)
-        if self.frames.ndim != 1 or self.frames.size == 0:
-            raise ValueError(f"frames must be a non-empty 1D array, got shape {self.frames.shape}")
-        if self.drift.shape != (self.frames.size, 3):
-            raise ValueError(
-                f"drift must have shape ({self.frames.size}, 3) for {self.frames.size} frames, "
-                f"got {self.drift.shape}"
-            )
-
-    def at(self, frames: ArrayLike) -> NDArray[np.float64]:
-        """Drift at arbitrary frames, clamped to the first / last frame outside the range.
-
-        Parameters
-        ----------
-        frames : array_like, shape (N,)
-            Frame numbers (integers or fractional).
-
-        Returns
-        -------
-        ndarray, shape (N, 3)
-            ``dx, dy, dz`` in nm.
-        """
-        f = np.atleast_1d(np.asarray(frames, dtype=np.float64))
-        if f.ndim != 1:
-            raise ValueError(f"frames must be a 1D array, got shape {f.shape}")
-        ref = self.frames.astype(np.float64)
-        # np.interp holds the end values outside the range: the clamping we want.
-        return np.stack([np.interp(f, ref, self.drift[:, k]) for k in range(3)], axis=1)
-
-
-# --------------------------------------------------------------------------------------------
-# input
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class _Locs:
-    frame: NDArray[np.int64]
-    xyz: NDArray[np.float64]  # (N, 3); z column 0 where has_z is False
-    has_z: bool
-    sigma_lat: float | None  # median lateral precision (nm) from the table, if any
-    sigma_z: float | None
-    n_input: int
-
-
-def _read_locs(locs: pd.DataFrame) -> _Locs:
-    """Usable rows (flag "ok" where the column exists, finite positions) as arrays."""
-    if not isinstance(locs, pd.DataFrame):
-        raise ValueError(
-            f"the localization table must be a pandas DataFrame, got {type(locs).__name__}"
-        )
-    missing = [c for c in ("frame", "x_nm", "y_nm") if c not in locs.columns]
-    if missing:
-        raise ValueError(f"the localization table is missing the column(s) {', '.join(missing)}")
-    n_input = len(locs)
-    if n_input == 0:
-        raise ValueError("the localization table is empty (0 rows): nothing to estimate drift from")
-    keep = np.ones(n_input, dtype=bool)
-    if "flag" in locs.columns:
-        keep &= locs["flag"].astype(str).to_numpy() == "ok"
-    try:
-        frame = pd.to_numeric(locs["frame"]).to_numpy(dtype=np.float64)
-        x = pd.to_numeric(locs["x_nm"]).to_numpy(dtype=np.float64)
-        y = pd.to_numeric(locs["y_nm"]).to_numpy(dtype=np.float64)
-        z = pd.to_numeric(locs["z_nm"]).to_numpy(dtype=np.float64) if "z_nm" in locs else None
-    except (ValueError, TypeError) as exc:
-        raise ValueError("frame, x_nm, y_nm and z_nm must hold numbers") from exc
-    keep &= np.isfinite(frame) & np.isfinite(x) & np.isfinite(y)
-    if z is not None:
-        keep &= np.isfinite(z)
-    if not keep.any():
-        raise ValueError(
-            f"none of the {n_input} localizations is usable (flag 'ok' and finite frame and "
-            "positions)"
-        )
-    if np.any(frame[keep] != np.round(frame[keep])):
-        raise ValueError("the frame column must hold whole numbers")
-    # a z column that is constant (e.g. 0 filled in by complete_locs for 2D data) carries no z
-    has_z = z is not None and float(np.ptp(z[keep])) > 0.0
-    xyz = np.zeros((int(keep.sum()), 3))
-    xyz[:, 0], xyz[:, 1] = x[keep], y[keep]
-    if has_z:
-        xyz[:, 2] = z[keep]
-
-    def _median(cols: tuple[str, ...]) -> float | None:
-        vals = [pd.to_numeric(locs[c], errors="coerce").to_numpy(float)[keep] for c in cols]
-        allv = np.concatenate(vals) if vals else np.empty(0)
-        allv = allv[np.isfinite(allv) & (allv > 0)]
-        return float(np.median(allv)) if allv.size else None
-
-    lat_cols = tuple(c for c in ("sigma_x_nm", "sigma_y_nm") if c in locs.columns)
-    sigma_lat = _median(lat_cols) if lat_cols else None
-    sigma_z = _median(("sigma_z_nm",)) if "sigma_z_nm" in locs.columns and has_z else None
-    return _Locs(frame[keep].astype(np.int64), xyz, has_z, sigma_lat, sigma_z, n_input)
-
-
-def _positive(name: str, value: float) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = math.nan
-    if not (math.isfinite(v) and v > 0):
-        raise ValueError(f"{name} must be a positive number, got {value!r}")
-    return v
-
-
 # --------------------------------------------------------------------------------------------
 # RCC
 # --------------------------------------------------------------------------------------------
@@ -248,25 +98,9 @@ def rcc_drift(
 ) -> DriftResult:
     """Drift by redundant cross-correlation of time segments (RCC).
 
-    The frames are split into ``segments`` consecutive blocks of (nearly) equal length. Each
-    block is rendered as an xy histogram (``bin_nm`` bins) blurred by a Gaussian of about the
-    localization precision; every pair ``i < j`` is cross-correlated by FFT inside
-    ``+-max_shift_nm``, and the peak is located to sub-bin precision by a least-squares
-    quadratic fit to the logarithm of the 3 x 3 bins around the maximum (exact for a Gaussian
-    peak of any orientation, which matters for the elongated peaks of filaments). The system
-    ``s_j - s_i = d_ij`` is solved by least squares with ``s_0 = 0``; pairs whose residual
-    exceeds ``max(3 x 1.4826 MAD of the residuals, one bin)`` in any axis are dropped one at a
-    time, worst first, re-solving after each. z is then estimated the same way from the
-    xy-corrected localizations: for every pair the z histograms of coincident xy bins are
-    correlated at zero xy shift (a 3D correlation restricted to the known xy alignment, held as
-    sparse matrices so that memory does not grow with the field).
-
-    The segment shifts, placed at the mean frame of each segment's localizations, are
-    interpolated to every frame by a natural cubic spline (smooth like real stage drift, no kinks
-    at segment centres, and it follows curvature better than straight lines); before the first
-    and after the last segment centre the spline's end tangent is extended linearly, so the half
-    segment at each end keeps drifting instead of freezing (which would offset the whole curve
-    once it is referenced to frame 0). Two segments give a straight line.
+    The method is described in the module docstring: the segments' images are correlated in
+    pairs, the pair shifts are solved for segment shifts with inconsistent pairs rejected, and
+    the segment shifts are interpolated to every frame; z follows the same way.
 
     Parameters
     ----------
@@ -310,14 +144,51 @@ def rcc_drift(
         For an empty table, bad parameters, fewer frames than segments, or too few
         localizations for two segments of ``min_locs_per_segment``.
     """
+    p = _rcc_params(segments, bin_nm, z_bin_nm, blur_nm, max_shift_nm, min_locs_per_segment)
+    data = read_locs(locs)
+    warnings: list[str] = []
+    seg = _segments(data.frame, p.segments, p.min_locs, warnings)
+    blur = p.blur_nm if p.blur_nm is not None else (data.sigma_lat or p.bin_nm)
+    blur = max(float(blur), 0.5 * p.bin_nm)
+    shifts = np.zeros((seg.n_seg, 3))
+    xy = _rcc_xy(data, seg, p, blur, warnings)
+    shifts[:, :2] = xy.shifts
+    z = _rcc_z(data, seg, shifts[:, :2], p, blur, estimate_z, warnings)
+    shifts[:, 2] = z.shifts[:, 0]
+    for w in warnings:
+        log.warning("rcc_drift: %s", w)
+    return _rcc_result(data, seg, shifts, xy, z, p, blur, warnings)
+
+
+@dataclass(frozen=True)
+class _RccParams:
+    """The checked parameters of :func:`rcc_drift` (lengths in nm)."""
+
+    segments: int
+    bin_nm: float
+    z_bin_nm: float
+    blur_nm: float | None
+    max_shift_nm: float
+    min_locs: int
+
+
+def _rcc_params(
+    segments: int,
+    bin_nm: float,
+    z_bin_nm: float,
+    blur_nm: float | None,
+    max_shift_nm: float,
+    min_locs_per_segment: int,
+) -> _RccParams:
+    """The parameters of :func:`rcc_drift`, checked; ``ValueError`` naming a bad one."""
     if int(segments) != segments or segments < 2:
         raise ValueError(f"segments must be an integer >= 2, got {segments!r}")
     segments = int(segments)
-    bin_nm = _positive("bin_nm", bin_nm)
-    z_bin_nm = _positive("z_bin_nm", z_bin_nm)
-    max_shift_nm = _positive("max_shift_nm", max_shift_nm)
+    bin_nm = positive("bin_nm", bin_nm)
+    z_bin_nm = positive("z_bin_nm", z_bin_nm)
+    max_shift_nm = positive("max_shift_nm", max_shift_nm)
     if blur_nm is not None and blur_nm != 0:
-        blur_nm = _positive("blur_nm", blur_nm)
+        blur_nm = positive("blur_nm", blur_nm)
     if max_shift_nm < 3 * bin_nm:
         raise ValueError(
             f"max_shift_nm ({max_shift_nm:g}) must be at least 3 bins ({3 * bin_nm:g} nm)"
@@ -326,108 +197,168 @@ def rcc_drift(
         raise ValueError(
             f"min_locs_per_segment must be a positive integer, got {min_locs_per_segment!r}"
         )
-    data = _read_locs(locs)
-    f0, f1 = int(data.frame.min()), int(data.frame.max())
+    return _RccParams(segments, bin_nm, z_bin_nm, blur_nm, max_shift_nm, int(min_locs_per_segment))
+
+
+@dataclass
+class _Segments:
+    """The time segments of an RCC estimate."""
+
+    f0: int  # first frame of the table
+    f1: int  # last frame
+    index: NDArray  # (N,) segment of each localization
+    n_seg: int
+    counts: NDArray  # (S,) localizations per segment
+    centres: NDArray  # (S,) mean frame of each segment's localizations
+    pairs: NDArray  # (P, 2) segment indices i < j of every pair
+
+
+def _segments(frame: NDArray, segments: int, min_locs: int, warnings: list[str]) -> _Segments:
+    """Cut the frames into segments (fewer than asked when some would hold too few
+    localizations) and list their pairs; warns when fewer than 3 remain."""
+    f0, f1 = int(frame.min()), int(frame.max())
     n_frames = f1 - f0 + 1
     if n_frames < segments:
         raise ValueError(
             f"the table spans {n_frames} frame(s) ({f0}..{f1}), fewer than segments={segments}; "
             f"use at most {n_frames} segments"
         )
-    warnings: list[str] = []
-    reliable = True
-    seg, n_seg = _choose_segments(
-        data.frame, f0, n_frames, segments, int(min_locs_per_segment), warnings
-    )
+    seg, n_seg = _choose_segments(frame, f0, n_frames, segments, min_locs, warnings)
     counts = np.bincount(seg, minlength=n_seg)
-    centres = np.bincount(seg, weights=data.frame, minlength=n_seg) / counts
-
-    blur = blur_nm if blur_nm is not None else (data.sigma_lat or bin_nm)
-    blur = max(float(blur), 0.5 * bin_nm)
+    centres = np.bincount(seg, weights=frame, minlength=n_seg) / counts
     pairs = np.array([(i, j) for i in range(n_seg) for j in range(i + 1, n_seg)], dtype=np.int64)
-    n_pairs = len(pairs)
     if n_seg < 3:
-        reliable = False
         warnings.append(
             f"only {n_seg} segments: the single pair cannot be cross-checked (need >= 3)"
         )
+    return _Segments(f0, f1, seg, n_seg, counts, centres, pairs)
 
-    # -- xy ---------------------------------------------------------------------------------
+
+@dataclass
+class _Stage:
+    """One stage of an RCC estimate (xy or z): what each pair measured and the solution."""
+
+    d: NDArray  # (P, D) measured pair shifts (nm), NaN where no valid peak was found
+    contrast: NDArray  # (P,) peak contrast in robust noise units
+    used: NDArray  # (P,) whether each pair entered the final solution
+    residuals: NDArray  # (P, D) against the final solution (nm)
+    shifts: NDArray  # (S, D) segment shifts (nm)
+    scale: float  # robust residual scale (nm) of the pairs used
+    reliable: bool
+    details: dict[str, Any]  # entries of DriftResult.details that only this stage knows
+
+
+def _rcc_xy(
+    data: DriftLocs, seg: _Segments, p: _RccParams, blur: float, warnings: list[str]
+) -> _Stage:
+    """The xy stage: correlate every pair of segment images and solve for the shifts."""
     d_xy, contrast_xy, valid_xy, grid = _pair_shifts_xy(
-        data.xyz[:, :2], seg, n_seg, pairs, bin_nm, blur, max_shift_nm
+        data.xyz[:, :2], seg.index, seg.n_seg, seg.pairs, p.bin_nm, blur, p.max_shift_nm
     )
-    sol_xy = _solve(n_seg, pairs, d_xy, valid_xy, floor=bin_nm)
-    ok_xy = _check(sol_xy, valid_xy, n_seg, max_shift_nm, bin_nm, "xy", warnings)
-    reliable &= ok_xy
-    shifts = np.zeros((n_seg, 3))
-    shifts[:, :2] = sol_xy.shifts
+    sol = _solve(seg.n_seg, seg.pairs, d_xy, valid_xy, floor=p.bin_nm)
+    ok = _check(sol, valid_xy, seg.n_seg, p.max_shift_nm, p.bin_nm, "xy", warnings)
+    return _Stage(
+        d_xy, contrast_xy, sol.used, sol.residuals, sol.shifts, sol.scale, ok, {"image_shape": grid}
+    )
 
-    # -- z ----------------------------------------------------------------------------------
-    d_z = np.full((n_pairs, 1), np.nan)
-    contrast_z = np.full(n_pairs, np.nan)
-    used_z = np.zeros(n_pairs, dtype=bool)
-    resid_z = np.full((n_pairs, 1), np.nan)
-    z_details: dict[str, Any] = {"z_estimated": False}
-    if estimate_z and data.has_z:
-        corr_xy = data.xyz[:, :2] - _interpolate(centres, shifts[:, :2], data.frame)
-        blur_z = max(float(data.sigma_z or z_bin_nm), 0.5 * z_bin_nm)
-        xy_bin_z = max(2.0 * bin_nm, 4.0 * blur)
-        d_z, contrast_z, valid_z = _pair_shifts_z(
-            corr_xy, data.xyz[:, 2], seg, n_seg, pairs, xy_bin_z, z_bin_nm, blur_z, max_shift_nm
+
+def _rcc_z(
+    data: DriftLocs,
+    seg: _Segments,
+    xy_shifts: NDArray,
+    p: _RccParams,
+    blur: float,
+    estimate_z: bool,
+    warnings: list[str],
+) -> _Stage:
+    """The z stage, on the localizations corrected by the xy segment shifts (S, 2); all NaN
+    and zero shifts when z is not estimated."""
+    n_pairs, n_seg = len(seg.pairs), seg.n_seg
+    if not (estimate_z and data.has_z):
+        if estimate_z:
+            log.info("rcc_drift: the table has no (non-constant) z_nm; z drift not estimated")
+        return _Stage(
+            d=np.full((n_pairs, 1), np.nan),
+            contrast=np.full(n_pairs, np.nan),
+            used=np.zeros(n_pairs, dtype=bool),
+            residuals=np.full((n_pairs, 1), np.nan),
+            shifts=np.zeros((n_seg, 1)),
+            scale=math.nan,
+            reliable=True,
+            details={"z_estimated": False},
         )
-        sol_z = _solve(n_seg, pairs, d_z, valid_z, floor=z_bin_nm)
-        ok_z = _check(sol_z, valid_z, n_seg, max_shift_nm, z_bin_nm, "z", warnings)
-        if not ok_z:
-            warnings.append("z: pass estimate_z=False (drift --no-z) for an xy-only estimate")
-        reliable &= ok_z
-        shifts[:, 2] = sol_z.shifts[:, 0]
-        used_z, resid_z = sol_z.used, sol_z.residuals
-        z_details = {
-            "z_estimated": True,
-            "reliable_z": bool(ok_z),
-            "blur_z_nm": blur_z,
-            "xy_bin_for_z_nm": xy_bin_z,
-            "residual_scale_z_nm": sol_z.scale,
-            "pairs_used_z": int(sol_z.used.sum()),
-        }
-    elif estimate_z:
-        log.info("rcc_drift: the table has no (non-constant) z_nm; z drift not estimated")
+    corr_xy = data.xyz[:, :2] - _interpolate(seg.centres, xy_shifts, data.frame)
+    blur_z = max(float(data.sigma_z or p.z_bin_nm), 0.5 * p.z_bin_nm)
+    xy_bin_z = max(2.0 * p.bin_nm, 4.0 * blur)
+    d_z, contrast_z, valid_z = _pair_shifts_z(
+        corr_xy,
+        data.xyz[:, 2],
+        seg.index,
+        n_seg,
+        seg.pairs,
+        xy_bin_z,
+        p.z_bin_nm,
+        blur_z,
+        p.max_shift_nm,
+    )
+    sol = _solve(n_seg, seg.pairs, d_z, valid_z, floor=p.z_bin_nm)
+    ok = _check(sol, valid_z, n_seg, p.max_shift_nm, p.z_bin_nm, "z", warnings)
+    if not ok:
+        warnings.append("z: pass estimate_z=False (drift --no-z) for an xy-only estimate")
+    details = {
+        "z_estimated": True,
+        "reliable_z": bool(ok),
+        "blur_z_nm": blur_z,
+        "xy_bin_for_z_nm": xy_bin_z,
+        "residual_scale_z_nm": sol.scale,
+        "pairs_used_z": int(sol.used.sum()),
+    }
+    return _Stage(d_z, contrast_z, sol.used, sol.residuals, sol.shifts, sol.scale, ok, details)
 
-    frames = np.arange(f0, f1 + 1)
-    curve = _interpolate(centres, shifts, frames)
+
+def _rcc_result(
+    data: DriftLocs,
+    seg: _Segments,
+    shifts: NDArray,
+    xy: _Stage,
+    z: _Stage,
+    p: _RccParams,
+    blur: float,
+    warnings: list[str],
+) -> DriftResult:
+    """The segment shifts (S, 3) interpolated to every frame, referenced to the first one."""
+    frames = np.arange(seg.f0, seg.f1 + 1)
+    curve = _interpolate(seg.centres, shifts, frames)
     ref = curve[0].copy()  # drift is defined up to a constant: zero at the first frame
-    drift = curve - ref
-    for w in warnings:
-        log.warning("rcc_drift: %s", w)
     return DriftResult(
         frames=frames,
-        drift=drift,
+        drift=curve - ref,
         method="rcc",
-        reliable=bool(reliable),
+        reliable=bool(seg.n_seg >= 3 and xy.reliable and z.reliable),
         warnings=warnings,
-        segment_frames=centres,
+        segment_frames=seg.centres,
         segment_shifts=shifts - ref,
-        pairs=pairs,
-        pair_shifts=np.concatenate([d_xy, d_z], axis=1),
-        pair_residuals=np.concatenate([sol_xy.residuals, resid_z], axis=1),
-        pair_used=np.stack([sol_xy.used, used_z], axis=1),
-        pair_contrast=np.stack([contrast_xy, contrast_z], axis=1),
+        pairs=seg.pairs,
+        pair_shifts=np.concatenate([xy.d, z.d], axis=1),
+        pair_residuals=np.concatenate([xy.residuals, z.residuals], axis=1),
+        pair_used=np.stack([xy.used, z.used], axis=1),
+        pair_contrast=np.stack([xy.contrast, z.contrast], axis=1),
         details={
-            "segments_requested": segments,
-            "segments": n_seg,
-            "locs_per_segment": counts.tolist(),
+            "segments_requested": p.segments,
+            "segments": seg.n_seg,
+            "locs_per_segment": seg.counts.tolist(),
             "locs_used": int(data.frame.size),
             "locs_input": data.n_input,
-            "bin_nm": bin_nm,
+            "bin_nm": p.bin_nm,
             "blur_nm": blur,
-            "z_bin_nm": z_bin_nm,
-            "max_shift_nm": max_shift_nm,
-            "image_shape": grid,
-            "reliable_xy": bool(ok_xy),
-            "residual_scale_xy_nm": sol_xy.scale,
-            "pairs": n_pairs,
-            "pairs_used_xy": int(sol_xy.used.sum()),
-            **z_details,
+            "z_bin_nm": p.z_bin_nm,
+            "max_shift_nm": p.max_shift_nm,
+            **xy.details,
+            "reliable_xy": bool(xy.reliable),
+            "residual_scale_xy_nm": xy.scale,
+            "pairs": len(seg.pairs),
+            "pairs_used_xy": int(xy.used.sum()),
+            **z.details,
         },
     )
 
@@ -814,291 +745,6 @@ def apply_drift(locs: pd.DataFrame, drift: DriftResult) -> pd.DataFrame:
         if col in out.columns:
             out[col] = out[col].to_numpy(dtype=np.float64) - shift[:, k]
     return out
-
-
-# --------------------------------------------------------------------------------------------
-# fiducials
-# --------------------------------------------------------------------------------------------
-
-
-def fiducial_drift(
-    locs: pd.DataFrame,
-    *,
-    radius_nm: float = 150.0,
-    min_fraction: float = 0.8,
-    smooth_frames: int = 25,
-) -> DriftResult:
-    """Drift from fiducials: spots present in at least ``min_fraction`` of the frames.
-
-    Fiducials are found as tracks, so that they are followed even when the drift carries them
-    further than ``radius_nm``. The movie is cut into windows of ``smooth_frames`` frames (at
-    least 5), in which the drift is much smaller than ``radius_nm``. In each window, spots are
-    groups of localizations within ``radius_nm / 2`` (tight, so that a stretch of labelled
-    structure rarely qualifies) present in at least ``0.75 x min_fraction`` of the window's
-    frames (lenient: the strict test follows). Spots of windows up to 5 apart and within
-    ``radius_nm / 2`` of each other are linked into tracks (nearest pairs first, one spot per
-    track and window). Every frame then takes, per track, the localization nearest to the
-    track's interpolated position, within ``radius_nm``. A track is a fiducial when it has such
-    a localization in at least ``min_fraction`` of all frames and is point-like: its robust
-    scatter about its own running median is below ``radius_nm / 5`` per axis (a patch of
-    blinking molecules scatters over the whole radius); localizations more than 4 scatters
-    from that running median (a neighbouring molecule in a frame that misses the fiducial) are
-    dropped. Any spot that passes is fixed to the sample, so at very high duty cycles a small
-    group of quasi-permanently emitting molecules can serve as a (noisier) fiducial too.
-
-    The drift of a frame is the mean over the fiducials present of (position - that fiducial's
-    median position); frames without any fiducial are interpolated linearly; the curve is then
-    smoothed by a running median (robust to a wrong match) followed by a running mean (which
-    removes the median's steps), both over ``smooth_frames`` frames, and referenced to zero at
-    the first frame.
-
-    Parameters
-    ----------
-    locs : DataFrame
-        Table with at least ``frame, x_nm, y_nm`` (``z_nm`` optional; nm). Rows with a flag
-        other than "ok" are ignored.
-    radius_nm : float
-        Grouping radius (nm): larger than the localization scatter of a fiducial, smaller than
-        the distance between fiducials.
-    min_fraction : float
-        Fraction of the frames (0..1] a fiducial must be found in.
-    smooth_frames : int
-        Length of the running filters and of the detection windows (frames).
-
-    Returns
-    -------
-    DriftResult
-        ``method="fiducial"``, with ``fiducials`` (median positions) and ``raw_drift``.
-        ``reliable`` is False when the fiducials disagree with each other by more than
-        ``radius_nm / 5`` RMS after smoothing, or fewer than ``min_fraction`` of the frames
-        contain any fiducial; a single fiducial only adds a warning.
-
-    Raises
-    ------
-    ValueError
-        For bad parameters or input, or when no fiducial is found (the message lists how many
-        frames the best candidates were present in).
-    """
-    radius_nm = _positive("radius_nm", radius_nm)
-    if not (math.isfinite(min_fraction) and 0 < min_fraction <= 1):
-        raise ValueError(f"min_fraction must be in (0, 1], got {min_fraction!r}")
-    if int(smooth_frames) != smooth_frames or smooth_frames < 1:
-        raise ValueError(f"smooth_frames must be a positive integer, got {smooth_frames!r}")
-    smooth_frames = int(smooth_frames)
-    data = _read_locs(locs)
-    f0, f1 = int(data.frame.min()), int(data.frame.max())
-    n_frames = f1 - f0 + 1
-    fi = data.frame - f0
-    order = np.argsort(fi, kind="stable")
-    fi, xyz = fi[order], data.xyz[order]
-    xy = xyz[:, :2]
-
-    # -- spots per window -------------------------------------------------------------------
-    win_len = min(max(smooth_frames, 5), n_frames)
-    n_win = -(-n_frames // win_len)
-    bounds = np.searchsorted(fi, np.arange(n_win + 1) * win_len)
-    spot_xy, spot_win, spot_n = [], [], []
-    for w in range(n_win):
-        a, b = bounds[w], bounds[w + 1]
-        if b - a == 0:
-            continue
-        frames_in_win = min(win_len, n_frames - w * win_len)
-        need = max(2, math.ceil(0.75 * min_fraction * frames_in_win))
-        for centre, n_present in _window_spots(xy[a:b], fi[a:b], 0.5 * radius_nm, need):
-            spot_xy.append(centre)
-            spot_win.append(w)
-            spot_n.append(n_present)
-    if not spot_xy:
-        raise ValueError(
-            f"no fiducial found: no group of localizations within radius_nm={radius_nm:g} is "
-            f"present in {0.75 * min_fraction:.0%} of the frames of any {win_len}-frame window "
-            f"({data.frame.size} localizations in {n_frames} frames)"
-        )
-    spot_xy_a, spot_win_a, spot_n_a = np.asarray(spot_xy), np.asarray(spot_win), np.asarray(spot_n)
-    tracks = _link_spots(spot_xy_a, spot_win_a, 0.5 * radius_nm, gap=5)
-
-    # -- match every frame to each track ----------------------------------------------------
-    all_frames = np.arange(n_frames, dtype=np.float64)
-    win_centre = (np.arange(n_win) + 0.5) * win_len - 0.5
-    min_windows = 0.5 * min_fraction * n_win
-    need_frames = math.ceil(min_fraction * n_frames)
-    max_scatter = radius_nm / 5
-    candidates: list[tuple[int, float]] = []  # (frames present, scatter nm) of each track tried
-    fid_pos: list[NDArray] = []
-    for track in tracks:
-        wins = spot_win_a[track]
-        if wins.size < min_windows:
-            # seen in too few windows to be present in min_fraction of the frames; its spots'
-            # frame counts stand in for its presence in the error message
-            candidates.append((int(spot_n_a[track].sum()), math.nan))
-            continue
-        px = np.interp(all_frames, win_centre[wins], spot_xy_a[track, 0])
-        py = np.interp(all_frames, win_centre[wins], spot_xy_a[track, 1])
-        dist = np.hypot(xy[:, 0] - px[fi], xy[:, 1] - py[fi])
-        near = np.nonzero(dist <= radius_nm)[0]
-        near = near[np.lexsort((dist[near], fi[near]))]
-        first = near[np.unique(fi[near], return_index=True)[1]]  # nearest one per frame
-        pos = np.full((n_frames, 3), np.nan)
-        pos[fi[first]] = xyz[first]
-        scatter, outlier = _track_scatter(pos[:, :2], smooth_frames)
-        pos[outlier] = np.nan  # e.g. a nearby molecule in a frame that misses the fiducial
-        present = int(np.isfinite(pos[:, 0]).sum())
-        candidates.append((present, scatter))
-        if present >= need_frames and scatter < max_scatter:
-            fid_pos.append(pos)
-    if not fid_pos:
-        best = sorted(candidates, reverse=True)[:5]
-        listed = (
-            ", ".join(
-                f"{n} frames" + (f" (scatter {sc:.0f} nm)" if math.isfinite(sc) else "")
-                for n, sc in best
-            )
-            or "none"
-        )
-        raise ValueError(
-            f"no fiducial found: a fiducial must be present in >= {need_frames} of the "
-            f"{n_frames} frames (min_fraction={min_fraction:g}) with a scatter below "
-            f"{max_scatter:.0f} nm (radius_nm / 5); the best candidates: {listed}"
-        )
-
-    # -- drift ------------------------------------------------------------------------------
-    pos_all = np.stack(fid_pos)  # (K, F, 3); z is 0 for 2D tables
-    medians = np.nanmedian(pos_all, axis=1)  # (K, 3)
-    dev = pos_all - medians[:, None, :]
-    count = np.sum(np.isfinite(dev[..., 0]), axis=0)
-    have = count > 0
-    raw = np.full((n_frames, 3), np.nan)
-    raw[have] = np.nansum(dev[:, have], axis=0) / count[have, None]
-    smooth = _smooth(_fill_gaps(raw), smooth_frames)
-    ref = smooth[0].copy()  # drift is defined up to a constant: zero at the first frame
-    drift = smooth - ref
-
-    warnings: list[str] = []
-    reliable = True
-    n_fid = len(fid_pos)
-    spread = math.nan
-    if n_fid == 1:
-        warnings.append("a single fiducial: its drift cannot be cross-checked against another")
-    else:
-        # each fiducial's own smoothed lateral track against the combined one
-        own = np.stack([_smooth(_fill_gaps(d[:, :2]), smooth_frames) for d in dev])
-        spread = float(np.sqrt(np.mean((own - smooth[None, :, :2]) ** 2)))
-        if spread > radius_nm / 5:
-            warnings.append(
-                f"the {n_fid} fiducials disagree by {spread:.0f} nm RMS (> radius_nm / 5 = "
-                f"{radius_nm / 5:.0f} nm): some may not be fixed to the sample"
-            )
-            reliable = False
-    covered = int(have.sum())
-    if covered < need_frames:
-        warnings.append(
-            f"only {covered} of {n_frames} frames contain a fiducial; the rest are interpolated"
-        )
-        reliable = False
-    for w in warnings:
-        log.warning("fiducial_drift: %s", w)
-    return DriftResult(
-        frames=np.arange(f0, f1 + 1),
-        drift=drift,
-        method="fiducial",
-        reliable=reliable,
-        warnings=warnings,
-        fiducials=medians,
-        raw_drift=raw - ref,
-        details={
-            "fiducials": n_fid,
-            "frames_present": [int(np.isfinite(p[:, 0]).sum()) for p in fid_pos],
-            "frames_covered": covered,
-            "tracks": len(candidates),
-            "disagreement_nm": spread,
-            "radius_nm": radius_nm,
-            "min_fraction": min_fraction,
-            "smooth_frames": smooth_frames,
-            "z_estimated": data.has_z,
-        },
-    )
-
-
-def _window_spots(
-    xy: NDArray, frame: NDArray, radius: float, need: int
-) -> list[tuple[NDArray, int]]:
-    """Groups of localizations within ``radius`` present in >= ``need`` frames: (median
-    position, frames present) of each, seeded greedily from the most crowded localization."""
-    tree = cKDTree(xy)
-    counts = tree.query_ball_point(xy, radius, return_length=True)
-    used = np.zeros(len(xy), dtype=bool)
-    spots = []
-    for i in np.argsort(-counts, kind="stable"):
-        if counts[i] < need:
-            break  # sorted: no later seed has enough neighbours
-        if used[i]:
-            continue
-        nb = np.asarray(tree.query_ball_point(xy[i], radius), dtype=np.int64)
-        nb = nb[~used[nb]]
-        n_present = np.unique(frame[nb]).size
-        if n_present >= need:
-            spots.append((np.median(xy[nb], axis=0), n_present))
-            used[nb] = True
-    return spots
-
-
-def _link_spots(centre: NDArray, win: NDArray, max_step: float, gap: int) -> list[NDArray]:
-    """Tracks through the windows: each spot joins the nearest track (within ``max_step``, last
-    seen at most ``gap`` windows earlier; nearest pairs first) or starts a new one. Returns the
-    spot indices of every track, one spot per window, in window order."""
-    tracks: list[list[int]] = []
-    for w in np.unique(win):
-        cur = np.nonzero(win == w)[0]
-        active = [t for t, members in enumerate(tracks) if w - win[members[-1]] <= gap]
-        taken_t: set[int] = set()
-        taken_s: set[int] = set()
-        if active:
-            last = centre[[tracks[t][-1] for t in active]]
-            dist = np.hypot(*(last[:, None, :] - centre[cur][None, :, :]).transpose(2, 0, 1))
-            for flat in np.argsort(dist, axis=None):
-                a, b = np.unravel_index(flat, dist.shape)
-                if dist[a, b] > max_step:
-                    break  # sorted: every later pair is further apart
-                if a in taken_t or b in taken_s:
-                    continue
-                taken_t.add(a)
-                taken_s.add(b)
-                tracks[active[a]].append(int(cur[b]))
-        tracks.extend([int(cur[b])] for b in range(cur.size) if b not in taken_s)
-    return [np.asarray(members, dtype=np.int64) for members in tracks]
-
-
-def _track_scatter(pos: NDArray, smooth_frames: int) -> tuple[float, NDArray[np.bool_]]:
-    """Robust scatter (nm, worst axis) of a track's positions (F, 2) about their running
-    median, and which frames lie more than 4 scatters (at least 10 nm) from it."""
-    ok = np.isfinite(pos[:, 0])
-    outlier = np.zeros(pos.shape[0], dtype=bool)
-    if ok.sum() < 3:
-        return math.inf, outlier
-    p = pos[ok]
-    size = min(max(smooth_frames, 3), p.shape[0])
-    resid = p - median_filter(p, size=(size, 1), mode="mirror")
-    resid -= np.median(resid, axis=0)
-    per_axis = 1.4826 * np.median(np.abs(resid), axis=0)
-    outlier[ok] = np.any(np.abs(resid) > np.maximum(4 * per_axis, 10.0), axis=1)
-    return float(np.max(per_axis)), outlier
-
-
-def _fill_gaps(values: NDArray) -> NDArray:
-    """Rows (frames) of ``values`` (F, D) that are NaN, linearly interpolated from the others
-    (held constant beyond the first / last finite row)."""
-    ok = np.isfinite(values[:, 0])
-    t = np.arange(values.shape[0], dtype=np.float64)
-    return np.stack([np.interp(t, t[ok], values[ok, k]) for k in range(values.shape[1])], axis=1)
-
-
-def _smooth(values: NDArray, size: int) -> NDArray:
-    """Running median then running mean over ``size`` frames along axis 0."""
-    size = min(size, values.shape[0])
-    if size <= 1:
-        return values.copy()
-    out = median_filter(values, size=(size, 1), mode="mirror")
-    return uniform_filter1d(out, size, axis=0, mode="mirror")
 
 
 # --------------------------------------------------------------------------------------------

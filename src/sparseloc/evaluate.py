@@ -169,57 +169,82 @@ def match_localizations(
     _check_table(truth, "truth")
     lat_tol, ax_tol = _check_tolerances(lateral_tol, axial_tol)
     three_d = _is_3d(locs, truth)
-
     n_l, n_t = len(locs), len(truth)
-    lx = locs["x_nm"].to_numpy(np.float64)
-    ly = locs["y_nm"].to_numpy(np.float64)
-    tx = truth["x_nm"].to_numpy(np.float64)
-    ty = truth["y_nm"].to_numpy(np.float64)
-    if three_d:
-        lz = locs["z_nm"].to_numpy(np.float64)
-        tz = truth["z_nm"].to_numpy(np.float64)
-    else:
-        lz = np.full(n_l, np.nan)
-        tz = np.full(n_t, np.nan)
-
     empty = pd.DataFrame({c: pd.Series(dtype=np.float64) for c in _MATCH_COLUMNS})
     empty = empty.astype(
         {"frame": truth["frame"].dtype, "loc_row": np.int64, "truth_row": np.int64}
     )
     if n_l == 0 or n_t == 0:
         return empty
-
     # Integer frame codes shared by both tables.
     codes, _ = pd.factorize(pd.concat([locs["frame"], truth["frame"]], ignore_index=True))
-    lf, tf = codes[:n_l].astype(np.float64), codes[n_l:].astype(np.float64)
+    loc = _points(locs, codes[:n_l], three_d)
+    tru = _points(truth, codes[n_l:], three_d)
+    li, ti, cost = _allowed_pairs(loc, tru, lat_tol, ax_tol, three_d)
+    if len(li) == 0:
+        return empty
+    ml, mt = _assign(li, ti, cost, n_l, n_t)
+    return _pairs_table(truth["frame"].to_numpy(), loc, tru, ml, mt, three_d)
 
+
+@dataclass(frozen=True)
+class _Points:
+    """One table's rows as arrays: positions ``xyz`` (n, 3) in nm (z NaN in a 2D evaluation)
+    and the frame code of each row."""
+
+    xyz: NDArray[np.float64]
+    code: NDArray[np.intp]
+
+    def tree(self, spacing: float) -> cKDTree:
+        """k-d tree of x, y and the frame code times ``spacing``."""
+        return cKDTree(
+            np.column_stack(
+                [self.xyz[:, 0], self.xyz[:, 1], self.code.astype(np.float64) * spacing]
+            )
+        )
+
+
+def _points(df: pd.DataFrame, code: NDArray[np.intp], three_d: bool) -> _Points:
+    z = df["z_nm"].to_numpy(np.float64) if three_d else np.full(len(df), np.nan)
+    x, y = df["x_nm"].to_numpy(np.float64), df["y_nm"].to_numpy(np.float64)
+    return _Points(np.column_stack([x, y, z]), code)
+
+
+def _allowed_pairs(
+    loc: _Points, tru: _Points, lat_tol: float, ax_tol: float, three_d: bool
+) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:
+    """Every (localization, emitter) pair of the same frame within the tolerances, and its
+    distance (3D, or lateral in a 2D evaluation)."""
     # All laterally allowed pairs of all frames at once: the frame code times a spacing larger
     # than the tolerance is a third coordinate, so pairs never cross frames.
     spacing = 2.0 * lat_tol + 1.0
-    tree_l = cKDTree(np.column_stack([lx, ly, lf * spacing]))
-    tree_t = cKDTree(np.column_stack([tx, ty, tf * spacing]))
+    tree_l, tree_t = loc.tree(spacing), tru.tree(spacing)
     # Slightly generous search radius; the exact inclusive test is applied below.
     radius = lat_tol * (1.0 + 1e-9) + 1e-9
     sdm = tree_l.sparse_distance_matrix(tree_t, max_distance=radius, output_type="ndarray")
     li = sdm["i"].astype(np.intp)
     ti = sdm["j"].astype(np.intp)
     # Recompute exactly (and enforce the inclusive tolerances on the recomputed values).
-    same = codes[li] == codes[n_l + ti]
+    same = loc.code[li] == tru.code[ti]
     li, ti = li[same], ti[same]
-    dx = lx[li] - tx[ti]
-    dy = ly[li] - ty[ti]
+    dx = loc.xyz[li, 0] - tru.xyz[ti, 0]
+    dy = loc.xyz[li, 1] - tru.xyz[ti, 1]
     dlat = np.hypot(dx, dy)
     ok = dlat <= lat_tol
     if three_d:
-        dz = lz[li] - tz[ti]
+        dz = loc.xyz[li, 2] - tru.xyz[ti, 2]
         ok &= np.abs(dz) <= ax_tol
         cost = np.sqrt(dlat**2 + dz**2)
     else:
         cost = dlat
-    li, ti, cost = li[ok], ti[ok], cost[ok]
-    if len(li) == 0:
-        return empty
+    return li[ok], ti[ok], cost[ok]
 
+
+def _assign(
+    li: NDArray[np.intp], ti: NDArray[np.intp], cost: NDArray[np.float64], n_l: int, n_t: int
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """The matched localization and emitter rows among the allowed pairs: directly in the
+    components of the pair graph with one pair, by the Hungarian algorithm in the others."""
     # Connected components of the bipartite graph (locs are nodes 0..n_l-1, truth n_l..).
     n_nodes = n_l + n_t
     graph = coo_matrix((np.ones(len(li)), (li, n_l + ti)), shape=(n_nodes, n_nodes))
@@ -242,20 +267,29 @@ def match_localizations(
             r, c = _assign_component(dense)
             sel_l.append(ul[r])
             sel_t.append(ut[c])
-    ml = np.concatenate(sel_l)
-    mt = np.concatenate(sel_t)
+    return np.concatenate(sel_l), np.concatenate(sel_t)
 
+
+def _pairs_table(
+    truth_frame: NDArray,
+    loc: _Points,
+    tru: _Points,
+    ml: NDArray[np.intp],
+    mt: NDArray[np.intp],
+    three_d: bool,
+) -> pd.DataFrame:
+    """The matched pairs with their errors, sorted by frame then ``truth_row``."""
     out = pd.DataFrame(
         {
-            "frame": truth["frame"].to_numpy()[mt],
+            "frame": truth_frame[mt],
             "loc_row": ml.astype(np.int64),
             "truth_row": mt.astype(np.int64),
-            "x_loc": lx[ml],
-            "y_loc": ly[ml],
-            "z_loc": lz[ml],
-            "x_truth": tx[mt],
-            "y_truth": ty[mt],
-            "z_truth": tz[mt],
+            "x_loc": loc.xyz[ml, 0],
+            "y_loc": loc.xyz[ml, 1],
+            "z_loc": loc.xyz[ml, 2],
+            "x_truth": tru.xyz[mt, 0],
+            "y_truth": tru.xyz[mt, 1],
+            "z_truth": tru.xyz[mt, 2],
         }
     )
     out["dx"] = out["x_loc"] - out["x_truth"]
@@ -265,7 +299,7 @@ def match_localizations(
     out["dist_3d"] = (
         np.sqrt(out["dist_lateral"] ** 2 + out["dz"] ** 2) if three_d else out["dist_lateral"]
     )
-    sort_key = codes[n_l + mt]
+    sort_key = tru.code[mt]
     out = out.iloc[np.lexsort((mt, sort_key))].reset_index(drop=True)
     return out[_MATCH_COLUMNS]
 

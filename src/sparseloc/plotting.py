@@ -236,16 +236,13 @@ def plot_solve(
         Figure title; default the method and the count.
     """
     from matplotlib.figure import Figure
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Patch, Rectangle
 
     img = np.asarray(window, dtype=np.float64)
     model = np.asarray(solution.model_image, dtype=np.float64).reshape(img.shape)
     rows, cols = img.shape
     px = float(pixel_size)
     ox, oy = float(origin[0]), float(origin[1])
-    x_lo, x_hi, y_lo, y_hi = ox, ox + cols * px, oy, oy + rows * px
-    ext_um = (x_lo / 1000, x_hi / 1000, y_hi / 1000, y_lo / 1000)
+    bounds = (ox, ox + cols * px, oy, oy + rows * px)
 
     details = solution.details or {}
     if mp_emitters is None and details.get("mp") is not None:
@@ -264,8 +261,49 @@ def plot_solve(
 
     fig = Figure(figsize=(14.0, 9.0), layout="constrained")
     axes = fig.subplots(2, 3, gridspec_kw={"height_ratios": [1.0, 1.0]})
+    resid = _solve_images(fig, axes[0], img, model, method, bounds)
+    ax_xy, ax_xz, ax_info = axes[1]
+    sets = _position_sets(tru, mp_emitters, solution.method, method, final)
+    _position_panels(ax_xy, ax_xz, sets, bounds, centres, half)
+    chi2 = float(np.sum(resid**2 / np.maximum(model, 1e-9)))
+    lines = _summary_lines(tru, mp_emitters, method, final, solution.background)
+    lines.append(f"Pearson χ²/pixel {chi2 / img.size:.2f}")
+    _legend_and_summary(ax_info, ax_xy, len(centres) > 0, lines)
+    count = f"{len(final)} emitter" + ("" if len(final) == 1 else "s")
+    fig.suptitle(title or f"{method}: {count} in a {rows}x{cols} window ({px:g} nm pixels)")
+    return save_figure(fig, path)
 
-    # -- top row: images ----------------------------------------------------------------------
+
+_TRUTH_STYLE = {
+    "marker": "o",
+    "s": 70,
+    "facecolors": "none",
+    "edgecolors": "black",
+    "linewidths": 1.4,
+}
+_MP_STYLE = {
+    "marker": "s",
+    "s": 55,
+    "facecolors": "none",
+    "edgecolors": "tab:orange",
+    "linewidths": 1.6,
+}
+_FINAL_STYLE = {"marker": "x", "s": 60, "color": "tab:blue", "linewidths": 2.0}
+_BOX_STYLE = {
+    "fill": False,
+    "edgecolor": "tab:blue",
+    "linewidth": 1.0,
+    "alpha": 0.7,
+    "linestyle": "-",
+}
+_FRAME_STYLE = {"color": "0.45", "linestyle": "--", "linewidth": 1.0}
+
+
+def _solve_images(fig, axes, img: NDArray, model: NDArray, method: str, bounds) -> NDArray:
+    """The window, the reconstruction and their residual (returned) on the axes row ``axes``;
+    ``bounds`` are the window's edges ``x_lo, x_hi, y_lo, y_hi`` (nm)."""
+    x_lo, x_hi, y_lo, y_hi = bounds
+    ext_um = (x_lo / 1000, x_hi / 1000, y_hi / 1000, y_lo / 1000)
     vmin, vmax = float(min(img.min(), model.min())), float(max(img.max(), model.max()))
     resid = img - model
     rmax = float(np.abs(resid).max()) or 1.0
@@ -274,7 +312,7 @@ def plot_solve(
         (model, f"reconstruction ({method})", "magma", vmin, vmax, "white"),
         (resid, "residual (window - reconstruction)", "RdBu_r", -rmax, rmax, "black"),
     )
-    for ax, (data, name, cmap, lo, hi, bar) in zip(axes[0], panels, strict=True):
+    for ax, (data, name, cmap, lo, hi, bar) in zip(axes, panels, strict=True):
         im = ax.imshow(data, cmap=cmap, vmin=lo, vmax=hi, extent=ext_um, interpolation="nearest")
         cb = fig.colorbar(im, ax=ax, shrink=0.85)
         cb.set_label("photons / pixel", fontsize=8)
@@ -284,57 +322,29 @@ def plot_solve(
         ax.set_xlabel("x (µm)")
         ax.set_ylabel("y (µm)")
         ax.tick_params(labelsize=8)
+    return resid
 
-    # -- bottom row: positions ----------------------------------------------------------------
-    ax_xy, ax_xz, ax_info = axes[1]
-    sets = []  # (label, xyz (n, 3), style)
+
+def _position_sets(
+    tru: NDArray | None, mp_emitters, solver: str, method: str, final
+) -> list[tuple[str, NDArray, dict]]:
+    """(label, xyz (n, 3) nm, scatter style) of the truth, the MP and the final positions."""
+    sets = []
     if tru is not None:
-        sets.append(
-            (
-                "truth",
-                tru[:, :3],
-                {
-                    "marker": "o",
-                    "s": 70,
-                    "facecolors": "none",
-                    "edgecolors": "black",
-                    "linewidths": 1.4,
-                },
-            )
-        )
+        sets.append(("truth", tru[:, :3], _TRUTH_STYLE))
     if mp_emitters is not None:
-        sets.append(
-            (
-                "MP",
-                mp_emitters.as_array()[:, :3],
-                {
-                    "marker": "s",
-                    "s": 55,
-                    "facecolors": "none",
-                    "edgecolors": "tab:orange",
-                    "linewidths": 1.6,
-                },
-            )
-        )
-    if mp_emitters is None and solution.method in ("mp", "omp"):
-        final_style = {
-            "marker": "s",
-            "s": 55,
-            "facecolors": "none",
-            "edgecolors": "tab:orange",
-            "linewidths": 1.6,
-        }
-    else:
-        final_style = {"marker": "x", "s": 60, "color": "tab:blue", "linewidths": 2.0}
-    sets.append((method, final.as_array()[:, :3], final_style))
-    box_style = {
-        "fill": False,
-        "edgecolor": "tab:blue",
-        "linewidth": 1.0,
-        "alpha": 0.7,
-        "linestyle": "-",
-    }
+        sets.append(("MP", mp_emitters.as_array()[:, :3], _MP_STYLE))
+    mp_only = mp_emitters is None and solver in ("mp", "omp")
+    sets.append((method, final.as_array()[:, :3], _MP_STYLE if mp_only else _FINAL_STYLE))
+    return sets
 
+
+def _position_panels(ax_xy, ax_xz, sets: list, bounds, centres: NDArray, half) -> None:
+    """Positions in x-y and x-z with the refined dictionary's boxes and the window's extent,
+    framed to show them all (x-z kept from going flat)."""
+    from matplotlib.patches import Rectangle
+
+    x_lo, x_hi, y_lo, y_hi = bounds
     all_pts = np.vstack([p for _, p, _ in sets] + [np.zeros((0, 3))])
     xs = np.concatenate([[x_lo, x_hi], all_pts[:, 0]])
     ys = np.concatenate([[y_lo, y_hi], all_pts[:, 1]])
@@ -345,13 +355,12 @@ def plot_solve(
         ys = np.concatenate([ys, centres[:, 1] - hy, centres[:, 1] + hy])
         zs = np.concatenate([zs, centres[:, 2] - hz, centres[:, 2] + hz])
         for cx, cy, cz in centres:
-            ax_xy.add_patch(Rectangle((cx - hx, cy - hy), 2 * hx, 2 * hy, **box_style))
-            ax_xz.add_patch(Rectangle((cx - hx, cz - hz), 2 * hx, 2 * hz, **box_style))
+            ax_xy.add_patch(Rectangle((cx - hx, cy - hy), 2 * hx, 2 * hy, **_BOX_STYLE))
+            ax_xz.add_patch(Rectangle((cx - hx, cz - hz), 2 * hx, 2 * hz, **_BOX_STYLE))
 
-    frame_style = {"color": "0.45", "linestyle": "--", "linewidth": 1.0}
-    ax_xy.add_patch(Rectangle((x_lo, y_lo), x_hi - x_lo, y_hi - y_lo, fill=False, **frame_style))
-    ax_xz.axvline(x_lo, **frame_style)
-    ax_xz.axvline(x_hi, **frame_style)
+    ax_xy.add_patch(Rectangle((x_lo, y_lo), x_hi - x_lo, y_hi - y_lo, fill=False, **_FRAME_STYLE))
+    ax_xz.axvline(x_lo, **_FRAME_STYLE)
+    ax_xz.axvline(x_hi, **_FRAME_STYLE)
 
     for label, p, style in sets:
         ax_xy.scatter(p[:, 0], p[:, 1], label=label, zorder=3, **style)
@@ -376,13 +385,32 @@ def plot_solve(
         ax.tick_params(labelsize=8)
         ax.grid(alpha=0.25)
 
-    # -- legend and summary -------------------------------------------------------------------
+
+def _summary_lines(
+    tru: NDArray | None, mp_emitters, method: str, final, background: float
+) -> list[str]:
+    """Count and photons of each set of positions, and the background."""
+    lines = []
+    if tru is not None:
+        lines.append(_photon_summary("truth", tru[:, 3] if tru.shape[1] > 3 else None, len(tru)))
+    if mp_emitters is not None:
+        lines.append(_photon_summary("MP", mp_emitters.photons, len(mp_emitters)))
+    lines.append(_photon_summary(method, final.photons, len(final)))
+    lines.append(f"background {background:.2f} photons/pixel")
+    return lines
+
+
+def _legend_and_summary(ax_info, ax_xy, boxes: bool, lines: list[str]) -> None:
+    """The legend of the position panels and the summary ``lines`` on the axes ``ax_info``."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
     ax_info.axis("off")
     handles, labels = ax_xy.get_legend_handles_labels()
-    if len(centres):
-        handles.append(Patch(**box_style))
+    if boxes:
+        handles.append(Patch(**_BOX_STYLE))
         labels.append("refined dictionary boxes")
-    handles.append(Line2D([], [], **frame_style))
+    handles.append(Line2D([], [], **_FRAME_STYLE))
     labels.append("window extent")
     ax_info.legend(
         handles,
@@ -393,15 +421,6 @@ def plot_solve(
         title="positions",
         title_fontsize=10,
     )
-    lines = []
-    if tru is not None:
-        lines.append(_photon_summary("truth", tru[:, 3] if tru.shape[1] > 3 else None, len(tru)))
-    if mp_emitters is not None:
-        lines.append(_photon_summary("MP", mp_emitters.photons, len(mp_emitters)))
-    lines.append(_photon_summary(method, final.photons, len(final)))
-    lines.append(f"background {solution.background:.2f} photons/pixel")
-    chi2 = float(np.sum(resid**2 / np.maximum(model, 1e-9)))
-    lines.append(f"Pearson χ²/pixel {chi2 / img.size:.2f}")
     ax_info.text(
         0.0,
         0.55,
@@ -413,10 +432,6 @@ def plot_solve(
         family="monospace",
         bbox={"boxstyle": "round", "facecolor": "0.96", "edgecolor": "0.7"},
     )
-
-    count = f"{len(final)} emitter" + ("" if len(final) == 1 else "s")
-    fig.suptitle(title or f"{method}: {count} in a {rows}x{cols} window ({px:g} nm pixels)")
-    return save_figure(fig, path)
 
 
 def plot_calibration(cal, path: str | Path, *, n_planes: int = 7) -> Path:
@@ -438,46 +453,21 @@ def plot_calibration(cal, path: str | Path, *, n_planes: int = 7) -> Path:
         Planes shown.
     """
     from matplotlib.figure import Figure
-    from matplotlib.patches import Rectangle
 
     psf = cal.psf
     z = cal.z
     idx = np.linspace(0, len(z) - 1, n_planes).round().astype(int)
     avg = cal.average[idx]
-    nr, nc = avg.shape[1:]
+    nr = avg.shape[1]
     p = cal.pixel_size
-    if cal.pupil is not None:
-        model_name = "pupil fit"
-        x0 = (psf.centre[1] + 0.5) * p
-        y0 = (psf.centre[0] + 0.5) * p
-        mod = cal.pupil.frame_model.images(
-            np.full(idx.size, x0), np.full(idx.size, y0), z[idx], (nr, nc), p
-        )
-        mod = mod / mod.sum(axis=(1, 2), keepdims=True)
-        zs_mod = z[idx]
-    else:
-        model_name = "spline (half step)"
-        zs_mod = np.clip(z[idx] + psf.z_step / 2, *psf.z_range)
-        x0 = (psf.centre[1] + 0.5) * p
-        y0 = (psf.centre[0] + 0.5) * p
-        mod = psf.images(np.full(idx.size, x0), np.full(idx.size, y0), zs_mod, (nr, nc), p)
+    model_name, mod, zs_mod = _calibration_model(cal, idx)
     # With a fitted pupil the third row is the fit's residual; without one it shows how much
     # the PSF changes over half a z step (what the spline interpolates across).
     res_label = "residual" if cal.pupil is not None else "change over\nhalf a step"
     fig = Figure(figsize=(2.0 * n_planes, 12.5))
     grid = fig.add_gridspec(5, n_planes, height_ratios=[2.6, 1, 1, 1, 1.4])
     ax = fig.add_subplot(grid[0, :])
-    proj = cal.projection
-    ax.imshow(proj, cmap="gray", origin="upper", vmin=0, vmax=np.percentile(proj, 99.9))
-    for _, b in cal.beads.iterrows():
-        col, row = b["x_nm"] / p - 0.5, b["y_nm"] / p - 0.5
-        colour = "lime" if b["used"] else "red"
-        half = nr / 2
-        ax.add_patch(
-            Rectangle((col - half, row - half), nr, nr, fill=False, edgecolor=colour, lw=0.8)
-        )
-        if not b["used"]:
-            ax.text(col, row - half - 1, str(b["reason"]), color="red", fontsize=7, ha="center")
+    _bead_field(ax, cal, nr)
     ax.set_title(
         f"{cal.n_used} of {len(cal.beads)} beads used; ROI {nr} px of {p:g} nm; "
         f"z {z[0]:.0f}..{z[-1]:.0f} nm in {psf.z_step:g} nm steps"
@@ -515,3 +505,42 @@ def plot_calibration(cal, path: str | Path, *, n_planes: int = 7) -> Path:
     a.set_title(f"residual scale: +-{res_lim:.2g} of a unit-photon plane", fontsize=9)
     fig.tight_layout()
     return save_figure(fig, path)
+
+
+def _calibration_model(cal, idx: NDArray) -> tuple[str, NDArray, NDArray]:
+    """The model shown against the average at planes ``idx``: its name, its images and their
+    z (nm). The fitted pupil at the planes when there is one, else the spline half a step off
+    them."""
+    psf = cal.psf
+    z = cal.z
+    nr, nc = cal.average.shape[1:]
+    p = cal.pixel_size
+    x0 = (psf.centre[1] + 0.5) * p
+    y0 = (psf.centre[0] + 0.5) * p
+    if cal.pupil is not None:
+        mod = cal.pupil.frame_model.images(
+            np.full(idx.size, x0), np.full(idx.size, y0), z[idx], (nr, nc), p
+        )
+        return "pupil fit", mod / mod.sum(axis=(1, 2), keepdims=True), z[idx]
+    zs_mod = np.clip(z[idx] + psf.z_step / 2, *psf.z_range)
+    mod = psf.images(np.full(idx.size, x0), np.full(idx.size, y0), zs_mod, (nr, nc), p)
+    return "spline (half step)", mod, zs_mod
+
+
+def _bead_field(ax, cal, nr: int) -> None:
+    """The z-averaged bead field with the ROIs of the beads used (green) and rejected (red,
+    with the reason)."""
+    from matplotlib.patches import Rectangle
+
+    p = cal.pixel_size
+    proj = cal.projection
+    ax.imshow(proj, cmap="gray", origin="upper", vmin=0, vmax=np.percentile(proj, 99.9))
+    for _, b in cal.beads.iterrows():
+        col, row = b["x_nm"] / p - 0.5, b["y_nm"] / p - 0.5
+        colour = "lime" if b["used"] else "red"
+        half = nr / 2
+        ax.add_patch(
+            Rectangle((col - half, row - half), nr, nr, fill=False, edgecolor=colour, lw=0.8)
+        )
+        if not b["used"]:
+            ax.text(col, row - half - 1, str(b["reason"]), color="red", fontsize=7, ha="center")

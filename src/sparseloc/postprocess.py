@@ -41,9 +41,8 @@ sigma_y_nm^2) / 2)``, medians over the rows where a value is finite and positive
 
 * ``max_distance_nm = 4 * sqrt(2) * median(sigma_xy)``, at least 20 nm; 50 nm when the table
   has no uncertainties (:func:`default_merge_distance`). Two localizations of one fluorophore
-  differ by ``sqrt(2) * sigma`` per axis, so this is a 4-sigma gate on their separation; a
-  3-sigma gate on the single-localization sigma (``3 * median(sigma_xy)``) splits about one
-  link in five in simulations with 15 nm / 40 nm precision (``benchmarks/merge.py``).
+  differ by ``sqrt(2) * sigma`` per axis, so this is a 4-sigma gate on their separation, wide
+  enough that noise rarely splits a track.
 * ``z_scale = median(sigma_xy) / median(sigma_z_nm)``, so the axial gate is as many axial
   sigmas as the lateral gate is lateral ones; 0.5 without axial uncertainties
   (:func:`default_z_scale`).
@@ -199,72 +198,17 @@ def filter_locs(
     """
     if not isinstance(locs, pd.DataFrame):
         raise ValueError(f"locs must be a pandas DataFrame, got {type(locs).__name__}")
-    photons_min = _opt_number(photons_min, "photons_min")
-    photons_max = _opt_number(photons_max, "photons_max")
-    sigma_xy_max_nm = _opt_number(sigma_xy_max_nm, "sigma_xy_max_nm", positive=True)
-    sigma_z_max_nm = _opt_number(sigma_z_max_nm, "sigma_z_max_nm", positive=True)
-    gof_max = _opt_number(gof_max, "gof_max", positive=True)
-    if photons_min is not None and photons_max is not None and photons_min > photons_max:
-        raise ValueError(
-            f"photons_min ({photons_min:g}) is larger than photons_max ({photons_max:g})"
-        )
-    z_lo = z_hi = None
-    if z_range is not None:
-        try:
-            z_lo, z_hi = z_range
-        except (TypeError, ValueError) as exc:
-            raise ValueError(
-                f"z_range must be a pair (z_min, z_max) in nm, got {z_range!r}"
-            ) from exc
-        z_lo = _opt_number(z_lo, "z_range[0]")
-        z_hi = _opt_number(z_hi, "z_range[1]")
-        if z_lo > z_hi:  # type: ignore[operator]
-            raise ValueError(f"z_range is reversed: z_min {z_lo:g} nm > z_max {z_hi:g} nm")
+    limits = _filter_limits(
+        photons_min, photons_max, sigma_xy_max_nm, sigma_z_max_nm, gof_max, z_range
+    )
     keep_flags: set[str] | None = None
     if flags is not None:
         keep_flags = {flags} if isinstance(flags, str) else {str(f) for f in flags}
         if not keep_flags:
             raise ValueError("flags is empty, which would remove every row; use None to keep all")
-
-    # Columns the active criteria read must be in the input itself: complete_locs would fill
-    # them with NaN and the criterion would then silently remove every row.
-    # A missing flag column is the exception: it means every row is "ok" (complete_locs).
-    needed: list[str] = []
-    if photons_min is not None or photons_max is not None:
-        needed.append("photons")
-    if sigma_xy_max_nm is not None:
-        needed += ["sigma_x_nm", "sigma_y_nm"]
-    if sigma_z_max_nm is not None:
-        needed.append("sigma_z_nm")
-    if gof_max is not None:
-        needed.append("gof")
-    if z_range is not None:
-        needed.append("z_nm")
-    missing = [c for c in needed if c not in locs.columns]
-    if missing:
-        raise ValueError(
-            f"the localization table has no column(s) {', '.join(missing)}, which the "
-            "requested filter criteria need"
-        )
+    _check_filter_columns(locs, limits)
     t = complete_locs(locs)
-
-    # NaN compares False, so a row with NaN fails every bound it is tested against.
-    masks: dict[str, np.ndarray] = {}
-    if keep_flags is not None:
-        masks["flag"] = t["flag"].isin(keep_flags).to_numpy()
-    if photons_min is not None or photons_max is not None:
-        masks["photons"] = _within(t["photons"].to_numpy(), photons_min, photons_max)
-    if sigma_xy_max_nm is not None:
-        with np.errstate(invalid="ignore", over="ignore"):
-            sxy = np.sqrt((t["sigma_x_nm"].to_numpy() ** 2 + t["sigma_y_nm"].to_numpy() ** 2) / 2)
-        masks["sigma_xy"] = _within(sxy, None, sigma_xy_max_nm)
-    if sigma_z_max_nm is not None:
-        masks["sigma_z"] = _within(t["sigma_z_nm"].to_numpy(), None, sigma_z_max_nm)
-    if gof_max is not None:
-        masks["gof"] = _within(t["gof"].to_numpy(), None, gof_max)
-    if z_range is not None:
-        masks["z"] = _within(t["z_nm"].to_numpy(), z_lo, z_hi)
-
+    masks = _criterion_masks(t, limits, keep_flags)
     alive = np.ones(len(t), dtype=bool)
     removed: dict[str, int] = {}
     failed: dict[str, int] = {}
@@ -280,6 +224,102 @@ def filter_locs(
     )
     logger.info("filter_locs: %s", out.summary())
     return out
+
+
+@dataclass(frozen=True)
+class _Limits:
+    """The checked numeric limits of :func:`filter_locs` (None: criterion not active)."""
+
+    photons_min: float | None
+    photons_max: float | None
+    sigma_xy_max_nm: float | None
+    sigma_z_max_nm: float | None
+    gof_max: float | None
+    z_range: tuple[float, float] | None
+
+    @property
+    def photons(self) -> bool:
+        return self.photons_min is not None or self.photons_max is not None
+
+
+def _filter_limits(
+    photons_min: float | None,
+    photons_max: float | None,
+    sigma_xy_max_nm: float | None,
+    sigma_z_max_nm: float | None,
+    gof_max: float | None,
+    z_range: tuple[float, float] | None,
+) -> _Limits:
+    """The limits of :func:`filter_locs`, checked; ``ValueError`` naming a bad one."""
+    photons_min = _opt_number(photons_min, "photons_min")
+    photons_max = _opt_number(photons_max, "photons_max")
+    sigma_xy_max_nm = _opt_number(sigma_xy_max_nm, "sigma_xy_max_nm", positive=True)
+    sigma_z_max_nm = _opt_number(sigma_z_max_nm, "sigma_z_max_nm", positive=True)
+    gof_max = _opt_number(gof_max, "gof_max", positive=True)
+    if photons_min is not None and photons_max is not None and photons_min > photons_max:
+        raise ValueError(
+            f"photons_min ({photons_min:g}) is larger than photons_max ({photons_max:g})"
+        )
+    z = None
+    if z_range is not None:
+        try:
+            z_lo, z_hi = z_range
+        except (TypeError, ValueError) as exc:
+            raise ValueError(
+                f"z_range must be a pair (z_min, z_max) in nm, got {z_range!r}"
+            ) from exc
+        z_lo = _opt_number(z_lo, "z_range[0]")
+        z_hi = _opt_number(z_hi, "z_range[1]")
+        if z_lo > z_hi:  # type: ignore[operator]
+            raise ValueError(f"z_range is reversed: z_min {z_lo:g} nm > z_max {z_hi:g} nm")
+        z = (z_lo, z_hi)
+    return _Limits(photons_min, photons_max, sigma_xy_max_nm, sigma_z_max_nm, gof_max, z)
+
+
+def _check_filter_columns(locs: pd.DataFrame, limits: _Limits) -> None:
+    """Raise if ``locs`` lacks a column an active criterion reads.
+
+    complete_locs would fill such a column with NaN and the criterion would then silently
+    remove every row. A missing flag column is the exception: it means every row is "ok".
+    """
+    needed: list[str] = []
+    if limits.photons:
+        needed.append("photons")
+    if limits.sigma_xy_max_nm is not None:
+        needed += ["sigma_x_nm", "sigma_y_nm"]
+    if limits.sigma_z_max_nm is not None:
+        needed.append("sigma_z_nm")
+    if limits.gof_max is not None:
+        needed.append("gof")
+    if limits.z_range is not None:
+        needed.append("z_nm")
+    missing = [c for c in needed if c not in locs.columns]
+    if missing:
+        raise ValueError(
+            f"the localization table has no column(s) {', '.join(missing)}, which the "
+            "requested filter criteria need"
+        )
+
+
+def _criterion_masks(
+    t: pd.DataFrame, limits: _Limits, keep_flags: set[str] | None
+) -> dict[str, np.ndarray]:
+    """The rows of the complete table ``t`` that pass each active criterion."""
+    # NaN compares False, so a row with NaN fails every bound it is tested against.
+    masks: dict[str, np.ndarray] = {}
+    if keep_flags is not None:
+        masks["flag"] = t["flag"].isin(keep_flags).to_numpy()
+    if limits.photons:
+        masks["photons"] = _within(t["photons"].to_numpy(), limits.photons_min, limits.photons_max)
+    if limits.sigma_xy_max_nm is not None:
+        masks["sigma_xy"] = _within(_lateral_sigma(t), None, limits.sigma_xy_max_nm)
+    if limits.sigma_z_max_nm is not None:
+        masks["sigma_z"] = _within(t["sigma_z_nm"].to_numpy(), None, limits.sigma_z_max_nm)
+    if limits.gof_max is not None:
+        masks["gof"] = _within(t["gof"].to_numpy(), None, limits.gof_max)
+    if limits.z_range is not None:
+        masks["z"] = _within(t["z_nm"].to_numpy(), *limits.z_range)
+    return masks
 
 
 def _within(values: np.ndarray, lo: float | None, hi: float | None) -> np.ndarray:
@@ -458,6 +498,24 @@ def merge_blinks(
     if n == 0:
         return _merged_frame({c: np.empty(0) for c in MERGE_COLUMNS}, np.empty(0, dtype=str))
     labels = _link(t, dist, gap, zs)
+    merged = _merged_frame(*_combine_tracks(t, labels))
+    logger.info(
+        "merge_blinks: %d localizations -> %d (max distance %.1f nm, max gap %d, z scale %g)",
+        n,
+        len(merged),
+        dist,
+        gap,
+        zs,
+    )
+    return merged
+
+
+def _combine_tracks(
+    t: pd.DataFrame, labels: np.ndarray
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The columns of the merged table, one row per track label (rules in the module
+    docstring), and the flag of each track."""
+    n = len(t)
     frame = t["frame"].to_numpy()
     # Rows grouped by track, each track's rows in frame order: reduceat then works per track.
     order = np.lexsort((frame, labels))
@@ -492,22 +550,17 @@ def merge_blinks(
         out["background"] = total(col("background")) / count
         out["gof"] = total(col("gof")) / count
     out["window_id"] = t["window_id"].to_numpy()[order][starts]
-    flag_all = t["flag"].to_numpy(dtype=object)[order]
-    bad_pos = np.where(flag_all != "ok", np.arange(n), n)
-    first_bad = np.minimum.reduceat(bad_pos, starts)
-    flags = np.where(first_bad < n, flag_all[np.minimum(first_bad, n - 1)], "ok")
     out["n_frames"] = count
     out["last_frame"] = frame[order][ends]
-    merged = _merged_frame(out, flags)
-    logger.info(
-        "merge_blinks: %d localizations -> %d (max distance %.1f nm, max gap %d, z scale %g)",
-        n,
-        len(merged),
-        dist,
-        gap,
-        zs,
-    )
-    return merged
+    return out, _first_non_ok(t["flag"].to_numpy(dtype=object)[order], starts)
+
+
+def _first_non_ok(flag_all: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Per track (rows from each of ``starts``): "ok", or its first flag that is not "ok"."""
+    n = len(flag_all)
+    bad_pos = np.where(flag_all != "ok", np.arange(n), n)
+    first_bad = np.minimum.reduceat(bad_pos, starts)
+    return np.where(first_bad < n, flag_all[np.minimum(first_bad, n - 1)], "ok")
 
 
 def _merged_frame(cols: dict[str, np.ndarray], flags: np.ndarray) -> pd.DataFrame:

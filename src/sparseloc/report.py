@@ -202,14 +202,36 @@ def build_report(
         If the table is empty.
     """
     from .io.tables import complete_locs
-    from .render import frc, plot_projections
 
     if len(locs) == 0:
         raise ValueError("the localization table is empty: nothing to report")
     t = complete_locs(locs)
     n_frames = int(t["frame"].max()) + 1
+    sections: list[str] = []
+    sections.append(_table_html("Summary", _summary_rows(t, n_frames)))
+    sections.append(_figure_html("Distributions", _hist_figure(t)))
+    sections.append(_figure_html("Localizations per frame", _per_frame_figure(t, n_frames)))
+    text, fig = _drift_section(t, n_frames)
+    sections.append(_figure_html("Drift", fig, text))
+    render_b64, frc_text = _render_section(t, render_px)
+    sections.append(_figure_html("Rendered image (colour = z)", render_b64, frc_text))
+    if truth is not None:
+        table, fig = _truth_section(t, truth)
+        sections.append(_figure_html("Against the ground truth", fig, table))
+    if metadata:
+        items = [(str(k), _short(v)) for k, v in metadata.items()]
+        sections.append(_table_html("Metadata", items))
+    body = "\n".join(sections)
+    n_fig = body.count("<img ")
+    return _PAGE.format(
+        title=html.escape(title), body=body, n_figures=n_fig, style=_STYLE, script=_SCRIPT
+    )
+
+
+def _summary_rows(t: pd.DataFrame, n_frames: int) -> list[tuple[str, str]]:
+    """Counts, field, z range, median photons, uncertainties and fit quality, and the flags."""
     flags = t["flag"].value_counts().to_dict()
-    summary = [
+    return [
         ("localizations", f"{len(t):,}"),
         ("frames", f"{n_frames:,} ({len(t) / n_frames:.1f} localizations per frame)"),
         ("field (x, y)", f"{np.ptp(t.x_nm) / 1000:.1f} x {np.ptp(t.y_nm) / 1000:.1f} µm"),
@@ -223,12 +245,12 @@ def build_report(
         ("median deviance / dof", f"{t.gof.median():.2f}"),
         ("flags", ", ".join(f"{k}: {v:,}" for k, v in flags.items())),
     ]
-    sections: list[str] = []
-    sections.append(_table_html("Summary", summary))
-    sections.append(_figure_html("Distributions", _hist_figure(t)))
-    sections.append(_figure_html("Localizations per frame", _per_frame_figure(t, n_frames)))
-    text, fig = _drift_section(t, n_frames)
-    sections.append(_figure_html("Drift", fig, text))
+
+
+def _render_section(t: pd.DataFrame, render_px: float | None) -> tuple[str, str]:
+    """The rendered image (base64 PNG) and the text of its FRC resolution."""
+    from .render import frc, plot_projections
+
     with tempfile.TemporaryDirectory() as tmp:
         png = plot_projections(t, Path(tmp) / "render.png", px_nm=render_px, title="")
         render_b64 = _png_file(png)
@@ -242,18 +264,7 @@ def build_report(
         )
     except ValueError as exc:
         frc_text = f"FRC not computed: {html.escape(str(exc))}"
-    sections.append(_figure_html("Rendered image (colour = z)", render_b64, frc_text))
-    if truth is not None:
-        table, fig = _truth_section(t, truth)
-        sections.append(_figure_html("Against the ground truth", fig, table))
-    if metadata:
-        items = [(str(k), _short(v)) for k, v in metadata.items()]
-        sections.append(_table_html("Metadata", items))
-    body = "\n".join(sections)
-    n_fig = body.count("<img ")
-    return _PAGE.format(
-        title=html.escape(title), body=body, n_figures=n_fig, style=_STYLE, script=_SCRIPT
-    )
+    return render_b64, frc_text
 
 
 def write_report(

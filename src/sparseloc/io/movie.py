@@ -241,46 +241,11 @@ def _analyse(path: Path, tif: tifffile.TiffFile, allow_float: bool, size: int) -
         # One series per page (e.g. pages written one by one with their own description).
         top_level = True
     keyframe = series.keyframe
-    axes, shape = series.axes, tuple(series.shape)
-    if keyframe.samplesperpixel > 1 or "S" in axes:
-        raise ValueError(
-            f"{_q(path)} holds RGB or multi-sample pixels ({keyframe.samplesperpixel} values "
-            f"per pixel, shape {shape}, axes {axes}); expected one grey value per pixel"
-        )
-    if len(shape) < 2 or axes[-2:] != "YX" or keyframe.imagedepth > 1:
-        raise ValueError(
-            f"{_q(path)} holds images of shape {shape} (axes {axes}); expected (rows, cols) frames"
-        )
-    lead = dict(zip(axes[:-2], shape[:-2], strict=True))
-    several = [f"{a}={n}" for a, n in lead.items() if n > 1]
-    if len(several) > 1:
-        hint = "; split the channels first" if lead.get("C", 1) > 1 else ""
-        raise ValueError(
-            f"{_q(path)} has several frame axes ({', '.join(several)}; shape {shape}, axes "
-            f"{axes}); expected one stack of (rows, cols) frames{hint}"
-        )
-    n_frames = math.prod(shape[:-2]) * (len(all_series) if top_level else 1)
-    rows, cols = int(shape[-2]), int(shape[-1])
-    if n_frames == 0 or rows == 0 or cols == 0:
-        raise ValueError(f"{_q(path)} holds no frames (shape {shape})")
-
-    dtype = np.dtype(series.dtype)
-    if dtype.kind == "f":
-        if not allow_float:
-            raise ValueError(
-                f"{_q(path)} holds floating-point data ({dtype}) where integer camera counts "
-                "(ADU) are expected; pass allow_float=True to read it anyway"
-            )
-    elif dtype.kind not in "iu":
-        raise ValueError(f"{_q(path)} holds {dtype} data; expected integer camera counts (ADU)")
+    n_series = len(all_series) if top_level else 1
+    n_frames, rows, cols = _frame_layout(path, series, keyframe, n_series)
+    dtype = _camera_dtype(path, series, allow_float)
     file_dtype = dtype.newbyteorder(tif.byteorder)
-
-    pixel_size = None
-    if tif.is_ome and tif.ome_metadata:
-        pixel_size = _ome_pixel_size(tif.ome_metadata)
-    if pixel_size is None and tif.is_imagej:
-        pixel_size = _imagej_pixel_size(tif)
-
+    pixel_size = _file_pixel_size(tif)
     if tif.is_imagej and not top_level:
         declared = (tif.imagej_metadata or {}).get("images")
         if isinstance(declared, int) and declared > n_frames:
@@ -322,6 +287,58 @@ def _analyse(path: Path, tif: tifffile.TiffFile, allow_float: bool, size: int) -
         )
     _check_page(source, pages[n_frames - 1], n_frames - 1)
     return source
+
+
+def _frame_layout(path: Path, series: Any, keyframe: Any, n_series: int) -> tuple[int, int, int]:
+    """Frames, rows and cols of ``n_series`` series like ``series``: one stack of grey
+    (rows, cols) frames, else ``ValueError`` saying what the file holds instead."""
+    axes, shape = series.axes, tuple(series.shape)
+    if keyframe.samplesperpixel > 1 or "S" in axes:
+        raise ValueError(
+            f"{_q(path)} holds RGB or multi-sample pixels ({keyframe.samplesperpixel} values "
+            f"per pixel, shape {shape}, axes {axes}); expected one grey value per pixel"
+        )
+    if len(shape) < 2 or axes[-2:] != "YX" or keyframe.imagedepth > 1:
+        raise ValueError(
+            f"{_q(path)} holds images of shape {shape} (axes {axes}); expected (rows, cols) frames"
+        )
+    lead = dict(zip(axes[:-2], shape[:-2], strict=True))
+    several = [f"{a}={n}" for a, n in lead.items() if n > 1]
+    if len(several) > 1:
+        hint = "; split the channels first" if lead.get("C", 1) > 1 else ""
+        raise ValueError(
+            f"{_q(path)} has several frame axes ({', '.join(several)}; shape {shape}, axes "
+            f"{axes}); expected one stack of (rows, cols) frames{hint}"
+        )
+    n_frames = math.prod(shape[:-2]) * n_series
+    rows, cols = int(shape[-2]), int(shape[-1])
+    if n_frames == 0 or rows == 0 or cols == 0:
+        raise ValueError(f"{_q(path)} holds no frames (shape {shape})")
+    return n_frames, rows, cols
+
+
+def _camera_dtype(path: Path, series: Any, allow_float: bool) -> np.dtype[Any]:
+    """The series' dtype: integer camera counts, or floats when ``allow_float``."""
+    dtype = np.dtype(series.dtype)
+    if dtype.kind == "f":
+        if not allow_float:
+            raise ValueError(
+                f"{_q(path)} holds floating-point data ({dtype}) where integer camera counts "
+                "(ADU) are expected; pass allow_float=True to read it anyway"
+            )
+    elif dtype.kind not in "iu":
+        raise ValueError(f"{_q(path)} holds {dtype} data; expected integer camera counts (ADU)")
+    return dtype
+
+
+def _file_pixel_size(tif: tifffile.TiffFile) -> float | None:
+    """Pixel size (nm) from the OME metadata, else the ImageJ metadata; None when absent."""
+    pixel_size = None
+    if tif.is_ome and tif.ome_metadata:
+        pixel_size = _ome_pixel_size(tif.ome_metadata)
+    if pixel_size is None and tif.is_imagej:
+        pixel_size = _imagej_pixel_size(tif)
+    return pixel_size
 
 
 def _check_last_ifd(path: Path, tif: tifffile.TiffFile, n_pages: int, size: int) -> None:

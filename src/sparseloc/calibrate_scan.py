@@ -1,0 +1,211 @@
+"""Bead z-scans for PSF calibration (:mod:`sparseloc.calibrate`): the z of each plane (from a
+stage step or a z file), the conversion from ADU to photons and the per-frame background.
+
+Coordinates (design.md): ``z = (slice - z0_slice) * z_step`` with ``z0_slice`` the middle slice
+by default, or the z of each frame from a file. :mod:`sparseloc.calibrate` re-exports
+:func:`read_z_file`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = ["BeadScan", "read_scan", "read_z_file"]
+
+# Messages keep the logger of sparseloc.calibrate, where the calibration has always logged.
+log = logging.getLogger("sparseloc.calibrate")
+
+
+def read_z_file(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Read per-frame z positions from a CSV (storm-analysis style or one column).
+
+    Accepted columns: ``z_um`` or ``z_nm`` (or a single unnamed column in nm), optional
+    ``valid`` (0/1) and ``frame_0based``/``frame``. Returns z in nm and the valid flags, in
+    frame order.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"z file {str(p)!r} does not exist")
+    try:
+        df = pd.read_csv(p)
+    except (ValueError, OSError, pd.errors.ParserError) as exc:
+        raise ValueError(f"cannot read z file {p.name}: {exc}") from exc
+    cols = {c.strip().lower(): c for c in df.columns}
+    if "z_um" in cols:
+        z = df[cols["z_um"]].to_numpy(dtype=float) * 1000.0
+    elif "z_nm" in cols:
+        z = df[cols["z_nm"]].to_numpy(dtype=float)
+    elif "z" in cols:
+        z = df[cols["z"]].to_numpy(dtype=float)
+    else:
+        try:
+            z = np.loadtxt(p, delimiter=",", ndmin=1).astype(float)
+        except ValueError as exc:
+            raise ValueError(
+                f"z file {p.name} needs a z_um or z_nm column (or one column of nm)"
+            ) from exc
+        if z.ndim != 1:
+            raise ValueError(
+                f"z file {p.name} has {z.shape[1]} columns but no header; name them "
+                "(z_um or z_nm, and valid)"
+            )
+        if not np.all(np.isfinite(z)):
+            raise ValueError(f"z file {p.name} holds non-numeric or missing z values")
+        return z, np.ones(z.size, bool)
+    if "valid" in cols:
+        flags = pd.to_numeric(df[cols["valid"]], errors="coerce").to_numpy(dtype=float)
+        valid = np.nan_to_num(flags, nan=0.0) != 0  # missing or unreadable: not valid
+    else:
+        valid = np.ones(z.size, dtype=bool)
+    for key in ("frame_0based", "frame"):
+        if key in cols:
+            order = np.argsort(df[cols[key]].to_numpy(), kind="stable")
+            z, valid = z[order], valid[order]
+            break
+    if not np.all(np.isfinite(z[valid])):
+        raise ValueError(f"z file {p.name} holds non-numeric or missing z values")
+    return z, valid
+
+
+@dataclass
+class BeadScan:
+    """A bead z-stack in photons, ready for calibration."""
+
+    data: NDArray[np.float64]  # (Nz, H, W) photons less each frame's background
+    projection: NDArray[np.float64]  # (H, W) z-average of ``data``
+    zplanes: NDArray[np.float64]  # (Nz,) plane positions (nm)
+    step: float  # z step between planes (nm)
+    pixel_size: float  # nm
+    saturation: float | None  # ADU at which the camera saturates
+    sat_frames: NDArray  # the ADU frames the saturation test looks at
+    offset: float  # ADU
+    gain: float  # photons per ADU
+
+
+def read_scan(
+    stack: ArrayLike,
+    pixel_size: float,
+    z_step: float | None,
+    z: ArrayLike | None,
+    valid: ArrayLike | None,
+    z0_slice: float | None,
+    offset: float,
+    gain: float,
+    saturation: float | None,
+) -> BeadScan:
+    """Check the stack, place its planes in z, convert it to photons and subtract each
+    frame's background (its median: beads cover a small fraction of the field)."""
+    raw, p, saturation = _checked_stack(stack, pixel_size, gain, saturation)
+    if z is not None:
+        photons, sat_frames, zplanes, step = _planes_from_z(raw, z, valid, z_step, offset, gain)
+    else:
+        photons, sat_frames, zplanes, step = _even_planes(raw, z_step, z0_slice, offset, gain)
+    if photons.shape[0] < 4:
+        raise ValueError(f"a calibration needs at least 4 z planes, got {photons.shape[0]}")
+    bg = _frame_background(photons)
+    if np.median(bg) < 0 and offset > 0:
+        raise ValueError(f"the offset {offset:g} ADU is above most pixel values; check --offset")
+    data = photons - bg[:, None, None]
+    return BeadScan(data, data.mean(axis=0), zplanes, step, p, saturation, sat_frames, offset, gain)
+
+
+def _checked_stack(
+    stack: ArrayLike, pixel_size: float, gain: float, saturation: float | None
+) -> tuple[NDArray, float, float | None]:
+    """The stack as an array, the pixel size (nm) and the saturation (ADU; by default the
+    integer type's maximum); ``ValueError`` saying what to fix."""
+    raw = np.asarray(stack)
+    if raw.ndim != 3:
+        raise ValueError(
+            f"a bead z-stack must be 3-D (frames, rows, cols), got shape {raw.shape}; "
+            "save the scan as a multi-frame TIFF"
+        )
+    if raw.shape[0] < 2:
+        raise ValueError(
+            "the bead stack has only one frame; a calibration needs a z-scan through focus "
+            "(typically 50-200 frames)"
+        )
+    if not np.all(np.isfinite(raw)):
+        raise ValueError("the bead stack contains NaN or inf values")
+    p = float(pixel_size)
+    if not np.isfinite(p) or p <= 0:
+        raise ValueError(f"--pixel-size must be a positive number of nm, got {pixel_size}")
+    if gain <= 0:
+        raise ValueError(f"gain must be > 0 photons per ADU, got {gain}")
+    if saturation is None and raw.dtype.kind in "ui":
+        saturation = float(np.iinfo(raw.dtype).max)
+    return raw, p, saturation
+
+
+def _planes_from_z(
+    raw: NDArray,
+    z: ArrayLike,
+    valid: ArrayLike | None,
+    z_step: float | None,
+    offset: float,
+    gain: float,
+) -> tuple[NDArray[np.float64], NDArray, NDArray[np.float64], float]:
+    """Photons, the ADU frames used, plane z (nm) and step of a scan with the z of each
+    frame: valid frames sorted by z, resampled onto an even grid when the steps are uneven
+    or ``z_step`` is given."""
+    n = raw.shape[0]
+    zf = np.asarray(z, dtype=np.float64).ravel()
+    vf = np.ones(zf.size, bool) if valid is None else np.asarray(valid, bool).ravel()
+    if zf.size != n or vf.size != n:
+        raise ValueError(f"the z file lists {zf.size} frames but the stack has {n}")
+    keep = np.nonzero(vf)[0]
+    if not np.all(np.isfinite(zf[keep])):
+        raise ValueError("the z file holds missing or non-finite z for frames marked valid")
+    if keep.size < 4:
+        raise ValueError("fewer than 4 frames are marked valid in the z file")
+    zk = zf[keep]
+    order = np.argsort(zk, kind="stable")
+    keep, zk = keep[order], zk[order]
+    steps = np.diff(zk)
+    if np.any(steps <= 0):
+        raise ValueError("the z file repeats a z value; each frame needs its own z")
+    step = float(z_step) if z_step else float(np.median(steps))
+    if step <= 0:
+        raise ValueError(f"z step must be > 0 nm, got {step}")
+    photons = (raw[keep].astype(np.float64) - offset) * gain
+    sat_frames = raw[keep]
+    if np.ptp(steps) > 1e-3 * step or z_step:
+        grid = np.arange(zk[0], zk[-1] + 1e-6 * step, step)
+        from scipy.interpolate import interp1d
+
+        photons = interp1d(zk, photons, axis=0, assume_sorted=True)(grid)
+        log.info(
+            "resampled %d uneven planes onto %d planes %.1f nm apart", zk.size, grid.size, step
+        )
+        zk = grid
+    return photons, sat_frames, zk, step
+
+
+def _even_planes(
+    raw: NDArray, z_step: float | None, z0_slice: float | None, offset: float, gain: float
+) -> tuple[NDArray[np.float64], NDArray, NDArray[np.float64], float]:
+    """Photons, the ADU frames, plane z (nm) and step of a scan in even steps, z = 0 at
+    ``z0_slice`` (default the middle slice)."""
+    n = raw.shape[0]
+    if z_step is None or not np.isfinite(z_step) or z_step <= 0:
+        raise ValueError(
+            f"the z step must be a positive number of nm, got {z_step}; pass --z-step or a z file"
+        )
+    step = float(z_step)
+    z0 = (n - 1) / 2.0 if z0_slice is None else float(z0_slice)
+    if not 0 <= z0 <= n - 1:
+        raise ValueError(f"--z0-slice {z0_slice} is outside the stack's 0..{n - 1} slices")
+    zplanes = (np.arange(n) - z0) * step
+    photons = (raw.astype(np.float64) - offset) * gain
+    return photons, raw, zplanes, step
+
+
+def _frame_background(photons: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Median of each frame (beads cover a small fraction of the field)."""
+    return np.median(photons.reshape(photons.shape[0], -1), axis=1)
