@@ -12,7 +12,7 @@ import logging
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -74,47 +74,107 @@ def run_demo(
         :class:`~sparseloc.evaluate.Evaluation` as a dict), ``seconds`` (per step) and the
         counts behind the report.
     """
-    from .crlb import crlb_single
     from .evaluate import evaluate
-    from .io.tables import write_table
-    from .pipeline import LocalizeParams, localize
-    from .plotting import plot_psf_montage, plot_scene
     from .psf import make_psf
-    from .render import plot_projections
-    from .simulate import simulate, write_simulation
+    from .simulate import write_simulation
 
-    out = Path(out_dir)
-    if not out.parent.exists():
-        raise ValueError(f"the folder {str(out.parent)!r} does not exist")
-    out.mkdir(exist_ok=True)
+    setup = _Setup(n_frames, shape, pixel_size, density, z_range)
+    out = _output_folder(out_dir)
     files: list[Path] = []
     seconds: dict[str, float] = {}
 
     t0 = time.perf_counter()
     dh = make_psf("dh")
-    log.info("simulating %d frames of %dx%d px at %.2f emitters/um^2", n_frames, *shape, density)
-    sim = simulate(
+    sim = _simulate(dh, setup, seed, progress)
+    files.extend(write_simulation(sim, out / "movie.tif"))
+    seconds["simulate"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    frames = sim.movie.astype(np.float64) - sim.camera.offset  # ideal camera: gain 1
+    res = _localize(frames, dh, pixel_size, n_frames, progress, workers)
+    seconds["localize"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    ev = evaluate(res.table, sim.truth)
+    files.extend(_write_results(out, res, sim, frames, dh, setup))
+    stats = _truth_stats(sim.truth, dh, pixel_size)
+    seconds["evaluate and write"] = time.perf_counter() - t0
+
+    text = "\n".join(_report_lines(setup, sim, res, ev, stats, seconds))
+    files.append(_write_report(out, text))
+    return {
+        "files": [str(f) for f in files],
+        "text": text,
+        "evaluation": asdict(ev),
+        "seconds": seconds,
+        "n_emitters": len(sim.truth),
+        "n_localizations": len(res.table),
+        "overlap_fraction": stats["overlap"],
+    }
+
+
+class _Setup(NamedTuple):
+    """The simulated movie: frames, frame shape (px), pixel size (nm), emitters per um^2
+    per frame, axial range of the filaments (nm)."""
+
+    n_frames: int
+    shape: tuple[int, int]
+    pixel_size: float
+    density: float
+    z_range: tuple[float, float]
+
+
+def _output_folder(out_dir: str | Path) -> Path:
+    """The output folder, created if missing (its parent must exist)."""
+    out = Path(out_dir)
+    if not out.parent.exists():
+        raise ValueError(f"the folder {str(out.parent)!r} does not exist")
+    out.mkdir(exist_ok=True)
+    return out
+
+
+def _simulate(dh: Any, setup: _Setup, seed: int, progress: bool) -> Any:
+    """The demo's movie: blinking filaments, 1000-5000 photons, background 10 photons/px."""
+    from .simulate import simulate
+
+    log.info(
+        "simulating %d frames of %dx%d px at %.2f emitters/um^2",
+        setup.n_frames,
+        *setup.shape,
+        setup.density,
+    )
+    return simulate(
         dh,
         scene="filament",
-        n_frames=n_frames,
-        shape=shape,
-        pixel_size=pixel_size,
-        density=density,
-        z_range=z_range,
+        n_frames=setup.n_frames,
+        shape=setup.shape,
+        pixel_size=setup.pixel_size,
+        density=setup.density,
+        z_range=setup.z_range,
         photons=(1000.0, 5000.0),
         background=10.0,
         seed=seed,
         progress=progress,
     )
-    files.extend(write_simulation(sim, out / "movie.tif"))
-    seconds["simulate"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
+
+def _localize(
+    frames: np.ndarray,
+    dh: Any,
+    pixel_size: float,
+    n_frames: int,
+    progress: bool,
+    workers: int | None,
+) -> Any:
+    """The default pipeline on the frames (photons), with a progress bar if asked; default
+    ``workers`` the machine's cores, at most 2."""
+    from .pipeline import LocalizeParams, localize
+
     if workers is None:
         from .pool import available_cores
 
         workers = min(2, available_cores())
-    frames = sim.movie.astype(np.float64) - sim.camera.offset  # ideal camera: gain 1
+
     params = LocalizeParams(pixel_size=pixel_size)
     bar = None
     if progress:
@@ -122,34 +182,39 @@ def run_demo(
 
         bar = tqdm(total=n_frames, unit="frame", desc="localize")
     try:
-        res = localize(frames, dh, params, progress=bar.update if bar else None, workers=workers)
+        return localize(frames, dh, params, progress=bar.update if bar else None, workers=workers)
     finally:
         if bar is not None:
             bar.close()
-    seconds["localize"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    ev = evaluate(res.table, sim.truth)
+
+def _write_results(
+    out: Path, res: Any, sim: Any, frames: np.ndarray, dh: Any, setup: _Setup
+) -> list[Path]:
+    """The table, the rendering beside the truth, frame 0 with both marked, the PSF montage."""
+    from .io.tables import write_table
+    from .plotting import plot_psf_montage, plot_scene
+    from .render import plot_projections
+
+    n_frames, pixel_size, density = setup.n_frames, setup.pixel_size, setup.density
     meta = {**res.metadata, "movie": str(out / "movie.tif"), "camera": sim.camera.to_dict()}
-    files.append(
+    files = [
         write_table(
             res.table,
             out / "locs.parquet",
             pixel_size=pixel_size,
-            shape=shape,
+            shape=setup.shape,
             n_frames=n_frames,
             metadata=meta,
-        )
-    )
-    files.append(
+        ),
         plot_projections(
             res.table,
             out / "render.png",
             truth=sim.truth,
-            z_range=z_range,
+            z_range=setup.z_range,
             title=f"double-helix filaments, {n_frames} frames at {density:g} emitters/um^2",
-        )
-    )
+        ),
+    ]
     f0 = res.table[res.table["frame"] == 0]
     truth0 = sim.truth[sim.truth["frame"] == 0]
     files.append(
@@ -163,13 +228,28 @@ def run_demo(
         )
     )
     files.append(plot_psf_montage([dh], pixel_size, out / "psf.png", n_planes=9))
+    return files
+
+
+def _truth_stats(truth: Any, dh: Any, pixel_size: float) -> dict[str, Any]:
+    """The CRLB (x, y, z nm) of an isolated emitter at z = 0 with 2000 photons, and the
+    fraction of emitters with a neighbour within the radius holding half of a PSF's light."""
+    from .crlb import crlb_single
+
     zc = np.array([0.0])
     bound = crlb_single(dh, zc, photons=2000.0, background=10.0, pixel_size=pixel_size)[0]
-    overlap = _overlap_fraction(sim.truth, dh.support_radius(pixel_size, fraction=0.5))
-    seconds["evaluate and write"] = time.perf_counter() - t0
+    overlap = _overlap_fraction(truth, dh.support_radius(pixel_size, fraction=0.5))
+    return {"crlb": bound, "overlap": overlap}
 
+
+def _report_lines(
+    setup: _Setup, sim: Any, res: Any, ev: Any, stats: dict[str, Any], seconds: dict[str, float]
+) -> list[str]:
+    """The text report, a line per fact."""
+    n_frames, shape, pixel_size, density, z_range = setup
     per_frame = len(sim.truth) / n_frames
-    lines = [
+    bound, overlap = stats["crlb"], stats["overlap"]
+    return [
         "sparseloc demo",
         f"movie: {n_frames} frames of {shape[0]}x{shape[1]} px ({pixel_size:.0f} nm), "
         f"double-helix pupil model, blinking filaments at z {z_range[0]:.0f}..{z_range[1]:.0f}"
@@ -188,18 +268,13 @@ def run_demo(
         f"y {bound[1]:.1f} nm, z {bound[2]:.1f} nm",
         "time: " + ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items()),
     ]
-    text = "\n".join(lines)
+
+
+def _write_report(out: Path, text: str) -> Path:
+    """``report.txt`` in ``out``, written atomically."""
     from .io.atomic import atomic_path
 
-    with atomic_path(out / "report.txt") as tmp:
+    path = out / "report.txt"
+    with atomic_path(path) as tmp:
         Path(tmp).write_text(text + "\n", encoding="utf-8")
-    files.append(out / "report.txt")
-    return {
-        "files": [str(f) for f in files],
-        "text": text,
-        "evaluation": asdict(ev),
-        "seconds": seconds,
-        "n_emitters": len(sim.truth),
-        "n_localizations": len(res.table),
-        "overlap_fraction": overlap,
-    }
+    return path

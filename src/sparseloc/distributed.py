@@ -38,6 +38,7 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -194,12 +195,7 @@ def plan_chunks(start: int, stop: int, chunk_frames: int) -> list[tuple[int, int
 def local_cluster(workers: int, **kwargs: Any):
     """A ``distributed.Client`` on a new ``LocalCluster``: ``workers`` processes, one thread
     each (the solvers run single-threaded BLAS; processes share out the cores)."""
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ValueError(
-            "Dask execution needs the 'dask' extra: pip install 'sparseloc[dask]'"
-        ) from exc
+    dask = _distributed()
     # Dask's scheduler and nannies log every start and stop at INFO: keep a user's terminal
     # for sparseloc's own messages unless they asked for detail.
     if logging.getLogger().getEffectiveLevel() > logging.INFO:
@@ -208,8 +204,19 @@ def local_cluster(workers: int, **kwargs: Any):
     kwargs.setdefault("threads_per_worker", 1)
     kwargs.setdefault("processes", True)
     kwargs.setdefault("dashboard_address", None)
-    cluster = LocalCluster(n_workers=workers, **kwargs)
-    return Client(cluster)
+    cluster = dask.LocalCluster(n_workers=workers, **kwargs)
+    return dask.Client(cluster)
+
+
+def _distributed() -> Any:
+    """The ``distributed`` package, or a ValueError that says how to install it."""
+    try:
+        import distributed
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ValueError(
+            "Dask execution needs the 'dask' extra: pip install 'sparseloc[dask]'"
+        ) from exc
+    return distributed
 
 
 def _solve_chunk(
@@ -386,6 +393,22 @@ def localize_chunked(
     run_dir = Path(run_dir)
     key, desc = _run_key(source, model, params, (start, stop), chunk_frames, read_variance)
     _prepare_run_dir(run_dir, key, desc, chunks, overwrite)
+    done_before, todo = _done_and_todo(run_dir, chunks, chunk_frames, progress)
+    writer = _PartWriter(run_dir, progress)
+    if todo:
+        args = (work_model_for(model, params), params)
+        _run_chunks(scheduler, source, args, todo, read_variance, writer, threads, retries)
+    meta = _run_metadata(model, params, source, (start, stop), run_dir, chunk_frames)
+    return _collect(run_dir, chunks, done_before, writer.failed, meta, t0)
+
+
+def _done_and_todo(
+    run_dir: Path,
+    chunks: list[tuple[int, int]],
+    chunk_frames: int,
+    progress: Callable[[int], None] | None,
+) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
+    """The chunks whose parts exist (reported to ``progress`` at once) and those to run."""
     done_before = [c for c in chunks if _part_path(run_dir, c).exists()]
     todo = [c for c in chunks if c not in set(done_before)]
     if progress is not None and done_before:
@@ -397,29 +420,53 @@ def localize_chunked(
         len(done_before),
         len(todo),
     )
-    work_model = work_model_for(model, params) if todo else model
-    failed: dict[tuple[int, int], str] = {}
+    return done_before, todo
 
-    def finished(chunk, table, n_windows):
+
+class _PartWriter:
+    """Takes each chunk's result as it arrives: writes its part and reports its frames, or
+    records why it failed (``failed``: chunk -> message)."""
+
+    def __init__(self, run_dir: Path, progress: Callable[[int], None] | None) -> None:
+        self.run_dir, self.progress = run_dir, progress
+        self.failed: dict[tuple[int, int], str] = {}
+
+    def __call__(
+        self, chunk: tuple[int, int], table: pd.DataFrame | None, n_windows: int | str
+    ) -> None:
         if table is None:  # bad data in the chunk: n_windows is the message
-            failed[chunk] = str(n_windows)
+            self.failed[chunk] = str(n_windows)
             logger.warning("frames %d-%d failed: %s", chunk[0], chunk[1] - 1, n_windows)
             return
-        _write_part(run_dir, chunk, table, n_windows)
-        if progress is not None:
-            progress(chunk[1] - chunk[0])
+        _write_part(self.run_dir, chunk, table, n_windows)
+        if self.progress is not None:
+            self.progress(chunk[1] - chunk[0])
 
-    args = (work_model, params)
-    if not todo:
-        pass
-    elif scheduler == "sync":
+    def take(self, chunk: tuple[int, int], result: Callable[[], tuple]) -> None:
+        """The result of ``result()``; an ``OSError`` (a file system that failed to answer)
+        fails the chunk."""
+        try:
+            table, nw = result()
+        except OSError as exc:
+            self.failed[chunk] = str(exc)
+            return
+        self(chunk, table, nw)
+
+
+def _run_chunks(
+    scheduler: Any,
+    source: CameraFrames,
+    args: tuple[PSFModel, LocalizeParams],
+    todo: list[tuple[int, int]],
+    read_variance: NDArray | None,
+    writer: _PartWriter,
+    threads: int,
+    retries: int,
+) -> None:
+    """Solve the chunks ``todo`` on ``scheduler``, handing each result to ``writer``."""
+    if scheduler == "sync":
         for chunk in todo:
-            try:
-                table, nw = _solve_chunk(source, *args, *chunk, read_variance)
-            except OSError as exc:
-                failed[chunk] = str(exc)
-                continue
-            finished(chunk, table, nw)
+            writer.take(chunk, partial(_solve_chunk, source, *args, *chunk, read_variance))
     elif scheduler == "threads":
         with ThreadPoolExecutor(max(1, int(threads))) as pool:
             futs = {
@@ -427,26 +474,42 @@ def localize_chunked(
                 for chunk in todo
             }
             for fut in as_completed(futs):
-                chunk = futs[fut]
-                try:
-                    table, nw = fut.result()
-                except OSError as exc:
-                    failed[chunk] = str(exc)
-                    continue
-                finished(chunk, table, nw)
+                writer.take(futs[fut], fut.result)
     else:
-        _run_on_cluster(scheduler, source, args, todo, read_variance, retries, failed, finished)
-    missing = [c for c in chunks if not _part_path(run_dir, c).exists()]
-    meta = {
+        _run_on_cluster(scheduler, source, args, todo, read_variance, retries, writer)
+
+
+def _run_metadata(
+    model: PSFModel,
+    params: LocalizeParams,
+    source: CameraFrames,
+    frames: tuple[int, int],
+    run_dir: Path,
+    chunk_frames: int,
+) -> dict:
+    """The analysis metadata of the joined table."""
+    return {
         "params": asdict(params),
         "psf": getattr(model, "name", type(model).__name__),
         "psf_hash": psf_hash(model, params.pixel_size),
         "sparseloc_version": __version__,
-        "frames": [start, stop],
+        "frames": list(frames),
         "shape": list(source.shape),
         "run_dir": str(run_dir),
         "chunk_frames": int(chunk_frames),
     }
+
+
+def _collect(
+    run_dir: Path,
+    chunks: list[tuple[int, int]],
+    done_before: list[tuple[int, int]],
+    failed: dict[tuple[int, int], str],
+    meta: dict,
+    t0: float,
+) -> RunResult:
+    """The run's result: the joined table when every part exists, else what is missing."""
+    missing = [c for c in chunks if not _part_path(run_dir, c).exists()]
     table, n_windows = None, 0
     if not missing:
         table, n_windows = join_parts(run_dir, chunks)
@@ -463,18 +526,12 @@ def localize_chunked(
     )
 
 
-def _run_on_cluster(scheduler, source, args, todo, read_variance, retries, failed, finished):
+def _run_on_cluster(scheduler, source, args, todo, read_variance, retries, writer):
     """Submit every chunk to a Dask cluster and write parts as they complete."""
+    dask = _distributed()
+    own = not isinstance(scheduler, dask.Client)
     try:
-        from distributed import Client
-        from distributed import as_completed as dask_completed
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ValueError(
-            "Dask execution needs the 'dask' extra: pip install 'sparseloc[dask]'"
-        ) from exc
-    own = not isinstance(scheduler, Client)
-    try:
-        client = Client(scheduler, timeout="20s") if own else scheduler
+        client = dask.Client(scheduler, timeout="20s") if own else scheduler
     except OSError as exc:
         raise ValueError(f"cannot reach the Dask scheduler at {scheduler!r}: {exc}") from exc
     try:
@@ -498,15 +555,15 @@ def _run_on_cluster(scheduler, source, args, todo, read_variance, retries, faile
                 key=f"sparseloc-chunk-{chunk[0]}-{chunk[1]}-{os.getpid()}-{time.time_ns()}",
             )
             futs[fut] = chunk
-        for fut in dask_completed(list(futs)):
+        for fut in dask.as_completed(list(futs)):
             chunk = futs[fut]
             try:
                 table, nw = fut.result()
             except Exception as exc:
-                failed[chunk] = f"{type(exc).__name__}: {exc}"
+                writer.failed[chunk] = f"{type(exc).__name__}: {exc}"
                 logger.warning("frames %d-%d failed: %s", chunk[0], chunk[1] - 1, exc)
                 continue
-            finished(chunk, table, nw)
+            writer(chunk, table, nw)
             fut.release()
     finally:
         if own:

@@ -233,40 +233,10 @@ class SplinePSF(PSFBase):
             raise ValueError(
                 f"z_range ({lo:g}, {hi:g}) nm must lie within the model's ({mlo:g}, {mhi:g}) nm"
             )
-        n = max(4, int(np.ceil((hi - lo) / z_step)) + 1)
-        zs = np.linspace(lo, hi, n)
-        # The spline's z boundary mirrors the end planes, which zeroes d/dz at the range's ends
-        # (and is 27 % off one plane in): a fit starting there cannot move. Models that render
-        # beyond their range (all of this package's) get _Z_EXTRA planes more at each end.
-        render = model.images
-        if isinstance(model, PSFBase) and not isinstance(model, SplinePSF):
-            dz = zs[1] - zs[0]
-            below = lo - dz * np.arange(_Z_EXTRA, 0, -1)
-            below = below[model.renders_beyond_range(below)]
-            zs = np.concatenate([below, zs, hi + dz * np.arange(1, _Z_EXTRA + 1)])
-            n = zs.size
-
-            def render(x, y, z, shape, pixel_size):
-                return model._images(x, y, z, shape, pixel_size, (0.0, 0.0), False)
-
+        zs, render = _table_planes(model, lo, hi, z_step)
         roi = int(roi) | 1
         s = int(oversample)
-        c = roi * px / 2.0  # the centre of pixel roi // 2
-        stack = np.empty((n, roi * s, roi * s))
-        for a in range(s):  # x phase: the emitter moves left by a/s px, offsets grow by a/s
-            for b in range(s):
-                # A pupil model works on large complex fields per plane: render a few planes
-                # at a time (all 200 at once peaked near 1 GB).
-                for z0 in range(0, n, _TABLE_PLANES):
-                    z1 = min(z0 + _TABLE_PLANES, n)
-                    k = z1 - z0
-                    stack[z0:z1, b::s, a::s] = render(
-                        np.full(k, c - a * px / s),
-                        np.full(k, c - b * px / s),
-                        zs[z0:z1],
-                        (roi, roi),
-                        px,
-                    )
+        stack = _render_table(render, zs, roi, px, s)
         centre = (float(s * (roi // 2)), float(s * (roi // 2)))
         out = cls(
             stack,
@@ -433,3 +403,49 @@ class SplinePSF(PSFBase):
         cc = (np.arange(nc) - self.centre[1])[None, :]
         r = np.hypot(rr, cc).ravel() * px / self.oversample
         return energy_radius(planes, r, fraction) + px
+
+
+def _table_planes(model, lo: float, hi: float, z_step: float):
+    """The planes (nm) to tabulate ``model`` on, ``z_step`` apart over ``[lo, hi]``, and the
+    function that renders them.
+
+    The spline's z boundary mirrors the end planes, which zeroes d/dz at the range's ends
+    (and is 27 % off one plane in): a fit starting there cannot move. Models that render
+    beyond their range (all of this package's) get _Z_EXTRA planes more at each end.
+    """
+    n = max(4, int(np.ceil((hi - lo) / z_step)) + 1)
+    zs = np.linspace(lo, hi, n)
+    render = model.images
+    if isinstance(model, PSFBase) and not isinstance(model, SplinePSF):
+        dz = zs[1] - zs[0]
+        below = lo - dz * np.arange(_Z_EXTRA, 0, -1)
+        below = below[model.renders_beyond_range(below)]
+        zs = np.concatenate([below, zs, hi + dz * np.arange(1, _Z_EXTRA + 1)])
+
+        def render(x, y, z, shape, pixel_size):
+            return model._images(x, y, z, shape, pixel_size, (0.0, 0.0), False)
+
+    return zs, render
+
+
+def _render_table(render, zs: NDArray[np.float64], roi: int, px: float, s: int) -> NDArray:
+    """The stack (planes, roi * s, roi * s) of an emitter at the centre of pixel ``roi // 2``
+    on planes ``zs``, ``s`` lateral phases per pixel interleaved."""
+    n = zs.size
+    c = roi * px / 2.0  # the centre of pixel roi // 2
+    stack = np.empty((n, roi * s, roi * s))
+    for a in range(s):  # x phase: the emitter moves left by a/s px, offsets grow by a/s
+        for b in range(s):
+            # A pupil model works on large complex fields per plane: render a few planes
+            # at a time to bound the memory.
+            for z0 in range(0, n, _TABLE_PLANES):
+                z1 = min(z0 + _TABLE_PLANES, n)
+                k = z1 - z0
+                stack[z0:z1, b::s, a::s] = render(
+                    np.full(k, c - a * px / s),
+                    np.full(k, c - b * px / s),
+                    zs[z0:z1],
+                    (roi, roi),
+                    px,
+                )
+    return stack

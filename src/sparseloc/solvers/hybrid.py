@@ -8,11 +8,35 @@ two orders of magnitude smaller than the full fine dictionary.
 Stage 1 deliberately errs towards too many emitters (OMP, which refits jointly): a spurious
 box costs a little time and the L1 stage gives it no photons, whereas a missed emitter has no
 box for the fine stage to find it in.
+
+The stages of :func:`hybrid_solve`:
+
+1. Matching pursuit (OMP with replacement) on the coarse dictionary: count and rough
+   positions.
+2. Convex L1 recovery on the fine dictionary restricted to boxes of ``box_steps`` coarse
+   steps each way around the MP positions; one emitter per box (weighted centre).
+3. Point-source check: each emitter becomes its best single fine atom (:func:`polish`);
+   while that model leaves more than noise, MP looks for one more emitter in its residual
+   and step 2 runs again with a box around it; the larger model is kept if chi2 drops
+   by more than ``add_delta_chi2`` (at most ``max_rounds`` solves).
+4. Boxes re-centred on the estimates and step 2 repeated (``recentre`` times) when an
+   estimate moved: MP's coarse position can be more than one coarse step off.
+5. Insignificant emitters dropped (:func:`prune`, ``min_snr``).
+6. With ``refine`` (default): maximum-likelihood fit of the emitters with the continuous
+   PSF model, off the grid, and (``count_selection``) the likelihood-ratio test of one
+   emitter fewer or more (:mod:`sparseloc.solvers.refine`), then (``search``) split,
+   merge and exchange moves out of its local optimum
+   (:func:`~sparseloc.solvers.refine.split_merge_search`).
+
+With ``polish_fine`` the emitters are those of the point-source model (positions on the
+fine grid); without it, the weighted centres of step 2 (the paper's conversion).
 """
 
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -33,6 +57,12 @@ def _as_dense(dictionary: Dictionary | DenseDictionary) -> DenseDictionary:
     if isinstance(dictionary, DenseDictionary):
         return dictionary
     return dictionary.restrict(np.ones(dictionary.coef_shape, dtype=bool))
+
+
+def _select(emitters: Emitters, ids: np.ndarray) -> Emitters:
+    """The emitters ``ids`` (a point model's survivors), in their original order."""
+    keep = np.sort(ids)
+    return Emitters(emitters.x[keep], emitters.y[keep], emitters.z[keep], emitters.photons[keep])
 
 
 def convex_solve(
@@ -88,10 +118,7 @@ def convex_solve(
             min_photons=min_photons,
             model_error=dictionary.quantization_error,
         )
-        keep = np.sort(point.ids)
-        emitters = Emitters(
-            emitters.x[keep], emitters.y[keep], emitters.z[keep], emitters.photons[keep]
-        )
+        emitters = _select(emitters, point.ids)
     model = dense.matvec(res.coef) + res.background
     support = res.support
     return WindowSolution(
@@ -144,25 +171,8 @@ def hybrid_solve(
 ) -> WindowSolution:
     """The hybrid MP+CO solver, with a continuous maximum-likelihood fit as its last stage.
 
-    1. Matching pursuit (OMP with replacement) on the coarse dictionary: count and rough
-       positions.
-    2. Convex L1 recovery on the fine dictionary restricted to boxes of ``box_steps`` coarse
-       steps each way around the MP positions; one emitter per box (weighted centre).
-    3. Point-source check: each emitter becomes its best single fine atom (:func:`polish`);
-       while that model leaves more than noise, MP looks for one more emitter in its residual
-       and step 2 runs again with a box around it; the larger model is kept if chi2 drops
-       by more than ``add_delta_chi2`` (at most ``max_rounds`` solves).
-    4. Boxes re-centred on the estimates and step 2 repeated (``recentre`` times) when an
-       estimate moved: MP's coarse position can be more than one coarse step off.
-    5. Insignificant emitters dropped (:func:`prune`, ``min_snr``).
-    6. With ``refine`` (default): maximum-likelihood fit of the emitters with the continuous
-       PSF model, off the grid, and (``count_selection``) the likelihood-ratio test of one
-       emitter fewer or more (:mod:`sparseloc.solvers.refine`), then (``search``) split,
-       merge and exchange moves out of its local optimum
-       (:func:`~sparseloc.solvers.refine.split_merge_search`).
-
-    With ``polish_fine`` the emitters are those of the point-source model (positions on the
-    fine grid); without it, the weighted centres of step 2 (the paper's conversion).
+    Its six stages (coarse MP, L1 in fine boxes, point-source rounds, re-centring, pruning,
+    refinement) are listed in the module notes.
 
     Parameters
     ----------
@@ -174,9 +184,9 @@ def hybrid_solve(
         Fine dictionary (the paper: 10 nm / 15 nm) covering the same window; only the atoms
         inside the boxes are used.
     background : float, optional
-        Known background (photons/pixel). When ``None`` it is estimated by the MP stage
-        (least squares, jointly with the atoms) and then held fixed: the L1 objective does not
-        penalise the background, so left free it soaks up the emitters' light.
+        Known background (photons/pixel). When ``None`` the MP stage estimates it (jointly
+        with the atoms) and it is then held fixed: the L1 objective does not penalise the
+        background, so left free it soaks up the emitters' light.
     box_steps : float
         Box half-width around each MP emitter in coarse grid steps (x, y and z).
     eps_factor : float
@@ -238,110 +248,28 @@ def hybrid_solve(
         noise_factor=noise_factor,
     )
     if len(mp.emitters) == 0:
-        return WindowSolution(
-            Emitters.empty(),
-            mp.background,
-            mp.model_image,
-            "hybrid",
-            {"mp": mp, "box_centres": np.zeros((0, 3))},
-        )
-    cs = coarse.grid if isinstance(coarse, Dictionary) else None
-    dxy_c, dz_c = (cs.dxy, cs.dz) if cs is not None else coarse.steps
-    half = (box_steps * dxy_c, box_steps * dxy_c, box_steps * dz_c)
-    fine_error = fine.quantization_error
-    n_pix = y.size
-    chi2_limit = n_pix + chi2_sigma * np.sqrt(2.0 * n_pix)
-    b_fit = mp.background if background is None else float(background)
-
-    def solve_boxes(centres: np.ndarray):
-        sub = fine.restrict(fine.box_mask(centres, half))
-        co = convex_solve(
-            y, sub, background=b_fit, eps_factor=eps_factor, min_photons=0.0, link=link
-        )
-        em = group_by_boxes(
-            co.details["positions"], co.details["coef"], centres, half, min_photons=0.0
-        )
-        # the point-source model refits the background (unless it is known): it has one atom
-        # per emitter, so the L1 bias does not apply
-        point = polish(y, fine, em, background)
-        chi2 = pearson_chi2(
-            y, point.signal + point.background, noise_factor, point.signal, fine_error
-        )
-        return co, em, point, chi2, sub.size
-
-    centres = mp.emitters.as_array()[:, :3]
-    co, em, point, chi2, n_sub = solve_boxes(centres)
-    if background is None:
-        b_fit = point.background
-    rounds = 1
-    while chi2 > chi2_limit and rounds < max_rounds and len(centres) < max_emitters:
-        # The point-source model leaves more than noise. Try one more emitter where the
-        # residual correlates best with an atom, and keep the larger model only if it lowers
-        # chi2 by more than ``add_delta_chi2`` (a likelihood-ratio-like test: 4 more
-        # parameters). No size threshold on the candidate: when two emitters were merged, the
-        # residual of the third is partly negative and its best atom looks small.
-        cand = _best_residual_atom(y - point.signal - point.background, coarse)
-        if cand is None:
-            break
-        trial_centres = np.vstack([point.emitters().as_array()[:, :3], cand])
-        trial = solve_boxes(trial_centres)
-        rounds += 1
-        if chi2 - trial[3] <= add_delta_chi2:
-            break
-        centres = trial_centres
-        co, em, point, chi2, n_sub = trial
-        if background is None:
-            b_fit = point.background
-    for _ in range(recentre):
-        new = (point.emitters() if polish_fine else em).as_array()[:, :3]
-        if len(new) == 0 or _max_shift(new, centres, half) < 0.25:
-            break
-        centres = new
-        co, em, point, chi2, n_sub = solve_boxes(centres)
+        return _no_emitters(mp)
+    half = _box_half_width(coarse, box_steps)
+    stage = _FineStage(y, fine, half, background, eps_factor, link, noise_factor)
+    chi2_limit = y.size + chi2_sigma * np.sqrt(2.0 * y.size)
+    fit, b_fit, rounds = _add_emitters(
+        stage, coarse, mp, chi2_limit, max_rounds, max_emitters, add_delta_chi2
+    )
+    fit = _recentre(stage, fit, b_fit, recentre, polish_fine)
     point = prune(
-        point,
+        fit.point,
         min_snr=min_snr,
         min_photons=min_photons,
         noise_factor=noise_factor,
-        model_error=fine_error,
+        model_error=stage.fine_error,
     )
-    if polish_fine:
-        emitters = point.emitters()
-        model_image = point.signal + point.background
-        b_out = point.background
-    else:
-        keep = np.sort(point.ids)
-        emitters = Emitters(em.x[keep], em.y[keep], em.z[keep], em.photons[keep])
-        model_image, b_out = co.model_image, co.background
-    log.debug(
-        "hybrid: MP %d -> %d rounds -> %d fine atoms -> %d emitters",
-        len(mp.emitters),
-        rounds,
-        n_sub,
-        len(emitters),
-    )
-    details = {
-        "mp": mp,
-        "box_centres": centres,
-        "box_half_width": half,
-        "co": co.details,
-        "centres_emitters": em,
-        "n_fine_atoms": n_sub,
-        "rounds": rounds,
-        "chi2": chi2,
-        "chi2_limit": chi2_limit,
-    }
-    sol = WindowSolution(emitters, b_out, model_image, "hybrid", details)
-    if refine and len(emitters):
-        # other estimates of the same emitters (L1 weighted centres, MP) as extra starting
-        # points: the likelihood of overlapping PSFs has local optima
-        alts = [e for e in (em, mp.emitters) if len(e) == len(emitters)]
-        sol = refine_solution(
+    sol = _sparse_solution(mp, stage, fit, point, polish_fine, rounds, chi2_limit)
+    if refine and len(sol.emitters):
+        sol = _refine(
             y,
             sol,
-            fine.model,
-            pixel_size=fine.pixel_size,
-            origin=fine.origin,
+            fine,
+            [fit.em, mp.emitters],
             count_selection=count_selection,
             search=search,
             noise=noise,
@@ -349,9 +277,188 @@ def hybrid_solve(
             plane=plane,
             qe=qe,
             max_emitters=max_emitters,
-            extra_starts=alts,
         )
     return sol
+
+
+def _no_emitters(mp: WindowSolution) -> WindowSolution:
+    """The hybrid's answer when the MP stage finds nothing: MP's background and model."""
+    return WindowSolution(
+        Emitters.empty(),
+        mp.background,
+        mp.model_image,
+        "hybrid",
+        {"mp": mp, "box_centres": np.zeros((0, 3))},
+    )
+
+
+def _box_half_width(
+    coarse: Dictionary | DenseDictionary, box_steps: float
+) -> tuple[float, float, float]:
+    """Half-widths (x, y, z) nm of the fine boxes: ``box_steps`` coarse grid steps."""
+    cs = coarse.grid if isinstance(coarse, Dictionary) else None
+    dxy_c, dz_c = (cs.dxy, cs.dz) if cs is not None else coarse.steps
+    return (box_steps * dxy_c, box_steps * dxy_c, box_steps * dz_c)
+
+
+@dataclass
+class _FineStage:
+    """What every solve of the fine stage shares: the window, the fine dictionary, the box
+    half-widths (nm), the known background (or ``None``) and the convex and chi2 settings."""
+
+    y: np.ndarray
+    fine: Dictionary
+    half: tuple[float, float, float]
+    background: float | None
+    eps_factor: float
+    link: float
+    noise_factor: float
+    fine_error: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.fine_error = self.fine.quantization_error
+
+
+class _BoxFit(NamedTuple):
+    """One solve of the fine stage: boxes around ``centres`` (k, 3) nm, the convex solution,
+    its one emitter per box, their point-source model, its chi2 and the fine atoms used."""
+
+    centres: np.ndarray
+    co: WindowSolution
+    em: Emitters
+    point: PointModel
+    chi2: float
+    n_sub: int
+
+
+def _solve_boxes(stage: _FineStage, centres: np.ndarray, b_fit: float) -> _BoxFit:
+    """Stages 2 and 3 once: L1 on the fine atoms inside the boxes, then the point sources."""
+    y, fine = stage.y, stage.fine
+    sub = fine.restrict(fine.box_mask(centres, stage.half))
+    co = convex_solve(
+        y, sub, background=b_fit, eps_factor=stage.eps_factor, min_photons=0.0, link=stage.link
+    )
+    em = group_by_boxes(
+        co.details["positions"], co.details["coef"], centres, stage.half, min_photons=0.0
+    )
+    # the point-source model refits the background (unless it is known): it has one atom
+    # per emitter, so the L1 bias does not apply
+    point = polish(y, fine, em, stage.background)
+    chi2 = pearson_chi2(
+        y, point.signal + point.background, stage.noise_factor, point.signal, stage.fine_error
+    )
+    return _BoxFit(centres, co, em, point, chi2, sub.size)
+
+
+def _add_emitters(
+    stage: _FineStage,
+    coarse: Dictionary | DenseDictionary,
+    mp: WindowSolution,
+    chi2_limit: float,
+    max_rounds: int,
+    max_emitters: int,
+    add_delta_chi2: float,
+) -> tuple[_BoxFit, float, int]:
+    """Solve the boxes around the MP emitters, then try one more emitter while the model
+    leaves more than noise. Returns the kept fit, the background held fixed, the solves."""
+    b_fit = mp.background if stage.background is None else float(stage.background)
+    fit = _solve_boxes(stage, mp.emitters.as_array()[:, :3], b_fit)
+    if stage.background is None:
+        b_fit = fit.point.background
+    rounds = 1
+    while fit.chi2 > chi2_limit and rounds < max_rounds and len(fit.centres) < max_emitters:
+        # Try one more emitter where the residual correlates best with an atom, and keep the
+        # larger model only if it lowers chi2 by more than ``add_delta_chi2`` (a
+        # likelihood-ratio-like test: 4 more parameters). No size threshold on the candidate:
+        # when two emitters were merged, the residual of the third is partly negative and its
+        # best atom looks small.
+        point = fit.point
+        cand = _best_residual_atom(stage.y - point.signal - point.background, coarse)
+        if cand is None:
+            break
+        trial = _solve_boxes(stage, np.vstack([point.emitters().as_array()[:, :3], cand]), b_fit)
+        rounds += 1
+        if fit.chi2 - trial.chi2 <= add_delta_chi2:
+            break
+        fit = trial
+        if stage.background is None:
+            b_fit = fit.point.background
+    return fit, b_fit, rounds
+
+
+def _recentre(
+    stage: _FineStage, fit: _BoxFit, b_fit: float, recentre: int, polish_fine: bool
+) -> _BoxFit:
+    """Stage 4: solve again with the boxes on the estimates while one moved by a quarter of
+    a box or more (at most ``recentre`` times)."""
+    for _ in range(recentre):
+        new = (fit.point.emitters() if polish_fine else fit.em).as_array()[:, :3]
+        if len(new) == 0 or _max_shift(new, fit.centres, stage.half) < 0.25:
+            break
+        fit = _solve_boxes(stage, new, b_fit)
+    return fit
+
+
+def _sparse_solution(
+    mp: WindowSolution,
+    stage: _FineStage,
+    fit: _BoxFit,
+    point: PointModel,
+    polish_fine: bool,
+    rounds: int,
+    chi2_limit: float,
+) -> WindowSolution:
+    """The sparse stages' solution: the pruned point sources (``polish_fine``) or the
+    weighted centres of their boxes."""
+    if polish_fine:
+        emitters = point.emitters()
+        model_image = point.signal + point.background
+        b_out = point.background
+    else:
+        emitters = _select(fit.em, point.ids)
+        model_image, b_out = fit.co.model_image, fit.co.background
+    log.debug(
+        "hybrid: MP %d -> %d rounds -> %d fine atoms -> %d emitters",
+        len(mp.emitters),
+        rounds,
+        fit.n_sub,
+        len(emitters),
+    )
+    details = {
+        "mp": mp,
+        "box_centres": fit.centres,
+        "box_half_width": stage.half,
+        "co": fit.co.details,
+        "centres_emitters": fit.em,
+        "n_fine_atoms": fit.n_sub,
+        "rounds": rounds,
+        "chi2": fit.chi2,
+        "chi2_limit": chi2_limit,
+    }
+    return WindowSolution(emitters, b_out, model_image, "hybrid", details)
+
+
+def _refine(
+    y: np.ndarray,
+    sol: WindowSolution,
+    fine: Dictionary,
+    others: list[Emitters],
+    **kwargs: Any,
+) -> WindowSolution:
+    """Stage 6: maximum-likelihood refinement with the continuous PSF model; ``kwargs`` go
+    to :func:`~sparseloc.solvers.refine.refine_solution`."""
+    # other estimates of the same emitters (L1 weighted centres, MP) as extra starting
+    # points: the likelihood of overlapping PSFs has local optima
+    alts = [e for e in others if len(e) == len(sol.emitters)]
+    return refine_solution(
+        y,
+        sol,
+        fine.model,
+        pixel_size=fine.pixel_size,
+        origin=fine.origin,
+        extra_starts=alts,
+        **kwargs,
+    )
 
 
 def _best_residual_atom(resid: np.ndarray, coarse: Dictionary | DenseDictionary):

@@ -135,25 +135,7 @@ def polish(
     for _ in range(sweeps):
         moved = False
         for j in range(model.index.size):
-            others = np.arange(model.index.size) != j
-            r = (
-                y
-                - model.background
-                - np.tensordot(model.photons[others], model.atoms[others], axes=(0, 0))
-            )
-            cand = dictionary.neighbourhood(int(model.index[j]), reach)
-            cand = cand[~np.isin(cand, model.index[others])]
-            atoms = dictionary.atoms(cand).reshape(cand.size, -1)
-            rv = r.ravel()
-            if not model.fixed_bg:  # the constant is refitted too: work with centred vectors
-                atoms_c = atoms - atoms.mean(axis=1, keepdims=True)
-                rv = rv - rv.mean()
-            else:
-                atoms_c = atoms
-            corr = atoms_c @ rv
-            nrm2 = np.einsum("ij,ij->i", atoms_c, atoms_c)
-            gain = np.where(corr > 0, corr**2 / np.maximum(nrm2, 1e-30), 0.0)
-            best = int(cand[np.argmax(gain)])
+            best = _best_atom(y, dictionary, model, j, reach)
             if best != model.index[j]:
                 model.index[j] = best
                 model.atoms[j] = dictionary.atoms([best])[0]
@@ -162,6 +144,29 @@ def polish(
         if not moved:
             break
     return model
+
+
+def _best_atom(
+    y: NDArray, dictionary: Dictionary, model: PointModel, j: int, reach: tuple[int, int]
+) -> int:
+    """The atom within ``reach`` grid steps of emitter ``j`` (not held by another emitter)
+    that best explains what the other emitters and the background leave: the largest
+    least-squares gain."""
+    others = np.arange(model.index.size) != j
+    r = y - model.background - np.tensordot(model.photons[others], model.atoms[others], axes=(0, 0))
+    cand = dictionary.neighbourhood(int(model.index[j]), reach)
+    cand = cand[~np.isin(cand, model.index[others])]
+    atoms = dictionary.atoms(cand).reshape(cand.size, -1)
+    rv = r.ravel()
+    if not model.fixed_bg:  # the constant is refitted too: work with centred vectors
+        atoms_c = atoms - atoms.mean(axis=1, keepdims=True)
+        rv = rv - rv.mean()
+    else:
+        atoms_c = atoms
+    corr = atoms_c @ rv
+    nrm2 = np.einsum("ij,ij->i", atoms_c, atoms_c)
+    gain = np.where(corr > 0, corr**2 / np.maximum(nrm2, 1e-30), 0.0)
+    return int(cand[np.argmax(gain)])
 
 
 def prune(
