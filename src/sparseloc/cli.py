@@ -619,10 +619,10 @@ def _check_suffix(path: Path, allowed: tuple[str, ...], what: str) -> None:
 
 def _table_output(path: Path) -> Path:
     """An output table path whose folder exists and whose suffix names a format."""
-    from .io.tables import _format_for
+    from .io.tables import format_for
 
     out = _output_path(path)
-    _run(_format_for, out, None)
+    _run(format_for, out, None)
     return out
 
 

@@ -55,6 +55,7 @@ from .pipeline import (
     array_digest,
     localize,
     psf_hash,
+    run_metadata,
     work_model_for,
 )
 from .psf.base import PSFModel
@@ -488,16 +489,8 @@ def _run_metadata(
     chunk_frames: int,
 ) -> dict:
     """The analysis metadata of the joined table."""
-    return {
-        "params": asdict(params),
-        "psf": getattr(model, "name", type(model).__name__),
-        "psf_hash": psf_hash(model, params.pixel_size),
-        "sparseloc_version": __version__,
-        "frames": list(frames),
-        "shape": list(source.shape),
-        "run_dir": str(run_dir),
-        "chunk_frames": int(chunk_frames),
-    }
+    meta = run_metadata(model, params, frames, source.shape)
+    return {**meta, "run_dir": str(run_dir), "chunk_frames": int(chunk_frames)}
 
 
 def _collect(

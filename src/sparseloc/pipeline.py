@@ -329,17 +329,30 @@ def localize(
         _solve(inputs, work_args, workers), parts, params.method == "frame", progress
     )
     seconds = time.perf_counter() - t0
+    meta = run_metadata(model, params, (start, stop), shape, read_variance)
+    return LocalizeResult(_table(parts), stop - start, n_windows, seconds, meta)
+
+
+def run_metadata(
+    model: PSFModel,
+    params: LocalizeParams,
+    frames: tuple[int, int],
+    shape: tuple[int, ...],
+    read_variance: NDArray | None = None,
+) -> dict[str, Any]:
+    """The analysis metadata stored with a table: parameters, PSF and its hash, version,
+    frame range (start, stop), frame shape and the digest of a read-variance map."""
     meta = {
         "params": asdict(params),
         "psf": getattr(model, "name", type(model).__name__),
         "psf_hash": psf_hash(model, params.pixel_size),
         "sparseloc_version": __version__,
-        "frames": [start, stop],
+        "frames": list(frames),
         "shape": list(shape),
     }
     if read_variance is not None:
         meta["read_variance_map_sha256"] = array_digest(read_variance)
-    return LocalizeResult(_table(parts), stop - start, n_windows, seconds, meta)
+    return meta
 
 
 def _check_pixel_size(model: PSFModel, params: LocalizeParams) -> None:

@@ -319,7 +319,7 @@ def write_table(
         If the format is unknown or cannot be inferred, Picasso's ``pixel_size``, ``shape``
         or ``n_frames`` is missing (they are named), or as the writer raises.
     """
-    fmt = _format_for(path, format)
+    fmt = format_for(path, format)
     if fmt == "parquet":
         return write_parquet(df, path, metadata=metadata or {})
     if fmt == "thunderstorm":
@@ -340,7 +340,7 @@ def write_table(
     )
 
 
-def _format_for(path: str | Path, format: str | None) -> str:
+def format_for(path: str | Path, format: str | None) -> str:
     if format is not None:
         fmt = str(format).lower()
         if fmt not in FORMATS:

@@ -9,7 +9,7 @@ from .spline import bspline_terms
 
 #: Let LLVM reorder and fuse sums (vector loops) but keep NaN/inf semantics: the
 #: likelihood and the solver test for non-finite values.
-_FAST = {"reassoc", "contract", "nsz"}
+FASTMATH = {"reassoc", "contract", "nsz"}
 
 
 _terms = numba.njit(cache=True, inline="always")(bspline_terms)
@@ -23,7 +23,7 @@ def _weights(f, w, dw):
         dw[m] = t[4 + m]
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
 def spline_kernel(coef, tz, tx, ty, rows, cols, stride, out, der, derivatives):  # pragma: no cover
     """Images (K, rows, cols) and raw derivatives (K, 3, rows, cols) of K emitters.
 
@@ -69,7 +69,7 @@ def spline_kernel(coef, tz, tx, ty, rows, cols, stride, out, der, derivatives): 
         _y_pass(a_v, a_x, a_z, wy, dwy, rows, cols, stride, k, out, der, derivatives)
 
 
-@numba.njit(cache=True, inline="always", fastmath=_FAST)
+@numba.njit(cache=True, inline="always", fastmath=FASTMATH)
 def _z_pass(
     coef, iz, wz, dwz, by, bx, fy, ny, t_lo, t_hi, pz, dpz, derivatives
 ):  # pragma: no cover
@@ -106,7 +106,7 @@ def _z_pass(
                 pz[u, t] = w0 * q0[xi] + w1 * q1[xi] + w2 * q2[xi] + w3 * q3[xi]
 
 
-@numba.njit(cache=True, inline="always", fastmath=_FAST)
+@numba.njit(cache=True, inline="always", fastmath=FASTMATH)
 def _x_pass(pz, dpz, wx, dwx, fy, cols, stride, a_v, a_x, a_z, derivatives):  # pragma: no cover
     """``a_v`` (fy, cols): the four x neighbours of each column of ``pz`` weighted by ``wx``;
     ``a_x`` with ``dwx``, ``a_z`` the same of ``dpz``."""
@@ -136,7 +136,7 @@ def _x_pass(pz, dpz, wx, dwx, fy, cols, stride, a_v, a_x, a_z, derivatives):  # 
                 )
 
 
-@numba.njit(cache=True, inline="always", fastmath=_FAST)
+@numba.njit(cache=True, inline="always", fastmath=FASTMATH)
 def _y_pass(
     a_v, a_x, a_z, wy, dwy, rows, cols, stride, k, out, der, derivatives
 ):  # pragma: no cover

@@ -12,10 +12,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ..psf._spline_numba import _FAST, spline_kernel
+from ..psf._spline_numba import FASTMATH, spline_kernel
 from . import lm
 
-_jit = numba.njit(cache=True, nogil=True, fastmath=_FAST)
+_jit = numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
 
 
 @_jit

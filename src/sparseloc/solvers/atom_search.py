@@ -42,6 +42,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import ArrayLike, NDArray
 
 from ..dictionary import Dictionary
+from .mp import score_scale
 
 log = logging.getLogger(__name__)
 
@@ -55,27 +56,6 @@ _F32_EPS = 2.0**-22
 #: Absolute allowance (relative to ||r||) for float64 rounding between the bound and the exact
 #: reference formula.
 _F64_EPS = 1e-9
-
-
-def score_scale(
-    norms: NDArray[np.float64],
-    sums: NDArray[np.float64] | None,
-    n_pix: int,
-    min_norm_fraction: float,
-) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
-    """Which atoms may be selected, and ``inv``, the factor that turns their correlations
-    into scores.
-
-    ``inv`` is 1 / the norm of the atom, mean-removed when ``sums`` (the atoms' pixel sums)
-    is given (fitted background); 0 for atoms below ``min_norm_fraction`` of the largest
-    norm, or of no norm once centred.
-    """
-    if sums is not None:
-        eff = np.sqrt(np.maximum(norms**2 - sums**2 / n_pix, 0.0))
-    else:
-        eff = norms
-    eligible = (norms >= min_norm_fraction * norms.max()) & (eff > 1e-12)
-    return eligible, np.where(eligible, 1.0 / np.where(eligible, eff, 1.0), 0.0)
 
 
 def _monomials(block: tuple[int, int, int], degree: int) -> NDArray[np.int64]:

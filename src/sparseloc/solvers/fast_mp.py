@@ -24,9 +24,19 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..dictionary import Dictionary, check_window
 from .atom_search import CLUSTER_SPAN_NM as CLUSTER_SPAN_NM  # re-exported
-from .atom_search import AtomSearch, score_scale
+from .atom_search import AtomSearch
 from .emitters import WindowSolution
-from .mp import Answer, AtomDictionary, Request, count_groups, grid_steps, pursuit_steps
+from .mp import (
+    Answer,
+    AtomDictionary,
+    Request,
+    check_rule,
+    count_groups,
+    grid_steps,
+    pursuit_steps,
+    rule_defaults,
+    score_scale,
+)
 
 log = logging.getLogger(__name__)
 
@@ -161,8 +171,8 @@ replace_sweeps, max_iter, min_norm_fraction, link
         One per window, as ``matching_pursuit`` returns them.
     """
     ys = _as_batch(windows, dictionary)
-    _check_rule(max_emitters, min_photons, chi2_sigma, noise_factor)
-    max_iter, model_error = _rule_defaults(dictionary, max_emitters, max_iter, model_error)
+    check_rule(max_emitters, min_photons, chi2_sigma, noise_factor)
+    max_iter, model_error = rule_defaults(dictionary, max_emitters, max_iter, model_error)
     bgs = _backgrounds(background, ys.shape[0])
     search = _checked_search(search, dictionary, background is None, min_norm_fraction)
     steps = grid_steps(dictionary)
@@ -193,27 +203,6 @@ def _as_batch(windows: ArrayLike, dictionary: AtomDictionary) -> NDArray[np.floa
     """The windows, checked, as a batch (n, rows, cols)."""
     ys = check_window(windows, dictionary.shape)
     return ys[None] if ys.ndim == 2 else ys
-
-
-def _check_rule(
-    max_emitters: int, min_photons: float, chi2_sigma: float, noise_factor: float
-) -> None:
-    """Refuse a stopping rule ``matching_pursuit`` would refuse."""
-    if max_emitters < 1:
-        raise ValueError(f"max_emitters must be >= 1, got {max_emitters}")
-    if min_photons < 0 or chi2_sigma < 0 or noise_factor <= 0:
-        raise ValueError("min_photons and chi2_sigma must be >= 0 and noise_factor > 0")
-
-
-def _rule_defaults(
-    dictionary: AtomDictionary, max_emitters: int, max_iter: int | None, model_error: float | None
-) -> tuple[int, float]:
-    """``max_iter`` (default 4 per emitter) and ``model_error`` (default the dictionary's
-    grid error)."""
-    max_iter = 4 * max_emitters if max_iter is None else int(max_iter)
-    if model_error is None:
-        model_error = float(getattr(dictionary, "quantization_error", 0.0))
-    return max_iter, model_error
 
 
 def _backgrounds(background: float | ArrayLike | None, n: int) -> Sequence[float | None]:

@@ -46,6 +46,7 @@ MIN_PHOTONS = 200.0
 __all__ = [
     "MIN_PHOTONS",
     "AtomDictionary",
+    "check_rule",
     "count_groups",
     "estimate_background",
     "grid_steps",
@@ -53,6 +54,8 @@ __all__ = [
     "pearson_chi2",
     "pursuit_steps",
     "refit_amplitudes",
+    "rule_defaults",
+    "score_scale",
 ]
 
 
@@ -109,6 +112,48 @@ def grid_steps(dictionary: AtomDictionary) -> tuple[float, float]:
     if steps is None:
         raise ValueError("the dictionary does not say its grid steps (dxy, dz)")
     return steps
+
+
+def score_scale(
+    norms: NDArray[np.float64],
+    sums: NDArray[np.float64] | None,
+    n_pix: int,
+    min_norm_fraction: float,
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """Which atoms may be selected, and ``inv``, the factor that turns their correlations
+    into scores.
+
+    ``inv`` is 1 / the norm of the atom, mean-removed when ``sums`` (the atoms' pixel sums)
+    is given (fitted background); 0 for atoms below ``min_norm_fraction`` of the largest
+    norm, or of no norm once centred.
+    """
+    if sums is not None:
+        eff = np.sqrt(np.maximum(norms**2 - sums**2 / n_pix, 0.0))
+    else:
+        eff = norms
+    eligible = (norms >= min_norm_fraction * norms.max()) & (eff > 1e-12)
+    return eligible, np.where(eligible, 1.0 / np.where(eligible, eff, 1.0), 0.0)
+
+
+def check_rule(
+    max_emitters: int, min_photons: float, chi2_sigma: float, noise_factor: float
+) -> None:
+    """Refuse a stopping rule that cannot work: no emitters, negative limits or noise."""
+    if max_emitters < 1:
+        raise ValueError(f"max_emitters must be >= 1, got {max_emitters}")
+    if min_photons < 0 or chi2_sigma < 0 or noise_factor <= 0:
+        raise ValueError("min_photons and chi2_sigma must be >= 0 and noise_factor > 0")
+
+
+def rule_defaults(
+    dictionary: AtomDictionary, max_emitters: int, max_iter: int | None, model_error: float | None
+) -> tuple[int, float]:
+    """``max_iter`` (default 4 per emitter) and ``model_error`` (default the dictionary's
+    grid error)."""
+    max_iter = 4 * max_emitters if max_iter is None else int(max_iter)
+    if model_error is None:
+        model_error = float(getattr(dictionary, "quantization_error", 0.0))
+    return max_iter, model_error
 
 
 def matching_pursuit(
@@ -176,24 +221,11 @@ def matching_pursuit(
     y = check_window(window, dictionary.shape)
     if y.ndim != 2:
         raise ValueError("matching_pursuit takes one window (rows, cols)")
-    if max_emitters < 1:
-        raise ValueError(f"max_emitters must be >= 1, got {max_emitters}")
-    if min_photons < 0 or chi2_sigma < 0 or noise_factor <= 0:
-        raise ValueError("min_photons and chi2_sigma must be >= 0 and noise_factor > 0")
-    max_iter = 4 * max_emitters if max_iter is None else int(max_iter)
-    if model_error is None:
-        model_error = float(getattr(dictionary, "quantization_error", 0.0))
-    fixed_bg = background is not None
+    check_rule(max_emitters, min_photons, chi2_sigma, noise_factor)
+    max_iter, model_error = rule_defaults(dictionary, max_emitters, max_iter, model_error)
     norms = np.asarray(dictionary.norms).ravel()
-    if fixed_bg:
-        eff = norms
-        sums = None
-    else:
-        sums = np.asarray(dictionary.sums).ravel()
-        # norm of each atom after removing its mean: the part a constant cannot explain
-        eff = np.sqrt(np.maximum(norms**2 - sums**2 / y.size, 0.0))
-    eligible = (norms >= min_norm_fraction * norms.max()) & (eff > 1e-12)
-    inv = np.where(eligible, 1.0 / np.where(eligible, eff, 1.0), 0.0)
+    sums = None if background is not None else np.asarray(dictionary.sums).ravel()
+    _, inv = score_scale(norms, sums, y.size, min_norm_fraction)
     steps = pursuit_steps(
         y,
         dictionary,
