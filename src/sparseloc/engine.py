@@ -57,6 +57,7 @@ class Kernels:
 
 
 _setting: str | None = None  # set by use_engine; None: the default
+_chosen: str | None = None  # the engine _setting resolves to, once asked for
 _compiled: list = []  # [Kernels] once compiled, [None] when numba failed
 _logged: set = set()
 
@@ -129,8 +130,12 @@ def active_setting() -> str:
 
 
 def active_engine() -> str:
-    """The engine that runs now: ``"numpy"`` or ``"numba"``."""
-    return resolve_engine(None)
+    """The engine that runs now: ``"numpy"`` or ``"numba"`` (resolved once per setting, as
+    the hot paths ask for it on every call)."""
+    global _chosen
+    if _chosen is None:
+        _chosen = resolve_engine(None)
+    return _chosen
 
 
 def kernels() -> Kernels | None:
@@ -142,21 +147,21 @@ def kernels() -> Kernels | None:
 def use_engine(name: str | None) -> Iterator[str]:
     """Run the enclosed code with engine setting ``name`` (``None``: leave it as it is);
     yields the engine that runs."""
-    global _setting
-    previous = _setting
+    global _setting, _chosen
+    previous = (_setting, _chosen)
     if name is not None:
-        _setting = check_engine(name)
+        _setting, _chosen = check_engine(name), None
     try:
         yield active_engine()
     finally:
-        _setting = previous
+        _setting, _chosen = previous
 
 
 def set_engine(name: str | None) -> str:
     """Set the engine for the rest of the process (worker processes use it); returns the
     engine that runs."""
-    global _setting
-    _setting = None if name is None else check_engine(name)
+    global _setting, _chosen
+    _setting, _chosen = (None if name is None else check_engine(name)), None
     return active_engine()
 
 
