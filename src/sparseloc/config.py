@@ -106,8 +106,8 @@ class LocalizeParams:
     relocate : int
         Relocation passes of the frame solver (:func:`~sparseloc.solvers.frame.frame_fit`):
         each emitter in turn replaced by the best PSF position of what its neighbours leave
-        unexplained, kept where the likelihood rises. On dense double-helix frames (1 /um^2)
-        2 passes raised Jaccard from 76 % to 83 % at about 1.4 times the time; 0 disables.
+        unexplained, kept where the likelihood rises; each pass costs time and finds emitters
+        that crowds hide. 0 disables.
     """
 
     pixel_size: float
@@ -166,15 +166,13 @@ class LocalizeParams:
             )
         px = float(self.pixel_size)
         if self.coarse is None:
-            # The frame solver's pursuit uses 60 nm planes: on dense double-helix frames (1
-            # /um^2, 5 x 4 frames) they cut the RMSE by 4-7 nm laterally and 6-15 nm axially
-            # against 120 nm planes, at 1.3x the time.
+            # The frame solver's pursuit uses 60 nm planes: its starts then need fewer
+            # corrections from the fits, whose errors they bias on dense frames.
             dz = 60.0 if self.method == "frame" else 120.0
             object.__setattr__(self, "coarse", (px / np.ceil(px / 80.0 - 1e-9), dz))
         if self.fine is None:
-            # With the maximum-likelihood stage the fine grid only seeds the fit: 20/30 nm steps
-            # gave the same errors as the paper's 10/15 nm on overlapping pairs (18.5 vs 17.1 nm
-            # mean 3D error, 20 of 20 counts right) at 1/8 of the time.
+            # With the maximum-likelihood stage the fine grid only seeds the fit, so it can be
+            # coarser than the paper's 10/15 nm.
             dxy, dz = (20.0, 30.0) if self.refine else (10.0, 15.0)
             object.__setattr__(self, "fine", (px / np.ceil(px / dxy - 1e-9), dz))
 

@@ -48,16 +48,10 @@ from numpy.typing import NDArray
 
 from . import __version__
 from .camera import Camera, to_photons
+from .digest import array_digest, psf_hash
 from .io.atomic import write_text_atomic
 from .io.tables import LOCS_COLUMNS, empty_locs, read_parquet, write_parquet
-from .pipeline import (
-    LocalizeParams,
-    array_digest,
-    localize,
-    psf_hash,
-    run_metadata,
-    work_model_for,
-)
+from .pipeline import LocalizeParams, localize, run_metadata, work_model_for
 from .psf.base import PSFModel
 
 __all__ = [

@@ -14,7 +14,6 @@ process or in a pool of worker processes, on the engine that ``LocalizeParams.en
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import time
 from collections.abc import Callable
@@ -36,6 +35,7 @@ from .detect import (
     z_averaged_psf,
 )
 from .dictionary import Dictionary
+from .digest import array_digest, psf_hash
 from .engine import resolve_engine, use_engine
 from .io.tables import LOCS_COLUMNS, empty_locs
 from .pool import in_processes
@@ -76,19 +76,6 @@ class LocalizeResult:
             f"{self.n_frames} frames, {self.n_windows} windows, {len(self.table)} "
             f"localizations in {self.seconds:.1f} s ({self.per_second:.1f} localizations/s)"
         )
-
-
-def array_digest(a: NDArray) -> str:
-    """Short content hash of an array (as little-endian float64), for run metadata."""
-    return hashlib.sha256(np.ascontiguousarray(a, "<f8").tobytes()).hexdigest()[:16]
-
-
-def psf_hash(model: PSFModel, pixel_size: float) -> str:
-    """Content hash of a PSF model: SHA-256 of its images at 5 planes (float32), 16 hex digits."""
-    zs = np.linspace(*model.z_range, 5)
-    c = 8.5 * pixel_size
-    imgs = model.images(np.full(5, c), np.full(5, c), zs, (17, 17), pixel_size)
-    return hashlib.sha256(imgs.astype(np.float32).tobytes()).hexdigest()[:16]
 
 
 class _Solver:
@@ -151,15 +138,13 @@ def _noise_kwargs(p: LocalizeParams, read_variance: Any = None) -> dict:
 
 def _variance_factor(p: LocalizeParams) -> float:
     """Shot-noise variance per expected photon in the detection's signal-to-noise: 2 for EMCCD
-    data, else 1. The detection thresholds were measured on this scale, so ``qe`` stays out
-    (with qe 0.6 it would have cost sparse movies 1.5-1.7 points of Jaccard)."""
+    data, else 1. The detection thresholds were set on this scale, so ``qe`` stays out."""
     return 2.0 if p.noise == "emccd" else 1.0
 
 
 #: Largest pad (pixels) of a group's window around its emitters in the frame solver. The pad is
 #: the radius holding 90 % of the PSF's light (5 px for storm-analysis's calibrated double
-#: helix, 20 px for the pupil double helix's halo); the cap bounds the cost. On dense pupil
-#: double-helix frames 12 px gave Jaccard 76.8 % against 74.2 % with 7 px.
+#: helix, 20 px for the pupil double helix's halo); the cap bounds the cost.
 PAD_CAP = 12.0
 
 
@@ -183,8 +168,7 @@ class _FrameSolver:
         self.correlators: dict = {}  # per frame (or tile) shape, see tiled_pursuit
         r50 = self.templates.core_radius
         # Groups: emitters closer than the radius holding half the light (broadest plane) are
-        # fitted together. On dense double-helix frames (r50 10.6 px) fixed distances of 8 px
-        # gave Jaccard 74 %, 12 px 70 %, 5 px 42 %; r50 itself measured 73-77 %.
+        # fitted together: their images overlap enough to trade light.
         self.group_distance = r50 * params.pixel_size
         self.pad = int(np.ceil(min(self.templates.radius90, PAD_CAP)))
         self.reach = 0.5 * self.templates.images.shape[-1] * params.pixel_size

@@ -587,7 +587,7 @@ class SimulatedMovie:
 
     def identity(self) -> dict:
         """What makes the movie (for resuming runs): its parameters and the model's images."""
-        from .pipeline import psf_hash
+        from .digest import psf_hash
 
         return {
             "simulated": {

@@ -27,6 +27,7 @@ from .atom_search import CLUSTER_SPAN_NM as CLUSTER_SPAN_NM  # re-exported
 from .atom_search import AtomSearch
 from .emitters import WindowSolution
 from .mp import (
+    MIN_PHOTONS,
     Answer,
     AtomDictionary,
     Request,
@@ -125,7 +126,7 @@ def matching_pursuit_batch(
     background: float | ArrayLike | None = None,
     orthogonal: bool = False,
     max_emitters: int = 10,
-    min_photons: float = 200.0,
+    min_photons: float = MIN_PHOTONS,
     chi2_sigma: float = 2.0,
     noise_factor: float = 1.0,
     model_error: float | None = None,

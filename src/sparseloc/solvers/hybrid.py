@@ -44,7 +44,7 @@ from numpy.typing import ArrayLike
 from ..dictionary import DenseDictionary, Dictionary, check_window
 from .convex import noise_epsilon, solve_constrained
 from .emitters import Emitters, WindowSolution, group_by_boxes, group_coefficients
-from .mp import matching_pursuit, pearson_chi2
+from .mp import MIN_PHOTONS, matching_pursuit, pearson_chi2
 from .polish import PointModel, nearest_atoms, polish, prune
 from .refine import refine_solution
 
@@ -72,7 +72,7 @@ def convex_solve(
     background: float | None = None,
     eps: float | None = None,
     eps_factor: float = 1.0,
-    min_photons: float = 200.0,
+    min_photons: float = MIN_PHOTONS,
     min_snr: float = 4.0,
     link: float = 1.5,
 ) -> WindowSolution:
@@ -147,7 +147,7 @@ def hybrid_solve(
     background: float | None = None,
     box_steps: float = 1.0,
     eps_factor: float = 1.0,
-    min_photons: float = 200.0,
+    min_photons: float = MIN_PHOTONS,
     min_snr: float = 4.0,
     max_emitters: int = 10,
     mp_chi2_sigma: float = 1.0,

@@ -271,10 +271,9 @@ def fit_with_count_selection(
             else ([], 0.0)
         )
         # The score statistic of the best grid emitter approximates the likelihood ratio of
-        # adding it; far below the lr_threshold, the refits cannot pass it. Both candidates are
-        # refitted and the likelier is tested (keeping the first that passes instead saved a
-        # tenth of a dense frame's fitting work but cost 0.85 points of Jaccard on 6 x 20
-        # dense frames and 4.8 nm on the paper's Figure 2 case).
+        # adding it; far below the threshold, the refits cannot pass it. Both candidates are
+        # refitted and the likelier is tested (keeping the first that passes instead loses
+        # emitters).
         if w * stat >= lr_threshold / SKIP_FACTOR:  # stat uses the Poisson variance
             more = None
             for cand in cands:
