@@ -38,7 +38,7 @@ import numpy as np
 
 import sparseloc
 import sparseloc.solvers.frame as frame_mod
-import sparseloc.solvers.frame_pursuit as pursuit_mod
+import sparseloc.solvers.frame_mp as pursuit_mod
 import sparseloc.solvers.frame_windows as windows_mod
 import sparseloc.solvers.refine as refine_mod
 import sparseloc.solvers.relocate as relocate_mod

@@ -282,7 +282,7 @@ def test_compiled_scoring_matches_numpy(npar):
 def test_template_selection_is_bit_identical_on_both_engines():
     from dataclasses import replace
 
-    from sparseloc.solvers.frame_pursuit import Correlator
+    from sparseloc.solvers.frame_mp import Correlator
 
     rng = np.random.default_rng(3)
     imgs = rng.random((7, 9, 9))

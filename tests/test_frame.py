@@ -12,7 +12,7 @@ from sparseloc.psf import make_psf
 from sparseloc.psf.spline import SplinePSF
 from sparseloc.solvers import Emitters
 from sparseloc.solvers.frame import frame_fit, frame_pursuit, frame_templates
-from sparseloc.solvers.frame_pursuit import Correlator
+from sparseloc.solvers.frame_mp import Correlator
 from sparseloc.solvers.refine import fit_emitters
 
 PX = 100.0

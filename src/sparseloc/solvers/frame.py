@@ -5,7 +5,7 @@ tens of pixels, so a window holds pieces of its neighbours' images that its dict
 explain, and the solver answers them with ghost emitters at its edges. Here the whole frame is
 one model:
 
-1. **Pursuit** (:func:`~sparseloc.solvers.frame_pursuit.frame_pursuit`): matching pursuit over
+1. **Pursuit** (:func:`~sparseloc.solvers.frame_mp.frame_pursuit`): matching pursuit over
    the frame with a dictionary of shifted templates; its emitters start the fits.
 2. **Fit** (:func:`frame_fit`): emitters closer than ``group_distance`` form a group; each group
    gets a window around it and a maximum-likelihood fit with count selection
@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 
 from ..psf.base import PSFModel
 from .emitters import Emitters
-from .frame_pursuit import FrameTemplates, frame_pursuit, frame_templates, tiled_pursuit
+from .frame_mp import FrameTemplates, frame_pursuit, frame_templates, tiled_pursuit
 from .frame_windows import (
     NeighbourLight,
     emitter_groups,
