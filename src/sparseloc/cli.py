@@ -250,7 +250,7 @@ def localize(
     min_snr: Annotated[
         float | None,
         typer.Option(
-            help="Detection significance of a new emitter (noise standard errors). [default: 5]"
+            help="Detection significance of a new emitter, in noise standard errors (default 5)."
         ),
     ] = None,
     refine: Annotated[
@@ -287,7 +287,7 @@ def localize(
         str | None,
         typer.Option(
             help="auto (compiled numba kernels where numba works, else NumPy), numba or numpy "
-            "(the plain reference); the same tables. [default: auto]"
+            "(the plain reference); the same tables (default auto)."
         ),
     ] = None,
     n_sample: Annotated[
