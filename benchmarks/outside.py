@@ -1,0 +1,200 @@
+"""Accuracy on outside data (issue "Trust on data nobody here tuned on"): one table.
+
+Every row is data this project did not make (``../shared/data``), localized with default settings
+from a bead calibration of the same data set, as a microscopist would:
+
+- storm-analysis's double-helix frames (its grid frame and the 0.5 and 1 /um^2 random frames),
+  calibrated from its bead z-scan;
+- storm-analysis's astigmatic grid frame (1,000 photons, background 20), calibrated from its
+  bead z-scan, with the RMSE over the Cramer-Rao bound of the calibrated model at the truth;
+- the SMLM 2016 challenge's 64 real LD astigmatic frames, calibrated from the challenge's
+  astigmatic bead stack (centroid-centred: ``--beads`` does not exist yet), with the challenge's
+  EMCCD camera.
+
+Scores follow the SMLM challenge (250 nm lateral, 500 nm axial, one-to-one per frame; efficiency
+with alpha 1/nm lateral and 0.5/nm axial). The peer figures come from the data's READMEs.
+Not yet here: movies rendered from the challenge's bead stacks with the LD/HD ground truth.
+
+Usage::
+
+    python benchmarks/outside.py [--data ../shared/data] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import tifffile
+
+from sparseloc.calibrate import calibrate_file
+from sparseloc.config import build_job
+from sparseloc.crlb import crlb
+from sparseloc.distributed import CameraFrames
+from sparseloc.evaluate import evaluate
+from sparseloc.io.calibration import save_calibration
+from sparseloc.io.movie import Movie
+from sparseloc.io.truth import read_truth_csv
+from sparseloc.pipeline import LocalizeParams, localize
+
+PX = 100.0
+#: Peer results from the data's READMEs: (program, Jaccard %, RMSE lateral nm, RMSE axial nm);
+#: None where the README gives no such figure.
+PEERS = {
+    "SA DH grid": ("storm-analysis FISTA+spline", None, "x/y/z 3.4/3.7/5.5", None),
+    "SA DH 0.5/um2": ("storm-analysis, tuned", 91.4, 26.9, 40.1),
+    "SA DH 1/um2": ("storm-analysis, tuned", 81.7, 52.2, 85.4),
+    "SA AS grid": ("storm-analysis spliner", None, "x/y/z 20.3/20.3/31.5", None),
+}
+SA_FRAMES = {
+    "SA DH grid": "dh_fista_diag_test01",
+    "SA DH 0.5/um2": "dh_random_density0.005px2",
+    "SA DH 1/um2": "dh_random_density0.01px2",
+}
+#: The SMLM 2016 challenge's EMCCD (its README): baseline 100 ADU, 45 e-/ADU, EM gain 300, QE 0.9.
+CHALLENGE_CAMERA = {"camera": "emccd", "offset": 100.0, "gain": 45.0, "em_gain": 300.0, "qe": 0.9}
+
+
+def storm_rows(data: Path) -> list[dict]:
+    """storm-analysis's DH frames and its astigmatic grid frame."""
+    rows = []
+    sa = data / "storm_analysis_sim"
+    for kind, frames in (("dh", SA_FRAMES), ("astig", {"SA AS grid": "as_spliner_diag_test02"})):
+        folder = sa / kind
+        cal = calibrate_file(
+            folder / "beads_zscan.tif", PX, z_file=folder / "beads_zscan_z.csv", offset=100.0
+        )
+        for label, name in frames.items():
+            frame = tifffile.imread(folder / f"{name}.tif").astype(np.float64) - 100.0
+            frame = frame.reshape(-1, *frame.shape[-2:])
+            truth = read_truth_csv(folder / f"{name}_groundtruth.csv", pixel_size=PX)
+            # the astigmatic grid's truth lists 10 frames; its TIFF holds the first
+            truth = truth[truth["frame"] < len(frame)]
+            t0 = time.perf_counter()
+            res = localize(frame, cal.psf, LocalizeParams(pixel_size=PX))
+            row = score(label, res.table, truth, time.perf_counter() - t0)
+            if kind == "astig":
+                row.update(crlb_ratio(cal.psf, res.table, truth, background=20.0))
+            rows.append(row)
+    return rows
+
+
+def crlb_ratio(model, locs: pd.DataFrame, truth: pd.DataFrame, background: float) -> dict:
+    """RMSE over the root-mean-square Cramer-Rao bound of ``model`` at the matched truth
+    (each emitter alone in a 21 x 21 px window, Poisson), per axis."""
+    ev = evaluate(locs, truth)
+    sd = []
+    for _, t in truth.iterrows():
+        c = 10.5 * PX
+        s = crlb(model, [c], [c], [t.z_nm], [t.photons], background, (21, 21), PX)
+        sd.append(np.asarray(s).reshape(-1)[:3])
+    rms = np.sqrt(np.mean(np.square(sd), axis=0))
+    return {
+        "crlb_x_nm": rms[0],
+        "crlb_y_nm": rms[1],
+        "crlb_z_nm": rms[2],
+        "rmse_over_crlb": [ev.rmse_x / rms[0], ev.rmse_y / rms[1], ev.rmse_z / rms[2]],
+    }
+
+
+def challenge_truth(path: Path, n_frames: int) -> pd.DataFrame:
+    """The challenge's activations (1-based frames) of the first ``n_frames`` frames, as a
+    truth table with 0-based frames."""
+    a = pd.read_csv(path, skipinitialspace=True)
+    a.columns = [c.strip() for c in a.columns]
+    a = a[a["frame"] <= n_frames]
+    return pd.DataFrame(
+        {
+            "frame": a["frame"].to_numpy(np.int64) - 1,
+            "x_nm": a["xnano"].to_numpy(float),
+            "y_nm": a["ynano"].to_numpy(float),
+            "z_nm": a["znano"].to_numpy(float),
+            "photons": a["intensity"].to_numpy(float),
+        }
+    )
+
+
+def challenge_rows(data: Path, workdir: Path) -> list[dict]:
+    """The challenge's real LD astigmatic frames with an astigmatic bead calibration."""
+    folder = data / "smlm2016"
+    cal = calibrate_file(folder / "beads_as.tif", PX, 10.0, z0_slice=75, offset=100.0)
+    psf_file = save_calibration(cal, workdir / "smlm_as.h5")
+    movie_path = folder / "test_frames_LD_AS.tif"
+    with Movie.open(movie_path) as movie:
+        options = {"psf": str(psf_file), "pixel_size": PX, **CHALLENGE_CAMERA}
+        job = build_job(options, movie)
+        t0 = time.perf_counter()
+        res = localize(CameraFrames(movie, job.camera), job.model, job.params)
+        truth = challenge_truth(folder / "activations_LD.csv", len(movie))
+    return [score("SMLM16 LD AS real", res.table, truth, time.perf_counter() - t0)]
+
+
+def score(label: str, locs: pd.DataFrame, truth: pd.DataFrame, seconds: float) -> dict:
+    ev = evaluate(locs, truth)
+    return {
+        "data": label,
+        "n_truth": ev.n_truth,
+        "jaccard": ev.jaccard,
+        "recall": ev.recall,
+        "precision": ev.precision,
+        "rmse_lateral_nm": ev.rmse_lateral,
+        "rmse_axial_nm": ev.rmse_axial,
+        "rmse_xyz_nm": [ev.rmse_x, ev.rmse_y, ev.rmse_z],
+        "bias_xyz_nm": [ev.bias_x, ev.bias_y, ev.bias_z],
+        "efficiency_lateral": ev.efficiency_lateral,
+        "efficiency_axial": ev.efficiency_axial,
+        "seconds": seconds,
+    }
+
+
+def print_table(rows: list[dict]) -> None:
+    hdr = (
+        f"{'data':>18} {'truth':>5} | {'Jac %':>5} {'rec':>5} {'prec':>5} | {'lat':>5} {'ax':>5} "
+        f"{'x':>5} {'y':>5} {'z':>5} nm | {'bias x':>6} {'y':>5} {'z':>5} nm | "
+        f"{'E lat':>5} {'E ax':>5} | peer"
+    )
+    print(hdr)
+    print("-" * len(hdr))
+    for r in rows:
+        peer = PEERS.get(r["data"])
+        peer_txt = "" if peer is None else ", ".join(str(v) for v in peer if v is not None)
+        x, y, z = r["rmse_xyz_nm"]
+        bx, by, bz = r["bias_xyz_nm"]
+        print(
+            f"{r['data']:>18} {r['n_truth']:5d} | {r['jaccard']:5.1f} {r['recall']:5.3f} "
+            f"{r['precision']:5.3f} | {r['rmse_lateral_nm']:5.1f} {r['rmse_axial_nm']:5.1f} "
+            f"{x:5.1f} {y:5.1f} {z:5.1f}    | {bx:6.1f} {by:5.1f} {bz:5.1f}    | "
+            f"{r['efficiency_lateral']:5.1f} {r['efficiency_axial']:5.1f} | {peer_txt}"
+        )
+        if "rmse_over_crlb" in r:
+            ratio = "/".join(f"{v:.2f}" for v in r["rmse_over_crlb"])
+            print(
+                f"{'':>18}        RMSE / sqrt(CRLB) x/y/z {ratio} (sqrt CRLB "
+                f"{r['crlb_x_nm']:.1f}/{r['crlb_y_nm']:.1f}/{r['crlb_z_nm']:.1f} nm)"
+            )
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", type=Path, default=Path("../shared/data"))
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/outside.json"))
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = storm_rows(args.data) + challenge_rows(args.data, Path(tmp))
+    print_table(rows)
+    print(f"total {time.perf_counter() - t0:.0f} s")
+    out = {"rows": rows}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=2, default=float))
+    print(f"wrote {args.out}")
+    return out
+
+
+if __name__ == "__main__":
+    main()
