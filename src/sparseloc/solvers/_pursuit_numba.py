@@ -1,6 +1,6 @@
 """numba kernel of the frame pursuit's template selection (imported only when used).
 
-:meth:`sparseloc.solvers.frame._Correlator.best` keeps, per pixel, the template whose
+:meth:`sparseloc.solvers.frame_mp.Correlator.best` keeps, per pixel, the template whose
 normalised correlation is largest. In NumPy that is a product, an ``argmax`` and two
 ``take_along_axis`` gathers per batch of templates: about as long as the batch's inverse
 FFTs. This loop does the same comparisons in the same order in one pass (bit-identical:

@@ -215,7 +215,7 @@ def hybrid_solve(
         Run the maximum-likelihood stage, its count selection, and the split/merge search.
     noise, read_variance, plane, qe
         Likelihood and background model of the maximum-likelihood stage (see
-        :func:`~sparseloc.solvers.refine.fit_emitters`). ``noise="emccd"`` also sets the
+        :func:`~sparseloc.solvers.mle.fit_emitters`). ``noise="emccd"`` also sets the
         sparse stages' ``noise_factor`` to 2 when it is left at 1.
     link : float
         Grouping distance in grid steps.
