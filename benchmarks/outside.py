@@ -8,8 +8,8 @@ from a bead calibration of the same data set, as a microscopist would:
 - storm-analysis's astigmatic grid frame (1,000 photons, background 20), calibrated from its
   bead z-scan, with the RMSE over the Cramer-Rao bound of the calibrated model at the truth;
 - the SMLM 2016 challenge's 64 real LD astigmatic frames, calibrated from the challenge's
-  astigmatic bead stack (centroid-centred: ``--beads`` does not exist yet), with the challenge's
-  EMCCD camera.
+  astigmatic bead stack with the challenge's EMCCD camera: once with the model centred on its
+  light's centroid (the default) and once on the beads' known positions (``--beads``).
 
 Scores follow the SMLM challenge (250 nm lateral, 500 nm axial, one-to-one per frame; efficiency
 with alpha 1/nm lateral and 0.5/nm axial). The peer figures come from the data's READMEs.
@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 import tifffile
 
-from sparseloc.calibrate import calibrate_file
+from sparseloc.calibrate import calibrate_file, read_bead_positions
 from sparseloc.config import build_job
 from sparseloc.crlb import crlb
 from sparseloc.distributed import CameraFrames
@@ -120,18 +120,26 @@ def challenge_truth(path: Path, n_frames: int) -> pd.DataFrame:
 
 
 def challenge_rows(data: Path, workdir: Path) -> list[dict]:
-    """The challenge's real LD astigmatic frames with an astigmatic bead calibration."""
+    """The challenge's real LD astigmatic frames with an astigmatic bead calibration, centred
+    on the light's centroid and on the beads' known positions."""
     folder = data / "smlm2016"
-    cal = calibrate_file(folder / "beads_as.tif", PX, 10.0, z0_slice=75, offset=100.0)
-    psf_file = save_calibration(cal, workdir / "smlm_as.h5")
-    movie_path = folder / "test_frames_LD_AS.tif"
-    with Movie.open(movie_path) as movie:
-        options = {"psf": str(psf_file), "pixel_size": PX, **CHALLENGE_CAMERA}
-        job = build_job(options, movie)
-        t0 = time.perf_counter()
-        res = localize(CameraFrames(movie, job.camera), job.model, job.params)
-        truth = challenge_truth(folder / "activations_LD.csv", len(movie))
-    return [score("SMLM16 LD AS real", res.table, truth, time.perf_counter() - t0)]
+    rows = []
+    for label, beads in (
+        ("", None),
+        (" --beads", read_bead_positions(folder / "beads_gt.csv", PX)),
+    ):
+        cal = calibrate_file(
+            folder / "beads_as.tif", PX, 10.0, z0_slice=75, offset=100.0, beads=beads
+        )
+        psf_file = save_calibration(cal, workdir / "smlm_as.h5")
+        with Movie.open(folder / "test_frames_LD_AS.tif") as movie:
+            options = {"psf": str(psf_file), "pixel_size": PX, **CHALLENGE_CAMERA}
+            job = build_job(options, movie)
+            t0 = time.perf_counter()
+            res = localize(CameraFrames(movie, job.camera), job.model, job.params)
+            truth = challenge_truth(folder / "activations_LD.csv", len(movie))
+        rows.append(score("SMLM16 LD AS" + label, res.table, truth, time.perf_counter() - t0))
+    return rows
 
 
 def score(label: str, locs: pd.DataFrame, truth: pd.DataFrame, seconds: float) -> dict:
@@ -154,7 +162,7 @@ def score(label: str, locs: pd.DataFrame, truth: pd.DataFrame, seconds: float) -
 
 def print_table(rows: list[dict]) -> None:
     hdr = (
-        f"{'data':>18} {'truth':>5} | {'Jac %':>5} {'rec':>5} {'prec':>5} | {'lat':>5} {'ax':>5} "
+        f"{'data':>20} {'truth':>5} | {'Jac %':>5} {'rec':>5} {'prec':>5} | {'lat':>5} {'ax':>5} "
         f"{'x':>5} {'y':>5} {'z':>5} nm | {'bias x':>6} {'y':>5} {'z':>5} nm | "
         f"{'E lat':>5} {'E ax':>5} | peer"
     )
@@ -166,7 +174,7 @@ def print_table(rows: list[dict]) -> None:
         x, y, z = r["rmse_xyz_nm"]
         bx, by, bz = r["bias_xyz_nm"]
         print(
-            f"{r['data']:>18} {r['n_truth']:5d} | {r['jaccard']:5.1f} {r['recall']:5.3f} "
+            f"{r['data']:>20} {r['n_truth']:5d} | {r['jaccard']:5.1f} {r['recall']:5.3f} "
             f"{r['precision']:5.3f} | {r['rmse_lateral_nm']:5.1f} {r['rmse_axial_nm']:5.1f} "
             f"{x:5.1f} {y:5.1f} {z:5.1f}    | {bx:6.1f} {by:5.1f} {bz:5.1f}    | "
             f"{r['efficiency_lateral']:5.1f} {r['efficiency_axial']:5.1f} | {peer_txt}"
@@ -174,7 +182,7 @@ def print_table(rows: list[dict]) -> None:
         if "rmse_over_crlb" in r:
             ratio = "/".join(f"{v:.2f}" for v in r["rmse_over_crlb"])
             print(
-                f"{'':>18}        RMSE / sqrt(CRLB) x/y/z {ratio} (sqrt CRLB "
+                f"{'':>20}        RMSE / sqrt(CRLB) x/y/z {ratio} (sqrt CRLB "
                 f"{r['crlb_x_nm']:.1f}/{r['crlb_y_nm']:.1f}/{r['crlb_z_nm']:.1f} nm)"
             )
 

@@ -607,3 +607,87 @@ def test_non_finite_z_for_a_valid_frame_is_refused(tmp_path, scan):
     path.write_text("\n".join(["1,0.0", "1,0.02", "1,0.04"]))
     with pytest.raises(ValueError, match="no header"):
         read_z_file(path)
+
+
+# -- known bead positions (--beads) ----------------------------------------------------------
+
+#: The light of the test PSF sits this far (nm, x and y) from its emitter, as in measured PSFs.
+LIGHT_OFFSET = (30.0, -40.0)
+
+
+@pytest.fixture(scope="module")
+def offset_scan(model):
+    """Four beads imaged through a PSF whose light is displaced from the emitter."""
+    from sparseloc.psf.base import ShiftedPSF
+
+    shifted = ShiftedPSF(model, *LIGHT_OFFSET)
+    positions = np.array([[3000.0, 3000.0], [8000.0, 3050.0], [3020.0, 8000.0], [8010.0, 8040.0]])
+    return {"movie": simulate_scan(shifted, positions, seed=4), "positions": positions}
+
+
+def test_known_bead_positions_put_the_model_origin_on_the_emitter(offset_scan):
+    movie, truth = offset_scan["movie"], offset_scan["positions"]
+    plain = calibrate_beads(movie, PX, Z_STEP, offset=OFFSET)
+    assert plain.params["lateral_origin"] == "centroid"
+    j = match_truth(plain.beads, truth)
+    dxy = plain.beads[["x_nm", "y_nm"]].to_numpy() - truth[j]
+    assert np.allclose(dxy.mean(axis=0), LIGHT_OFFSET, atol=5.0)  # the centroid's offset
+    known = calibrate_beads(movie, PX, Z_STEP, offset=OFFSET, beads=truth)
+    assert known.params["lateral_origin"] == "beads" and known.params["n_beads_known"] == 4
+    assert np.allclose(known.params["centroid_offset_nm"], LIGHT_OFFSET, atol=3.0)
+    j = match_truth(known.beads, truth)
+    assert np.abs(known.beads[["x_nm", "y_nm"]].to_numpy() - truth[j]).max() < 3.0
+    # an emitter rendered by the model has its light where the bead's light was
+    size, c = 31, 31 * PX / 2
+    img = known.psf.images(
+        np.full(known.z.size, c), np.full(known.z.size, c), known.z, (size, size), PX
+    )
+    proj = img.mean(axis=0)
+    rows, cols = np.indices(proj.shape)
+    cx = ((cols + 0.5) * PX * proj).sum() / proj.sum() - c
+    cy = ((rows + 0.5) * PX * proj).sum() / proj.sum() - c
+    assert abs(cx - LIGHT_OFFSET[0]) < 5.0 and abs(cy - LIGHT_OFFSET[1]) < 5.0, (cx, cy)
+
+
+def test_bead_position_files(tmp_path, offset_scan):
+    from sparseloc.calibrate import read_bead_positions
+
+    truth = offset_scan["positions"]
+    nm = tmp_path / "beads_nm.csv"
+    pd.DataFrame({"x_nm": np.repeat(truth[:, 0], 3), "y_nm": np.repeat(truth[:, 1], 3)}).to_csv(
+        nm, index=False
+    )
+    assert np.allclose(read_bead_positions(nm, PX), np.unique(truth, axis=0))  # one per bead
+    pxf = tmp_path / "beads_px.csv"
+    pd.DataFrame({"x_px": truth[:, 0] / PX - 0.5, "y_px": truth[:, 1] / PX - 0.5}).to_csv(
+        pxf, index=False
+    )
+    assert np.allclose(read_bead_positions(pxf, PX), np.unique(truth, axis=0))
+    bad = tmp_path / "bad.csv"
+    pd.DataFrame({"x": [1.0], "y": [2.0]}).to_csv(bad, index=False)
+    with pytest.raises(ValueError, match="needs columns x_nm, y_nm"):
+        read_bead_positions(bad, PX)
+    far = truth.copy()
+    far[1] += 450.0  # 4.5 px from every bead
+    with pytest.raises(ValueError, match="more than 2 px from every bead found"):
+        calibrate_beads(offset_scan["movie"], PX, Z_STEP, offset=OFFSET, beads=far)
+
+
+def test_calibrate_cli_with_bead_positions(tmp_path, offset_scan):
+    stack = tmp_path / "beads.tif"
+    write_tiff(stack, offset_scan["movie"], pixel_size=PX)
+    good = tmp_path / "beads.csv"
+    t = offset_scan["positions"]
+    pd.DataFrame({"x_nm": t[:, 0], "y_nm": t[:, 1]}).to_csv(good, index=False)
+    base = ["calibrate", str(stack), "--pixel-size", "100", "--z-step", "20", "--offset", "100"]
+    out = tmp_path / "psf.h5"
+    res = runner.invoke(app, [*base, "-o", str(out), "--beads", str(good)])
+    assert res.exit_code == 0, res.output
+    assert "origin on 4 known bead position(s)" in res.output
+    assert read_calibration_info(out)["params"]["lateral_origin"] == "beads"
+    bad = tmp_path / "bad.csv"
+    pd.DataFrame({"x_nm": [50.0]}).to_csv(bad, index=False)
+    out2 = tmp_path / "psf2.h5"
+    res = runner.invoke(app, [*base, "-o", str(out2), "--beads", str(bad)])
+    assert res.exit_code == 2 and "needs columns x_nm, y_nm" in res.output, res.output
+    assert not out2.exists()

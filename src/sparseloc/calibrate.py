@@ -37,7 +37,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
-from .calibrate_scan import BeadScan, read_scan, read_z_file
+from .calibrate_scan import BeadScan, read_bead_positions, read_scan, read_z_file
 from .psf.spline import SplinePSF
 
 __all__ = [
@@ -45,6 +45,7 @@ __all__ = [
     "calibrate_beads",
     "calibrate_file",
     "find_beads",
+    "read_bead_positions",
     "read_z_file",
 ]
 
@@ -285,6 +286,7 @@ def calibrate_beads(
     fit_pupil: bool = False,
     pupil_options: dict[str, Any] | None = None,
     z_smooth: bool = True,
+    beads: ArrayLike | None = None,
 ) -> Calibration:
     """Build a measured PSF model from a bead z-stack.
 
@@ -322,6 +324,10 @@ def calibrate_beads(
     z_smooth : bool
         Smooth the average along z (cubic Savitzky-Golay over ~80 nm) when the steps are
         finer than 30 nm, so the model's z-derivative does not follow photon noise.
+    beads : array_like, shape (B, 2), optional
+        The beads' known x, y (nm, native coordinates; :func:`read_bead_positions`): the
+        model's lateral origin is then the emitter, placed so the matched beads sit at their
+        known positions on average. Without them it is the centroid of the z-averaged image.
     fit_pupil : bool
         Also fit the pupil phase to the average (``pupil_options`` go to
         :func:`sparseloc.psf.retrieval.fit_pupil`: ``na``, ``wavelength``, ...).
@@ -338,7 +344,7 @@ def calibrate_beads(
     """
     scan = read_scan(stack, pixel_size, z_step, z, valid, z0_slice, offset, gain, saturation)
     cal = _calibrate_scan(
-        scan, roi_size, threshold, detect_sigma, min_beads, iterations, name, z_smooth
+        scan, roi_size, threshold, detect_sigma, min_beads, iterations, name, z_smooth, beads
     )
     if fit_pupil:
         cal.pupil = _fit_pupil_in_frame(cal.psf, cal.z, cal.pixel_size, pupil_options)
@@ -358,6 +364,7 @@ def _calibrate_scan(
     iterations: int,
     name: str,
     z_smooth: bool,
+    known: ArrayLike | None = None,
 ) -> Calibration:
     """Find the beads, vet them, register and average them, and build the spline model."""
     p, step = scan.pixel_size, scan.step
@@ -378,9 +385,15 @@ def _calibrate_scan(
     max_dz = max(abs(stacks.shifts[i][2]) for i in used)
     clean, zplanes, sl, zwin = _model_stack(avg, scan.zplanes, max_dz, step, z_smooth)
     bead_ncc = np.array([_ncc_planes(stacks.aligned(i)[sl], clean) for i in used])
-    # Lateral origin: the centroid of the z-averaged image (the lobes' midpoint for a DH).
+    # Lateral origin: the centroid of the z-averaged image (the lobes' midpoint for a DH), or
+    # the emitter itself where the beads' positions are known.
     proj = clean.mean(axis=0)
-    cr, cc = _centroid(proj, half, half, half)
+    centre = _centroid(proj, half, half, half)
+    origin: dict[str, Any] = {"lateral_origin": "centroid"}
+    if known is not None:
+        table = _bead_table(centres, used, reason, residual, stacks, centre, half)
+        centre, origin = _centre_on_beads(table, used, known, centres, p, centre)
+    cr, cc = centre
     psf = SplinePSF(clean, p, zplanes, centre=(cr, cc), name=name)
     params = {
         "pixel_size_nm": p,
@@ -394,6 +407,7 @@ def _calibrate_scan(
         "z_smooth_planes": int(zwin),
         "n_beads_found": nb,
         "n_beads_used": len(used),
+        **origin,
     }
     return Calibration(
         psf=psf,
@@ -659,6 +673,60 @@ def _bead_table(
         },
         columns=BEAD_COLUMNS,
     )
+
+
+#: A known bead position farther than this (pixels) from every bead found matches none.
+BEAD_MATCH_PX = 2.0
+
+
+def _centre_on_beads(
+    table: pd.DataFrame,
+    used: list[int],
+    known: ArrayLike,
+    centres: NDArray[np.float64],
+    p: float,
+    centre: tuple[float, float],
+) -> tuple[tuple[float, float], dict[str, Any]]:
+    """The model centre (row, col in px) that puts the registered beads at their ``known``
+    positions (B, 2; x, y nm) on average, and what that moved (for the calibration's record).
+
+    Each known position is matched to the nearest bead found (within :data:`BEAD_MATCH_PX`);
+    the used beads among them fix the offset of the light's centroid from the emitter.
+    """
+    xy = np.asarray(known, dtype=np.float64).reshape(-1, 2)
+    found = np.c_[(centres[:, 1] + 0.5) * p, (centres[:, 0] + 0.5) * p]
+    d = np.hypot(*(xy[:, None, :] - found[None, :, :]).transpose(2, 0, 1))
+    nearest = np.argmin(d, axis=1)
+    far = np.flatnonzero(d[np.arange(len(xy)), nearest] > BEAD_MATCH_PX * p)
+    if far.size:
+        x, y = xy[far[0]]
+        raise ValueError(
+            f"bead position ({x:.0f}, {y:.0f}) nm of the bead file is more than "
+            f"{BEAD_MATCH_PX:g} px from every bead found; check the file's units and origin"
+        )
+    pairs = [(k, int(i)) for k, i in enumerate(nearest) if int(i) in used]
+    if not pairs:
+        raise ValueError("none of the bead file's positions is a bead the calibration used")
+    model_xy = table[["x_nm", "y_nm"]].to_numpy()
+    off = np.array([model_xy[i] - xy[k] for k, i in pairs])  # centroid minus emitter (nm)
+    dx, dy = off.mean(axis=0)
+    spread = off - off.mean(axis=0)
+    cr, cc = centre
+    record = {
+        "lateral_origin": "beads",
+        "n_beads_known": len(pairs),
+        "centroid_offset_nm": [float(dx), float(dy)],
+        "bead_position_rms_nm": float(np.sqrt(np.mean(np.sum(spread**2, axis=1)))),
+    }
+    log.info(
+        "model origin on %d known bead position(s): the light's centroid lies at %+.1f, "
+        "%+.1f nm (x, y) from the emitter (rms over beads %.1f nm)",
+        len(pairs),
+        dx,
+        dy,
+        record["bead_position_rms_nm"],
+    )
+    return (cr - dy / p, cc - dx / p), record
 
 
 def _fit_pupil_in_frame(

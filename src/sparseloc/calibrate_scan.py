@@ -16,10 +16,41 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["BeadScan", "read_scan", "read_z_file"]
+__all__ = ["BeadScan", "read_bead_positions", "read_scan", "read_z_file"]
 
 # Messages keep the logger of sparseloc.calibrate, where the calibration has always logged.
 log = logging.getLogger("sparseloc.calibrate")
+
+
+def read_bead_positions(path: str | Path, pixel_size: float) -> NDArray[np.float64]:
+    """The beads' known lateral positions from a CSV, as (B, 2) x, y in nm.
+
+    Columns ``x_nm, y_nm`` (nm, origin at the outer corner of pixel (0, 0), x along columns:
+    the project's convention) or ``x_px, y_px`` (pixels, 0.0 at the centre of the first
+    pixel, as storm-analysis writes them). Rows repeating a position (one row per frame, as in
+    the SMLM challenge's ``beads_gt.csv``) count once.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"bead file {str(p)!r} does not exist")
+    try:
+        df = pd.read_csv(p, skipinitialspace=True)
+    except (ValueError, OSError, pd.errors.ParserError) as exc:
+        raise ValueError(f"cannot read bead file {p.name}: {exc}") from exc
+    cols = {str(c).strip().lower(): c for c in df.columns}
+    if "x_nm" in cols and "y_nm" in cols:
+        xy = df[[cols["x_nm"], cols["y_nm"]]].apply(pd.to_numeric, errors="coerce").to_numpy()
+    elif "x_px" in cols and "y_px" in cols:
+        px = df[[cols["x_px"], cols["y_px"]]].apply(pd.to_numeric, errors="coerce").to_numpy()
+        xy = (px + 0.5) * float(pixel_size)
+    else:
+        raise ValueError(
+            f"bead file {p.name} needs columns x_nm, y_nm (nm, origin at the outer corner of "
+            "pixel (0, 0)) or x_px, y_px (pixels, 0.0 at the centre of the first pixel)"
+        )
+    if len(xy) == 0 or not np.all(np.isfinite(xy)):
+        raise ValueError(f"bead file {p.name} holds no positions or non-numeric ones")
+    return np.unique(np.round(xy, 3), axis=0)
 
 
 def read_z_file(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:

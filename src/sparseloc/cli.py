@@ -459,7 +459,9 @@ def _write_localized(res, out: Path, opts: dict, mov, job) -> None:
 
 @app.command()
 def calibrate(
-    beads: Annotated[Path, typer.Argument(help="Bead z-scan: a multi-frame TIFF.")],
+    stack: Annotated[
+        Path, typer.Argument(metavar="BEADS.tif", help="Bead z-scan: a multi-frame TIFF.")
+    ],
     output: Annotated[Path, typer.Option("--output", "-o", help="Calibration file (.h5).")],
     pixel_size: Annotated[float, typer.Option(help="Pixel size in sample space (nm).")],
     z_step: Annotated[float | None, typer.Option(help="Stage step between frames (nm).")] = None,
@@ -497,9 +499,17 @@ def calibrate(
     figure: Annotated[
         Path | None, typer.Option(help="Diagnostic PNG (default: beside the output).")
     ] = None,
+    beads: Annotated[
+        Path | None,
+        typer.Option(
+            help="CSV of the beads' known positions: x_nm, y_nm (origin at the outer corner of "
+            "pixel (0, 0)) or x_px, y_px (0 at the first pixel's centre). The model's origin "
+            "is then the emitter, not the centroid of its light."
+        ),
+    ] = None,
 ) -> None:
     """Build a PSF model from a bead z-stack and write it to an HDF5 calibration file."""
-    from .calibrate import calibrate_file
+    from .calibrate import calibrate_file, read_bead_positions
     from .io.calibration import save_calibration
     from .plotting import plot_calibration
 
@@ -527,10 +537,11 @@ def calibrate(
             "n_immersion": n_immersion,
             "base_mask": base,
         }
+    known = None if beads is None else _run(read_bead_positions, beads, pixel_size)
     t0 = time.perf_counter()
     cal = _run(
         calibrate_file,
-        beads,
+        stack,
         pixel_size,
         z_step,
         z_file=z_file,
@@ -542,6 +553,7 @@ def calibrate(
         saturation=saturation,
         fit_pupil=fit_pupil,
         pupil_options=pupil_options,
+        beads=known,
     )
     _run(save_calibration, cal, out, model=model)
     try:
@@ -555,6 +567,13 @@ def calibrate(
         f"{cal.z[0]:.0f}..{cal.z[-1]:.0f} nm, ROI {nr} x {nc} px; hash {cal.content_hash}; "
         f"{time.perf_counter() - t0:.1f} s"
     )
+    if known is not None:
+        dx, dy = cal.params["centroid_offset_nm"]
+        typer.echo(
+            f"  origin on {cal.params['n_beads_known']} known bead position(s): the light's "
+            f"centroid lies {dx:+.1f}, {dy:+.1f} nm (x, y) from the emitter "
+            f"(rms over beads {cal.params['bead_position_rms_nm']:.1f} nm)"
+        )
     rejected = cal.beads[~cal.beads["used"]]
     for reason, n in rejected["reason"].value_counts().items():
         typer.echo(f"  rejected {n}: {reason}")
