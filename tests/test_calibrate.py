@@ -632,9 +632,16 @@ def test_known_bead_positions_put_the_model_origin_on_the_emitter(offset_scan):
     j = match_truth(plain.beads, truth)
     dxy = plain.beads[["x_nm", "y_nm"]].to_numpy() - truth[j]
     assert np.allclose(dxy.mean(axis=0), LIGHT_OFFSET, atol=5.0)  # the centroid's offset
+    # each plane's light centroid from the origin: about 0 (a symmetric PSF) without the
+    # positions, the PSF's displacement with them
+    wander = plain.params["centroid_over_z_nm"]
+    assert max(map(abs, wander["x"] + wander["y"])) < 6.0, wander
     known = calibrate_beads(movie, PX, Z_STEP, offset=OFFSET, beads=truth)
     assert known.params["lateral_origin"] == "beads" and known.params["n_beads_known"] == 4
     assert np.allclose(known.params["centroid_offset_nm"], LIGHT_OFFSET, atol=3.0)
+    wander = known.params["centroid_over_z_nm"]
+    assert np.allclose(wander["x"], LIGHT_OFFSET[0], atol=8.0), wander
+    assert np.allclose(wander["y"], LIGHT_OFFSET[1], atol=8.0), wander
     j = match_truth(known.beads, truth)
     assert np.abs(known.beads[["x_nm", "y_nm"]].to_numpy() - truth[j]).max() < 3.0
     # an emitter rendered by the model has its light where the bead's light was
@@ -684,6 +691,7 @@ def test_calibrate_cli_with_bead_positions(tmp_path, offset_scan):
     res = runner.invoke(app, [*base, "-o", str(out), "--beads", str(good)])
     assert res.exit_code == 0, res.output
     assert "origin on 4 known bead position(s)" in res.output
+    assert "model origin: beads; each plane's light centroid lies" in res.output
     assert read_calibration_info(out)["params"]["lateral_origin"] == "beads"
     bad = tmp_path / "bad.csv"
     pd.DataFrame({"x_nm": [50.0]}).to_csv(bad, index=False)

@@ -394,6 +394,7 @@ def _calibrate_scan(
         table = _bead_table(centres, used, reason, residual, stacks, centre, half)
         centre, origin = _centre_on_beads(table, used, known, centres, p, centre)
     cr, cc = centre
+    origin["centroid_over_z_nm"] = _centroid_over_z(clean, centre, half, p)
     psf = SplinePSF(clean, p, zplanes, centre=(cr, cc), name=name)
     params = {
         "pixel_size_nm": p,
@@ -673,6 +674,19 @@ def _bead_table(
         },
         columns=BEAD_COLUMNS,
     )
+
+
+def _centroid_over_z(
+    stack: NDArray[np.float64], centre: tuple[float, float], half: int, p: float
+) -> dict[str, list[float]]:
+    """How far each plane's light centroid lies from the model's lateral origin (nm): the
+    smallest and largest offset in x and in y over the planes. A localization's position is
+    the origin's, so this is the bias a model centred elsewhere than the emitter carries."""
+    cr, cc = centre
+    offsets = np.array([_centroid(plane, cr, cc, half) for plane in stack])
+    dy = (offsets[:, 0] - cr) * p
+    dx = (offsets[:, 1] - cc) * p
+    return {"x": [float(dx.min()), float(dx.max())], "y": [float(dy.min()), float(dy.max())]}
 
 
 #: A known bead position farther than this (pixels) from every bead found matches none.

@@ -567,6 +567,12 @@ def calibrate(
         f"{cal.z[0]:.0f}..{cal.z[-1]:.0f} nm, ROI {nr} x {nc} px; hash {cal.content_hash}; "
         f"{time.perf_counter() - t0:.1f} s"
     )
+    wander = cal.params["centroid_over_z_nm"]
+    typer.echo(
+        f"  model origin: {cal.params['lateral_origin']}; each plane's light centroid lies "
+        f"{wander['x'][0]:+.0f}..{wander['x'][1]:+.0f} nm in x and "
+        f"{wander['y'][0]:+.0f}..{wander['y'][1]:+.0f} nm in y from it"
+    )
     if known is not None:
         dx, dy = cal.params["centroid_offset_nm"]
         typer.echo(
