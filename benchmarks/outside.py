@@ -23,6 +23,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import tempfile
 import time
@@ -138,8 +139,28 @@ def challenge_rows(data: Path, workdir: Path) -> list[dict]:
             t0 = time.perf_counter()
             res = localize(CameraFrames(movie, job.camera), job.model, job.params)
             truth = challenge_truth(folder / "activations_LD.csv", len(movie))
-        rows.append(score("SMLM16 LD AS" + label, res.table, truth, time.perf_counter() - t0))
+        row = score("SMLM16 LD AS" + label, res.table, truth, time.perf_counter() - t0)
+        row["recall_by_photons"] = recall_by_photons(res.table, truth)
+        rows.append(row)
     return rows
+
+
+#: Photon bins (of the truth) for the recall of the challenge rows.
+PHOTON_BINS = (0.0, 1000.0, 2000.0, 4000.0, np.inf)
+
+
+def recall_by_photons(locs: pd.DataFrame, truth: pd.DataFrame) -> list[tuple[str, int, float]]:
+    """Recall per photon bin of the truth: (bin, emitters, recall)."""
+    from sparseloc.evaluate import match_localizations
+
+    found = np.zeros(len(truth), bool)
+    found[match_localizations(locs, truth)["truth_row"].to_numpy(int)] = True
+    out = []
+    for lo, hi in itertools.pairwise(PHOTON_BINS):
+        sel = (truth["photons"].to_numpy() >= lo) & (truth["photons"].to_numpy() < hi)
+        n = int(sel.sum())
+        out.append((f"{lo:.0f}-{hi:.0f}", n, float(found[sel].mean()) if n else float("nan")))
+    return out
 
 
 def score(label: str, locs: pd.DataFrame, truth: pd.DataFrame, seconds: float) -> dict:
@@ -179,6 +200,9 @@ def print_table(rows: list[dict]) -> None:
             f"{x:5.1f} {y:5.1f} {z:5.1f}    | {bx:6.1f} {by:5.1f} {bz:5.1f}    | "
             f"{r['efficiency_lateral']:5.1f} {r['efficiency_axial']:5.1f} | {peer_txt}"
         )
+        if "recall_by_photons" in r:
+            bins = ", ".join(f"{b}: {rc:.2f} of {n}" for b, n, rc in r["recall_by_photons"])
+            print(f"{'':>20}        recall by photons {bins}")
         if "rmse_over_crlb" in r:
             ratio = "/".join(f"{v:.2f}" for v in r["rmse_over_crlb"])
             print(
