@@ -699,3 +699,16 @@ def test_calibrate_cli_with_bead_positions(tmp_path, offset_scan):
     res = runner.invoke(app, [*base, "-o", str(out2), "--beads", str(bad)])
     assert res.exit_code == 2 and "needs columns x_nm, y_nm" in res.output, res.output
     assert not out2.exists()
+
+
+def test_tables_record_the_hash_that_calibrate_prints(tmp_path, cal, scan):
+    # One hash definition: a table made with a calibration file records the file's hash.
+    from sparseloc.pipeline import LocalizeParams, localize
+
+    path = save_calibration(cal, tmp_path / "psf.h5")
+    model = make_psf(str(path))
+    frame = scan["movie"][25:26, 20:60, 20:60].astype(float) - OFFSET
+    res = localize(frame, model, LocalizeParams(pixel_size=PX, method="frame"))
+    assert (
+        res.metadata["psf_hash"] == cal.content_hash == read_calibration_info(path)["content_hash"]
+    )

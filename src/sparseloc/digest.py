@@ -18,7 +18,12 @@ def array_digest(a: NDArray) -> str:
 
 
 def psf_hash(model: PSFModel, pixel_size: float) -> str:
-    """Content hash of a PSF model: SHA-256 of its images at 5 planes (float32), 16 hex digits."""
+    """Content hash of a PSF model (16 hex digits): a calibration's own ``content_hash`` (the
+    one ``sparseloc calibrate`` prints and writes to the file), else SHA-256 of the model's
+    images at 5 planes (float32)."""
+    own = getattr(model, "content_hash", None)
+    if isinstance(own, str) and own:
+        return own
     zs = np.linspace(*model.z_range, 5)
     c = 8.5 * pixel_size
     imgs = model.images(np.full(5, c), np.full(5, c), zs, (17, 17), pixel_size)
