@@ -241,3 +241,33 @@ def test_nan_coordinates_rejected():
     locs = table([(0, np.nan, 0.0, 0.0)])
     with pytest.raises(ValueError, match="x_nm"):
         evaluate(locs, truth)
+
+
+def test_evaluate_cli_scores_the_tables_frame_range(tmp_path):
+    # A table localized over frames 0:2 is scored against the truth of those frames only.
+    from typer.testing import CliRunner
+
+    from sparseloc.cli import app
+    from sparseloc.io.tables import write_table
+    from sparseloc.io.truth import write_truth_csv
+
+    truth = pd.DataFrame(
+        {
+            "frame": np.repeat(np.arange(4), 2),
+            "x_nm": np.tile([1000.0, 3000.0], 4),
+            "y_nm": 2000.0,
+            "z_nm": 0.0,
+            "photons": 2000.0,
+        }
+    )
+    truth_path = tmp_path / "truth.csv"
+    write_truth_csv(truth_path, truth)
+    from sparseloc.io.tables import complete_locs
+
+    locs = complete_locs(truth[truth["frame"] < 2].reset_index(drop=True))
+    table = tmp_path / "locs.parquet"
+    write_table(locs, table, pixel_size=100.0, metadata={"frames": [0, 2]})
+    res = CliRunner().invoke(app, ["evaluate", str(table), str(truth_path)])
+    assert res.exit_code == 0, res.output
+    assert "scored against the truth of frames 0:2" in res.output
+    assert "4 / 0 / 0" in res.output  # TP / FP / FN: the frames not localized are not missed

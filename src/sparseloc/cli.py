@@ -617,14 +617,19 @@ def evaluate(
 ) -> None:
     """Match localizations to the truth and print Jaccard, RMSE, bias and efficiency."""
     from .evaluate import evaluate as run_evaluation
-    from .io.tables import read_table
+    from .evaluate import truth_in_frames
+    from .io.tables import read_table_and_metadata
     from .io.truth import read_truth_csv
 
     for p in (locs, truth):
         if not p.is_file():
             _fail(f"{str(p)!r} does not exist or is not a file")
-    loc_df = _run(read_table, locs)
+    loc_df, meta = _run(read_table_and_metadata, locs)
     truth_df = _run(read_truth_csv, truth, pixel_size=pixel_size)
+    frames = meta.get("frames") if isinstance(meta, dict) else None
+    if frames is not None:
+        truth_df = _run(truth_in_frames, truth_df, frames)
+        typer.echo(f"scored against the truth of frames {frames[0]}:{frames[1]}, the table's range")
     result = _run(run_evaluation, loc_df, truth_df, lateral_tol=lateral_tol, axial_tol=axial_tol)
     typer.echo(result.summary())
     if json_out is not None:

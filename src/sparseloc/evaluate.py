@@ -432,6 +432,19 @@ class Evaluation:
         return "\n".join(lines)
 
 
+def truth_in_frames(truth: pd.DataFrame, frames: Sequence[int] | None) -> pd.DataFrame:
+    """The rows of ``truth`` in the frame range ``(start, stop)`` (0-based, stop excluded) that a
+    table was localized over (its metadata's ``frames``); all rows when ``frames`` is None."""
+    if frames is None:
+        return truth
+    try:
+        start, stop = (int(v) for v in frames)
+    except (TypeError, ValueError):
+        raise ValueError(f"the table's frame range {frames!r} is not (start, stop)") from None
+    f = truth["frame"].to_numpy()
+    return truth[(f >= start) & (f < stop)]
+
+
 def evaluate(
     locs: pd.DataFrame,
     truth: pd.DataFrame,

@@ -78,6 +78,7 @@ __all__ = [
     "read_picasso_hdf5",
     "read_smlm_csv",
     "read_table",
+    "read_table_and_metadata",
     "read_thunderstorm_csv",
     "write_parquet",
     "write_picasso_hdf5",
@@ -353,6 +354,17 @@ def format_for(path: str | Path, format: str | None) -> str:
             f".parquet, .csv, .hdf5 or .h5, or name the format ({', '.join(FORMATS)})"
         )
     return _SUFFIX_FORMATS[suffix]
+
+
+def read_table_and_metadata(path: str | Path) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """:func:`read_table`, with the analysis metadata of a sparseloc Parquet table (``{}`` for
+    the other formats)."""
+    src = source_path(path)
+    with open(src, "rb") as fh:
+        head = fh.read(8)
+    if head.startswith(_PARQUET_MAGIC):
+        return read_parquet(src)
+    return read_table(src), {}
 
 
 def read_table(path: str | Path) -> pd.DataFrame:
