@@ -257,3 +257,12 @@ def test_cpu_quota_from_cgroup_files(tmp_path):
     assert _cpu_quota(v1) is None
     (v1 / "cpu" / "cpu.cfs_quota_us").write_text("150000\n")
     assert _cpu_quota(v1) == 1.5
+
+
+def test_frame_range_refuses_negative_frames():
+    from sparseloc.config import frame_range
+
+    assert frame_range("2:", 6) == (2, 6) and frame_range(":4", 6) == (0, 4)
+    for bad in ("-1:", "0:-2"):
+        with pytest.raises(ValueError, match="0-based frame numbers >= 0"):
+            frame_range(bad, 6)

@@ -298,3 +298,13 @@ def test_plot_drift(rcc, tmp_path):
     with pytest.raises(ValueError, match="truth must have shape"):
         plot_drift(rcc, tmp_path / "bad.png", truth=np.zeros((3, 3)))
     assert not (tmp_path / "bad.png").exists()
+
+
+def test_segment_messages_name_a_possible_count():
+    # one frame: no count of segments works; a few frames: the range that does
+    one = pd.DataFrame({"frame": [3, 3, 3], "x_nm": 0.0, "y_nm": 0.0})
+    with pytest.raises(ValueError, match="needs localizations in at least 2 frames"):
+        rcc_drift(one, segments=2)
+    few = pd.DataFrame({"frame": [0, 1, 2], "x_nm": 0.0, "y_nm": 0.0})
+    with pytest.raises(ValueError, match="use between 2 and 3 segments"):
+        rcc_drift(few, segments=5)

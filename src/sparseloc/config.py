@@ -290,9 +290,14 @@ def frame_range(frames: str | None, n: int) -> tuple[int, int]:
         return 0, n
     try:
         a, b = str(frames).split(":")
-        return int(a or 0), int(b) if b else n
+        start, stop = int(a or 0), int(b) if b else n
     except ValueError:
         raise ValueError(f"--frames must look like START:STOP, got {frames!r}") from None
+    if start < 0 or stop < 0:
+        raise ValueError(
+            f"--frames takes 0-based frame numbers >= 0 (START:STOP, STOP excluded); got {frames!r}"
+        )
+    return start, stop
 
 
 @dataclass

@@ -218,10 +218,14 @@ def _segments(frame: NDArray, segments: int, min_locs: int, warnings: list[str])
     localizations) and list their pairs; warns when fewer than 3 remain."""
     f0, f1 = int(frame.min()), int(frame.max())
     n_frames = f1 - f0 + 1
+    if n_frames < 2:
+        raise ValueError(
+            f"the table spans one frame ({f0}); drift needs localizations in at least 2 frames"
+        )
     if n_frames < segments:
         raise ValueError(
-            f"the table spans {n_frames} frame(s) ({f0}..{f1}), fewer than segments={segments}; "
-            f"use at most {n_frames} segments"
+            f"the table spans {n_frames} frames ({f0}..{f1}), fewer than the {segments} "
+            f"segments asked for; use between 2 and {n_frames} segments"
         )
     seg, n_seg = _choose_segments(frame, f0, n_frames, segments, min_locs, warnings)
     counts = np.bincount(seg, minlength=n_seg)
@@ -304,7 +308,10 @@ def _rcc_z(
     sol = _solve(n_seg, seg.pairs, d_z, valid_z, floor=p.z_bin_nm)
     ok = _check(sol, valid_z, n_seg, p.max_shift_nm, p.z_bin_nm, "z", warnings)
     if not ok:
-        warnings.append("z: pass estimate_z=False (drift --no-z) for an xy-only estimate")
+        warnings.append(
+            "z: too few reliable z correlations; use fewer segments (more localizations in "
+            "each), or estimate x and y only (drift --no-z)"
+        )
     details = {
         "z_estimated": True,
         "reliable_z": bool(ok),

@@ -154,7 +154,7 @@ def _halves(
         if int(n_blocks) < 2:
             raise ValueError(f"n_blocks must be at least 2, got {n_blocks!r}")
         if "frame" not in locs.columns:
-            raise ValueError("split='blocks' needs a 'frame' column; use split='random'")
+            raise ValueError("FRC by blocks of frames needs a 'frame' column; the table has none")
         frames = locs["frame"].to_numpy()[ok].astype(np.int64)
         f0, f1 = int(frames.min()), int(frames.max())
         # Fewer frames than blocks: one block per frame (else short tables fall in one half).
@@ -168,7 +168,7 @@ def _halves(
     if min(counts) == 0:
         raise ValueError(
             f"the {split} split left the halves with {counts[0]} and {counts[1]} localizations; "
-            f"FRC needs both (frames span {span}; try split='random')"
+            f"FRC needs both (the table's frames span {span}: too few to split by blocks)"
         )
     return half, counts
 
