@@ -407,3 +407,16 @@ def test_bad_input_raises_clear_errors(tmp_path):
         R.to_rgb(r, gamma=-1.0)
     with pytest.raises(ValueError, match="z_range"):
         R.plot_projections(t, tmp_path / "x.png", z_range=(5.0, 5.0))
+
+
+def test_a_spot_wider_than_the_image_is_left_out():
+    # A doubtful fit's uncertainty (1e7 nm here; 1e9 seen) must not size the kernels (the old
+    # code built a 16-million-tap kernel here): the image is the one without that row.
+    good = _table(
+        x_nm=[800.0, 1200.0], y_nm=[900.0, 1100.0], z_nm=0.0, sigma_x_nm=20.0, sigma_y_nm=20.0
+    )
+    wide = _table(x_nm=1000.0, y_nm=1000.0, z_nm=0.0, sigma_x_nm=1e7, sigma_y_nm=1e7)
+    both = pd.concat([good, wide], ignore_index=True)
+    r = R.render_gaussian(both, px_nm=5.0, extent=EXT)
+    ref = R.render_gaussian(good, px_nm=5.0, extent=EXT)
+    assert np.array_equal(r.density, ref.density)
