@@ -142,8 +142,8 @@ def test_thunderstorm_round_trip_and_header(tmp_path):
     assert (
         first
         == (
-            TS_HEADER + ',"sigma_x [nm]","sigma_y [nm]","sigma_photons [photon]","gof","flag",'
-            '"window_id"'
+            TS_HEADER + ',"uncertainty_x [nm]","uncertainty_y [nm]","uncertainty_photons [photon]",'
+            '"gof","flag","window_id"'
         ).encode()
     )
     rows = list(csv.DictReader(path.open(newline="")))
@@ -383,3 +383,21 @@ def test_bad_input(tmp_path):
         read_table(bad_frames)
     # nothing half-written, no temporary files
     assert sorted(p.name for p in tmp_path.iterdir()) == ["junk.csv", "zero.csv"]
+
+
+def test_thunderstorm_uncertainty_columns_and_older_files(tmp_path):
+    # The uncertainties are uncertainty_* columns (ThunderSTORM's sigma is the PSF's width);
+    # files written with the older sigma_* names still read back the same.
+    df = _locs()
+    path = write_thunderstorm_csv(df, tmp_path / "l.csv")
+    header = path.read_text().split("\n", 1)[0]
+    assert '"uncertainty_x [nm]"' in header and '"sigma_x [nm]"' not in header
+    old = tmp_path / "old.csv"
+    text = path.read_text()
+    for new, was in (("uncertainty_x", "sigma_x"), ("uncertainty_y", "sigma_y")):
+        text = text.replace(f'"{new} [nm]"', f'"{was} [nm]"')
+    old.write_text(text.replace('"uncertainty_photons [photon]"', '"sigma_photons [photon]"'))
+    a, b = read_thunderstorm_csv(path), read_thunderstorm_csv(old)
+    for col in ("sigma_x_nm", "sigma_y_nm", "sigma_photons"):
+        np.testing.assert_array_equal(a[col].to_numpy(), b[col].to_numpy())
+        np.testing.assert_allclose(a[col].to_numpy(), df[col].to_numpy(), rtol=1e-12)

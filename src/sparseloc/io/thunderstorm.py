@@ -52,11 +52,12 @@ THUNDERSTORM_COLUMNS: tuple[str, ...] = (
     "uncertainty_xy [nm]",
     "uncertainty_z [nm]",
 )
-#: sparseloc columns appended after :data:`THUNDERSTORM_COLUMNS` (all numeric).
+#: sparseloc columns appended after :data:`THUNDERSTORM_COLUMNS` (all numeric). They hold
+#: uncertainties, named as ThunderSTORM names its own: its ``sigma`` is the PSF's width.
 THUNDERSTORM_EXTRA_COLUMNS: tuple[str, ...] = (
-    "sigma_x [nm]",
-    "sigma_y [nm]",
-    "sigma_photons [photon]",
+    "uncertainty_x [nm]",
+    "uncertainty_y [nm]",
+    "uncertainty_photons [photon]",
     "gof",
     "flag",
     "window_id",
@@ -127,9 +128,9 @@ def _thunderstorm_cells(t: pd.DataFrame) -> pd.DataFrame:
             "bkgstd [photon]": bkgstd,
             "uncertainty_xy [nm]": unc_xy,
             "uncertainty_z [nm]": t["sigma_z_nm"].to_numpy(),
-            "sigma_x [nm]": t["sigma_x_nm"].to_numpy(),
-            "sigma_y [nm]": t["sigma_y_nm"].to_numpy(),
-            "sigma_photons [photon]": t["sigma_photons"].to_numpy(),
+            "uncertainty_x [nm]": t["sigma_x_nm"].to_numpy(),
+            "uncertainty_y [nm]": t["sigma_y_nm"].to_numpy(),
+            "uncertainty_photons [photon]": t["sigma_photons"].to_numpy(),
             "gof": t["gof"].to_numpy(),
             "flag": encode_flags(t["flag"], FLAG_CODES),
             "window_id": t["window_id"].to_numpy(),
@@ -244,10 +245,11 @@ def read_thunderstorm_csv(path: str | Path) -> pd.DataFrame:
             "z_nm": first(c.length("z"), default=np.zeros(n)),
             "photons": first(c.photons("intensity")),
             "background": first(offset, None if bkgstd is None else bkgstd**2),
-            "sigma_x_nm": first(c.length("sigma_x"), unc_xy),
-            "sigma_y_nm": first(c.length("sigma_y"), unc_xy),
+            # (sigma_x, sigma_y, sigma_photons: what sparseloc's own files named them before)
+            "sigma_x_nm": first(c.length("uncertainty_x"), c.length("sigma_x"), unc_xy),
+            "sigma_y_nm": first(c.length("uncertainty_y"), c.length("sigma_y"), unc_xy),
             "sigma_z_nm": first(c.length("uncertainty_z")),
-            "sigma_photons": first(c.photons("sigma_photons")),
+            "sigma_photons": first(c.photons("uncertainty_photons"), c.photons("sigma_photons")),
             "gof": first(c.plain("gof")),
         }
     )
