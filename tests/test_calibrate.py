@@ -331,6 +331,8 @@ def test_invalid_frame_of_the_z_file_is_left_out(tmp_path, scan, model):
     assert ok.sum() == ZP.size - 1 and not ok[25]
     cal = calibrate_beads(movie, PX, z=z, valid=ok, offset=OFFSET)
     assert cal.n_used == 9
+    with pytest.raises(ValueError, match="with each frame's z given"):
+        calibrate_beads(movie, PX, z=z, valid=ok, offset=OFFSET, z0_slice=3)
     assert np.allclose(np.diff(cal.z), Z_STEP)  # the 40 nm gap was resampled onto 20 nm
     truth = centred(model, cal.z + scan["offsets"].mean(), cal.average.shape[1])
     assert ncc_planes(centred(cal.psf, cal.z, cal.average.shape[1]), truth).min() > 0.99

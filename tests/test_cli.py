@@ -195,10 +195,17 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
         (["--config", cfg, "--n-sample", "1.33"], "apply to pupil models"),
         (["--config", cfg, "--psf", "dh", "--focal-depth", "500"], "needs --n-sample"),
         (["--config", cfg, "--engine", "tpu"], "engine must be one of auto, numpy, numba"),
+        (["--config", cfg, "--min-snr", "nan"], "min_snr must be a number > 0"),
+        (["--config", cfg, "--frames", "0:100"], "goes past the movie's 2 frames"),
         (["--config", cfg, "--relocate", "-1"], "relocate"),
     ]:
         res = run("localize", movie, "-o", tmp_path / "x.csv", *args)
         assert res.exit_code == 2 and msg in res.output, res.output
+    # a TOML chunk_frames of 0 is refused, not replaced by the default
+    cfg0 = tmp_path / "zero.toml"
+    cfg0.write_text(cfg.read_text() + "chunk_frames = 0\n")
+    res = run("localize", movie, "-o", tmp_path / "z.parquet", "--config", cfg0)
+    assert res.exit_code == 2 and "chunk_frames must be >= 1" in res.output, res.output
     res = run("localize", movie, "-o", tmp_path / "no" / "x.csv", "--config", cfg)
     assert res.exit_code == 2 and "does not exist" in res.output
     bad = tmp_path / "bad.toml"

@@ -132,6 +132,11 @@ def read_scan(
 ) -> BeadScan:
     """Check the stack, place its planes in z, convert it to photons and subtract each
     frame's background (its median: beads cover a small fraction of the field)."""
+    if z is not None and z0_slice is not None:
+        raise ValueError(
+            "--z0-slice places z = 0 in an even scan (--z-step); with each frame's z given "
+            "(--z-file) leave it out"
+        )
     raw, p, saturation = _checked_stack(stack, pixel_size, gain, saturation)
     if z is not None:
         photons, sat_frames, zplanes, step = _planes_from_z(raw, z, valid, z_step, offset, gain)

@@ -417,7 +417,9 @@ def _localize_chunked(opts, out, mov, job) -> None:
                 run_dir,
                 start=job.start,
                 stop=job.stop,
-                chunk_frames=int(opts["chunk_frames"] or CHUNK_FRAMES),
+                chunk_frames=(
+                    CHUNK_FRAMES if opts["chunk_frames"] is None else int(opts["chunk_frames"])
+                ),
                 scheduler=sched,
                 threads=max(workers, 2),
                 overwrite=bool(opts["overwrite"]),

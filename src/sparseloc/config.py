@@ -160,6 +160,8 @@ class LocalizeParams:
                 f"read_variance applies to noise='scmos', not {self.noise!r} (it would be ignored)"
             )
         check_engine(self.engine)
+        if not (np.isfinite(self.min_snr) and self.min_snr > 0):
+            raise ValueError(f"min_snr must be a number > 0, got {self.min_snr!r}")
         if self.background not in ("auto", "temporal", "spatial"):
             raise ValueError(
                 f"background must be auto, temporal or spatial; got {self.background!r}"
@@ -297,6 +299,8 @@ def frame_range(frames: str | None, n: int) -> tuple[int, int]:
         raise ValueError(
             f"--frames takes 0-based frame numbers >= 0 (START:STOP, STOP excluded); got {frames!r}"
         )
+    if stop > n:
+        raise ValueError(f"--frames {frames} goes past the movie's {n} frames (0:{n})")
     return start, stop
 
 
