@@ -273,3 +273,16 @@ def test_frame_range_refuses_negative_frames():
     for bad in ("-1:", "0:-2"):
         with pytest.raises(ValueError, match="0-based frame numbers >= 0"):
             frame_range(bad, 6)
+
+
+def test_version_and_the_camera_defaults_in_help():
+    from sparseloc import __version__
+    from sparseloc.options import LOCALIZE_DEFAULTS
+
+    res = run("--version")
+    assert res.exit_code == 0 and res.output.strip() == f"sparseloc {__version__}"
+    wide = runner.invoke(app, ["localize", "--help"], env={"COLUMNS": "200"})
+    text = " ".join(wide.output.split())
+    for flag, shown in (("offset", "ADU; default"), ("gain", "e-/ADU; default")):
+        assert f"{shown} {LOCALIZE_DEFAULTS[flag]:g}" in text, text
+    assert f"(default {LOCALIZE_DEFAULTS['psf']})" in text

@@ -169,3 +169,13 @@ def test_relocate_reaches_the_frame_solver():
     for n in (0, 3):
         solver = _FrameSolver(model, LocalizeParams(pixel_size=PX, relocate=n), (32, 32))
         assert solver.fit_kwargs()["relocate"] == n
+
+
+def test_summary_counts_groups_for_the_frame_solver():
+    from sparseloc.io.tables import empty_locs
+    from sparseloc.pipeline import LocalizeResult
+
+    frame = LocalizeResult(empty_locs(), 2, 7, 1.0, {"params": {"method": "frame"}})
+    assert "7 groups" in frame.summary() and "windows" not in frame.summary()
+    hybrid = LocalizeResult(empty_locs(), 2, 7, 1.0, {"params": {"method": "hybrid"}})
+    assert "7 windows" in hybrid.summary()

@@ -16,6 +16,8 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
+from .options import LOCALIZE_DEFAULTS as _D
+
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
@@ -62,9 +64,23 @@ class CameraKind(StrEnum):
     scmos = "scmos"
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from . import __version__
+
+        typer.echo(f"sparseloc {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
 def _main(
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log progress details.")] = False,
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_print_version, is_eager=True, help="Print the version."
+        ),
+    ] = False,
 ) -> None:
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
@@ -214,16 +230,29 @@ def localize(
     movie: Annotated[list[Path], typer.Argument(help="Movie: TIFF/OME-TIFF file(s) in order.")],
     output: Annotated[Path, typer.Option("--output", "-o", help="LOCS.parquet | .csv | .hdf5")],
     psf: Annotated[
-        str | None, typer.Option(help="PSF.h5 from 'calibrate', dh, astig, ... or a mask file.")
+        str | None,
+        typer.Option(
+            help=f"PSF.h5 from 'calibrate', dh, astig, ... or a mask file (default {_D['psf']})."
+        ),
     ] = None,
     pixel_size: Annotated[
         float | None, typer.Option(help="Pixel size in sample space (nm).")
     ] = None,
-    offset: Annotated[float | None, typer.Option(help="Camera offset (ADU).")] = None,
-    gain: Annotated[float | None, typer.Option(help="Conversion gain (e-/ADU).")] = None,
-    em_gain: Annotated[float | None, typer.Option(help="EM gain.")] = None,
-    qe: Annotated[float | None, typer.Option(help="Quantum efficiency.")] = None,
-    camera: Annotated[str | None, typer.Option(help="ideal, emccd or scmos.")] = None,
+    offset: Annotated[
+        float | None, typer.Option(help=f"Camera offset (ADU; default {_D['offset']:g}).")
+    ] = None,
+    gain: Annotated[
+        float | None, typer.Option(help=f"Conversion gain (e-/ADU; default {_D['gain']:g}).")
+    ] = None,
+    em_gain: Annotated[
+        float | None, typer.Option(help=f"EM gain (default {_D['em_gain']:g}).")
+    ] = None,
+    qe: Annotated[
+        float | None, typer.Option(help=f"Quantum efficiency (default {_D['qe']:g}).")
+    ] = None,
+    camera: Annotated[
+        str | None, typer.Option(help=f"ideal, emccd or scmos (default {_D['camera']}).")
+    ] = None,
     read_noise: Annotated[
         float | None, typer.Option(help="Read noise (e- rms) of an sCMOS camera.")
     ] = None,
@@ -250,7 +279,8 @@ def localize(
     min_snr: Annotated[
         float | None,
         typer.Option(
-            help="Detection significance of a new emitter, in noise standard errors (default 5)."
+            help="Detection significance of a new emitter, in noise standard errors "
+            f"(default {_D['min_snr']:g})."
         ),
     ] = None,
     refine: Annotated[
@@ -267,7 +297,8 @@ def localize(
     background: Annotated[
         str | None,
         typer.Option(
-            help="auto, temporal (blinking movies) or spatial (snapshots, emitters always on)."
+            help="auto (default: temporal from 50 frames), temporal (blinking movies) or "
+            "spatial (snapshots, emitters always on)."
         ),
     ] = None,
     frames: Annotated[str | None, typer.Option(help="Frame range START:STOP (0-based).")] = None,
@@ -287,7 +318,7 @@ def localize(
         str | None,
         typer.Option(
             help="auto (compiled numba kernels where numba works, else NumPy), numba or numpy "
-            "(the plain reference); the same tables (default auto)."
+            f"(the plain reference); the same tables (default {_D['engine']})."
         ),
     ] = None,
     n_sample: Annotated[

@@ -72,8 +72,11 @@ class LocalizeResult:
         return len(self.table) / max(self.seconds, 1e-9)
 
     def summary(self) -> str:
+        """One line: frames, fitted groups (frame solver) or windows, localizations, speed."""
+        method = self.metadata.get("params", {}).get("method", "frame")
+        units = "groups" if method == "frame" else "windows"
         return (
-            f"{self.n_frames} frames, {self.n_windows} windows, {len(self.table)} "
+            f"{self.n_frames} frames, {self.n_windows} {units}, {len(self.table)} "
             f"localizations in {self.seconds:.1f} s ({self.per_second:.1f} localizations/s)"
         )
 
