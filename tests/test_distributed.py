@@ -200,7 +200,7 @@ def test_sigkill_then_rerun_gives_the_uninterrupted_table(movie, tmp_path):
     pd.testing.assert_frame_equal(a, b)
     assert not a.duplicated(["frame", "x_nm", "y_nm"]).any()
     # different parameters in the same run folder: refused with one sentence, exit code 2
-    refused = _cli([*base, *run, "--min-snr", "6"])
+    refused = _cli([*base, "-o", tmp_path / "k2.parquet", *run[2:], "--min-snr", "6"])
     _, stderr = refused.communicate(timeout=300)
     assert refused.returncode == 2 and "different analysis" in stderr
     assert "Traceback" not in stderr

@@ -110,7 +110,8 @@ def test_constant_read_variance_map_equals_the_scalar(analytic, movie):
         if len(d) and d.min() < 30.0:
             ratios.append(row.sigma_x_nm / same.sigma_x_nm.iloc[int(np.argmin(d.to_numpy()))])
     assert len(ratios) >= 10
-    assert np.median(ratios) > 1.0  # 1.044 over 20 pairs when written; 1.0 if ignored
+    # rows flagged z_edge carry NaN uncertainties
+    assert np.nanmedian(ratios) > 1.0  # 1.044 over 20 pairs when written; 1.0 if ignored
 
 
 @pytest.mark.parametrize("method", ["mp", "hybrid"])

@@ -161,7 +161,9 @@ def test_render_command(table_file, tmp_path):
     assert tifffile.imread(vol).ndim == 3
     bad = CliRunner().invoke(app, ["render", str(path), "-o", str(tmp_path / "img.jpg")])
     assert bad.exit_code == 2 and ".png" in bad.output
-    missing = CliRunner().invoke(app, ["render", str(tmp_path / "x.parquet"), "-o", str(out)])
+    missing = CliRunner().invoke(
+        app, ["render", str(tmp_path / "x.parquet"), "-o", str(out), "--overwrite"]
+    )
     assert missing.exit_code == 2 and "does not exist" in missing.output
 
 
@@ -197,7 +199,9 @@ def test_drift_command(table_file, tmp_path):
     )
     assert res.exit_code == 0, res.output
     assert out.exists() and (tmp_path / "d.png").exists()
-    bad = CliRunner().invoke(app, ["drift", str(path), "-o", str(out), "--method", "beads"])
+    bad = CliRunner().invoke(
+        app, ["drift", str(path), "-o", str(out), "--method", "beads", "--overwrite"]
+    )
     assert bad.exit_code == 2 and "rcc or fiducial" in bad.output
 
 

@@ -52,6 +52,46 @@ def _output_path(path: Path) -> Path:
     return path
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` name the same file (through links and relative paths too)."""
+    try:
+        return a.resolve() == b.resolve() or (a.exists() and b.exists() and a.samefile(b))
+    except OSError:
+        return False
+
+
+def _new_output(
+    path: Path,
+    *,
+    overwrite: bool,
+    inputs: Any = (),
+    companions: Any = (),
+) -> Path:
+    """``path`` as a file the command will write, checked before any work: its folder exists,
+    neither it nor its ``companions`` (files written with it, e.g. a Picasso table's YAML) is
+    one of the ``inputs``, and none of them exists unless ``overwrite``."""
+    out = _output_path(path)
+    for f in (out, *companions):
+        for inp in inputs:
+            if inp is not None and _same_file(f, Path(inp)):
+                _fail(f"the output {str(f)!r} is the input {str(inp)!r}; choose another name")
+        if f.is_dir():
+            _fail(f"the output {str(f)!r} is a folder, not a file")
+        if f.exists() and not overwrite:
+            _fail(f"{str(f)!r} exists; pass --overwrite to replace it")
+    return out
+
+
+def _table_companions(path: Path, fmt: str | None) -> list[Path]:
+    """The files written beside a table: a Picasso HDF5 table's YAML sidecar."""
+    from .io.tables import format_for
+
+    return [path.with_suffix(".yaml")] if _run(format_for, path, fmt) == "picasso" else []
+
+
+_OVERWRITE_HELP = "Replace existing output files."
+
+
 class SceneKind(StrEnum):
     uniform = "uniform"
     clusters = "clusters"
@@ -96,6 +136,7 @@ def demo(
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     frames: Annotated[int, typer.Option(help="Movie length.", min=1)] = 200,
     density: Annotated[float, typer.Option(help="Active emitters per um^2.")] = 0.5,
+    overwrite: Annotated[bool, typer.Option(help="Replace an earlier demo's files.")] = False,
 ) -> None:
     """Simulate a dense 3D double-helix movie, localize it, score it against the truth and
     write the table, a rendered image and a report."""
@@ -105,7 +146,13 @@ def demo(
         _fail(f"--density must be > 0, got {density}")
     t0 = time.perf_counter()
     summary = _run(
-        run_demo, out, seed=seed, n_frames=frames, density=density, progress=sys.stderr.isatty()
+        run_demo,
+        out,
+        seed=seed,
+        n_frames=frames,
+        density=density,
+        progress=sys.stderr.isatty(),
+        overwrite=overwrite,
     )
     typer.echo(summary["text"])
     typer.echo(f"wrote {len(summary['files'])} files to {out} in {time.perf_counter() - t0:.1f} s:")
@@ -144,16 +191,20 @@ def simulate(
     read_noise: Annotated[float, typer.Option(help="Read noise (e- rms, sCMOS).")] = 0.0,
     qe: Annotated[float, typer.Option(help="Quantum efficiency (detected fraction).")] = 1.0,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Simulate a movie with ground truth: writes OUT.tif and OUT_truth.csv."""
     from .camera import Camera
     from .psf import make_psf
     from .simulate import simulate as run_simulation
-    from .simulate import write_simulation
+    from .simulate import truth_path_for, write_simulation
 
     out = _output_path(output)
     if out.suffix.lower() not in (".tif", ".tiff"):
         _fail(f"the output must be a .tif file, got {out.name!r}")
+    out = _new_output(
+        out, overwrite=overwrite, inputs=[Path(psf)], companions=[truth_path_for(out)]
+    )
     model = _run(make_psf, psf)
     cam = _run(
         Camera,
@@ -209,20 +260,9 @@ def _auto_workers(n_frames: int) -> int:
 
 
 def _load_config(path: Path | None) -> dict:
-    if path is None:
-        return {}
-    import tomllib
+    from .options import read_config
 
-    if not path.is_file():
-        _fail(f"the config file {str(path)!r} does not exist")
-    try:
-        cfg = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        _fail(f"cannot read the config file {str(path)!r}: {exc}")
-    cfg = {k.replace("-", "_"): v for k, v in cfg.get("localize", cfg).items()}
-    from .config import check_options
-
-    return _run(check_options, cfg, path.name)
+    return {} if path is None else _run(read_config, path)
 
 
 @app.command()
@@ -341,7 +381,10 @@ def localize(
         typer.Option(help="Chunked run on: sync, threads, or a Dask scheduler address."),
     ] = None,
     overwrite: Annotated[
-        bool | None, typer.Option(help="Start a chunked run over in a used run folder.")
+        bool | None,
+        typer.Option(
+            help="Replace an existing output table; start a chunked run over in a used run folder."
+        ),
     ] = None,
     config: Annotated[Path | None, typer.Option(help="TOML file with the same keys.")] = None,
 ) -> None:
@@ -388,9 +431,16 @@ def localize(
     }
     opts = {**LOCALIZE_DEFAULTS, **_load_config(config)}
     opts.update({k: v for k, v in given.items() if v is not None})
-    out = _output_path(output)
     mov = _run(Movie.open, [str(p) for p in movie] if len(movie) > 1 else str(movie[0]))
     with mov:
+        inputs = [*mov.paths, config, Path(str(opts["psf"]))]
+        inputs += [opts[k] for k in ("offset_map", "variance_map", "gain_map")]
+        out = _new_output(
+            output,
+            overwrite=bool(opts["overwrite"]),
+            inputs=inputs,
+            companions=_table_companions(output, opts["format"]),
+        )
         job = _run(build_job, opts, mov)
         if any(opts[k] is not None for k in ("run_dir", "chunk_frames", "scheduler")):
             _localize_chunked(opts, out, mov, job)
@@ -475,9 +525,12 @@ def _localize_chunked(opts, out, mov, job) -> None:
 
 def _write_localized(res, out: Path, opts: dict, mov, job) -> None:
     """Write ``localize``'s table with the analysis, movie and camera as metadata."""
+    from .io.picasso import psf_width_table
     from .io.tables import write_table
 
     meta = {**res.metadata, "movie": [str(p) for p in mov.paths], "camera": job.camera.to_dict()}
+    # The PSF's width by depth travels with the table for the sx, sy of Picasso exports.
+    meta["psf_width"] = psf_width_table(job.model, job.params.pixel_size)
     _run(
         write_table,
         res.table,
@@ -540,6 +593,7 @@ def calibrate(
             "is then the emitter, not the centroid of its light."
         ),
     ] = None,
+    overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Build a PSF model from a bead z-stack and write it to an HDF5 calibration file."""
     from .calibrate import calibrate_file, read_bead_positions
@@ -556,6 +610,9 @@ def calibrate(
     if model == "pupil" and not fit_pupil:
         _fail("--model pupil needs --fit-pupil")
     fig_path = _output_path(figure) if figure else out.with_suffix(".png")
+    inputs = [stack, z_file, beads, Path(mask) if mask else None]
+    out = _new_output(out, overwrite=overwrite, inputs=inputs)
+    fig_path = _new_output(fig_path, overwrite=overwrite, inputs=[*inputs, out])
     pupil_options = None
     if fit_pupil:
         base = None
@@ -647,6 +704,8 @@ def evaluate(
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Also write the figures as JSON.")
     ] = None,
+    all_flags: Annotated[bool, typer.Option(help=_ALL_FLAGS_HELP)] = False,
+    overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Match localizations to the truth and print Jaccard, RMSE, bias and efficiency."""
     from .evaluate import evaluate as run_evaluation
@@ -657,19 +716,32 @@ def evaluate(
     for p in (locs, truth):
         if not p.is_file():
             _fail(f"{str(p)!r} does not exist or is not a file")
+    if json_out is not None:
+        _new_output(json_out, overwrite=overwrite, inputs=[locs, truth])
     loc_df, meta = _run(read_table_and_metadata, locs)
     truth_df = _run(read_truth_csv, truth, pixel_size=pixel_size)
     frames = meta.get("frames") if isinstance(meta, dict) else None
     if frames is not None:
         truth_df = _run(truth_in_frames, truth_df, frames)
         typer.echo(f"scored against the truth of frames {frames[0]}:{frames[1]}, the table's range")
-    result = _run(run_evaluation, loc_df, truth_df, lateral_tol=lateral_tol, axial_tol=axial_tol)
+    from .postprocess import excluded_note, flagged_rows
+
+    note = excluded_note(int(_run(flagged_rows, loc_df, all_flags=all_flags).sum()))
+    if note:
+        typer.echo(f"note: {note}", err=True)
+    result = _run(
+        run_evaluation,
+        loc_df,
+        truth_df,
+        lateral_tol=lateral_tol,
+        axial_tol=axial_tol,
+        all_flags=all_flags,
+    )
     typer.echo(result.summary())
     if json_out is not None:
         from .io.atomic import write_text_atomic
 
-        _output_path(json_out)
-        write_text_atomic(json_out, json.dumps(result.as_dict(), indent=2))
+        _run(write_text_atomic, json_out, json.dumps(result.as_dict(), indent=2))
 
 
 _FIGURE_SUFFIXES = (".png", ".pdf", ".svg")
@@ -680,13 +752,12 @@ def _check_suffix(path: Path, allowed: tuple[str, ...], what: str) -> None:
         _fail(f"{what} must be a {' or '.join(allowed)} file, got {path.name!r}")
 
 
-def _table_output(path: Path) -> Path:
-    """An output table path whose folder exists and whose suffix names a format."""
-    from .io.tables import format_for
-
-    out = _output_path(path)
-    _run(format_for, out, None)
-    return out
+def _table_output(path: Path, *, overwrite: bool, inputs: Any) -> Path:
+    """An output table path whose folder exists and whose suffix names a format, checked by
+    :func:`_new_output` with its companions."""
+    return _new_output(
+        path, overwrite=overwrite, inputs=inputs, companions=_table_companions(path, None)
+    )
 
 
 def _read_locs(path: Path) -> tuple[Any, dict]:
@@ -698,6 +769,20 @@ def _read_locs(path: Path) -> tuple[Any, dict]:
     if path.suffix.lower() in (".parquet", ".pq"):
         return _run(read_parquet, path)
     return _run(read_table, path), {}
+
+
+_ALL_FLAGS_HELP = "Use flagged fits too (default: only rows flagged 'ok')."
+
+
+def _usable(table, all_flags: bool):
+    """The rows a command uses (:func:`sparseloc.postprocess.select_usable`: flag 'ok' unless
+    ``all_flags``, finite coordinates), saying on stderr how many flagged rows were left out."""
+    from .postprocess import select_usable
+
+    sel = _run(select_usable, table, all_flags=all_flags)
+    if sel.note():
+        typer.echo(f"note: {sel.note()}", err=True)
+    return sel.locs
 
 
 def _write_locs(table, out: Path, meta: dict) -> None:
@@ -736,21 +821,30 @@ def render(
     frc_plot: Annotated[
         Path | None, typer.Option("--frc", help="Also write the FRC curve (.png).")
     ] = None,
+    all_flags: Annotated[bool, typer.Option(help=_ALL_FLAGS_HELP)] = False,
+    overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
-    """Render localizations: xy coloured by depth, with xz and yz; FRC resolution."""
+    """Render localizations: xy coloured by depth, with xz and yz; FRC resolution.
+
+    Rows flagged other than 'ok' are left out unless --all-flags; rows with a non-finite or
+    absurd coordinate are dropped with a warning; rows without uncertainties are drawn 15 nm
+    wide (37.5 nm in z)."""
     from .render import frc, plot_frc, plot_projections, render_volume, write_volume_tiff
 
-    out = _output_path(output)
-    _check_suffix(out, (".png",), "the image")
+    _check_suffix(output, (".png",), "the image")
+    out = _new_output(output, overwrite=overwrite, inputs=[locs])
     if frc_plot is not None:
-        _check_suffix(_output_path(frc_plot), _FIGURE_SUFFIXES, "--frc")
+        _check_suffix(frc_plot, _FIGURE_SUFFIXES, "--frc")
+        _new_output(frc_plot, overwrite=overwrite, inputs=[locs, out])
     if volume is not None:
-        _check_suffix(_output_path(volume), (".tif", ".tiff"), "--volume")
+        _check_suffix(volume, (".tif", ".tiff"), "--volume")
+        _new_output(volume, overwrite=overwrite, inputs=[locs, out, frc_plot])
     if min(voxel) <= 0:
         _fail(f"--voxel sizes must be > 0 nm, got {voxel[0]:g} and {voxel[1]:g}")
     table, _ = _read_locs(locs)
     if len(table) == 0:
         _fail(f"{locs.name} holds no localizations")
+    table = _usable(table, all_flags)
     zr = None
     if z_min is not None or z_max is not None:
         zr = (
@@ -798,23 +892,36 @@ def drift(
     force: Annotated[
         bool, typer.Option(help="Apply an estimate flagged unreliable anyway.")
     ] = False,
+    all_flags: Annotated[
+        bool, typer.Option(help="Estimate from flagged fits too (all rows are corrected).")
+    ] = False,
+    overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Estimate the drift (x, y, z) and write the table with it removed."""
     from .drift import apply_drift, fiducial_drift, plot_drift, rcc_drift
 
-    out = _table_output(output)
+    out = _table_output(output, overwrite=overwrite, inputs=[locs])
     if plot is not None:
-        _check_suffix(_output_path(plot), _FIGURE_SUFFIXES, "--plot")
+        _check_suffix(plot, _FIGURE_SUFFIXES, "--plot")
+        _new_output(plot, overwrite=overwrite, inputs=[locs, out])
     if method not in ("rcc", "fiducial"):
         _fail(f"--method must be rcc or fiducial, got {method!r}")
     if bin_nm <= 0:
         _fail(f"--bin-nm must be > 0, got {bin_nm:g}")
     table, meta = _read_locs(locs)
     # The estimators log their warnings (shown on stderr).
+    _usable(table, all_flags)  # says how many flagged rows the estimate leaves out
     if method == "rcc":
-        est = _run(rcc_drift, table, segments=segments, bin_nm=bin_nm, estimate_z=not no_z)
+        est = _run(
+            rcc_drift,
+            table,
+            segments=segments,
+            bin_nm=bin_nm,
+            estimate_z=not no_z,
+            all_flags=all_flags,
+        )
     else:
-        est = _run(fiducial_drift, table)
+        est = _run(fiducial_drift, table, all_flags=all_flags)
     if plot is not None:
         _run(plot_drift, est, plot)
         typer.echo(f"wrote {plot}")
@@ -855,17 +962,21 @@ def filter_cmd(
         typer.Option(help="Merge distance (nm); default 4 sqrt(2) x the median sigma, >= 20 nm."),
     ] = None,
     max_gap: Annotated[int, typer.Option(help="Dark frames a merged track may skip.")] = 1,
+    overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Filter localizations by photons, uncertainty, fit quality and z; merge blinks."""
     from .postprocess import filter_locs, merge_blinks
 
-    out = _table_output(output)
+    out = _table_output(output, overwrite=overwrite, inputs=[locs])
     if merge and out.suffix.lower() not in (".parquet", ".pq"):
         typer.echo(
             "note: only Parquet keeps the merged rows' n_frames and last_frame columns",
             err=True,
         )
     table, meta = _read_locs(locs)
+    if len(table):
+        # The coordinate part of the rule (select_usable); filter_locs counts the flags itself.
+        table = _usable(table, True)
     zr = None
     if z_min is not None or z_max is not None:
         zr = (-np.inf if z_min is None else z_min, np.inf if z_max is None else z_max)
@@ -901,22 +1012,92 @@ def report(
         Path | None, typer.Option(help="Ground truth CSV: adds the evaluation.")
     ] = None,
     pixel_size: Annotated[
-        float | None, typer.Option(help="Pixel size (nm) for truth given in pixels.")
+        float | None,
+        typer.Option(
+            help="Camera pixel size (nm): for truth given in pixels and for the --movie "
+            "overlay (default: the table's or the movie's)."
+        ),
     ] = None,
+    movie: Annotated[
+        Path | None,
+        typer.Option(help="The movie the table was made from: adds an overlay of one frame."),
+    ] = None,
+    all_flags: Annotated[bool, typer.Option(help=_ALL_FLAGS_HELP)] = False,
+    overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Write a one-page HTML quality report (histograms, drift, image, FRC, evaluation)."""
     from .io.truth import read_truth_csv
     from .report import write_report
 
-    out = _output_path(output)
+    out = _new_output(output, overwrite=overwrite, inputs=[locs, truth, movie])
+    if pixel_size is not None and not (np.isfinite(pixel_size) and pixel_size > 0):
+        _fail(f"--pixel-size must be a positive number of nm, got {pixel_size:g}")
+    if movie is not None and not movie.is_file():
+        _fail(f"{str(movie)!r} does not exist or is not a file")
     table, meta = _read_locs(locs)
     truth_df = None
     if truth is not None:
         if not truth.is_file():
             _fail(f"{str(truth)!r} does not exist or is not a file")
         truth_df = _run(read_truth_csv, truth, pixel_size=pixel_size)
-    _run(write_report, table, out, truth=truth_df, metadata=meta, title=f"sparseloc: {locs.name}")
+    _run(
+        write_report,
+        table,
+        out,
+        truth=truth_df,
+        metadata=meta,
+        title=f"sparseloc: {locs.name}",
+        all_flags=all_flags,
+        movie=movie,
+        pixel_size=pixel_size,
+    )
     typer.echo(f"wrote {out}")
+
+
+@app.command()
+def overlay(
+    movie: Annotated[Path, typer.Argument(help="Camera movie (TIFF / OME-TIFF).")],
+    locs: Annotated[Path, typer.Argument(help="Localization table (any supported format).")],
+    frame: Annotated[int, typer.Option(help="Frame to draw (0-based).")] = 0,
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="Picture (.png, .pdf or .svg).")
+    ] = Path("overlay.png"),
+    pixel_size: Annotated[
+        float | None,
+        typer.Option(help="Camera pixel size (nm); default: the table's, else the movie's."),
+    ] = None,
+    overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
+) -> None:
+    """Draw one frame with its localizations: circles coloured by z, flagged fits as grey x."""
+    from .io.movie import Movie
+    from .overlay import plot_overlay
+    from .report import _overlay_pixel_size
+
+    out = _new_output(output, overwrite=overwrite, inputs=[movie, locs])
+    _check_suffix(out, _FIGURE_SUFFIXES, "the picture")
+    if pixel_size is not None and not (np.isfinite(pixel_size) and pixel_size > 0):
+        _fail(f"--pixel-size must be a positive number of nm, got {pixel_size:g}")
+    if not movie.is_file():
+        _fail(f"{str(movie)!r} does not exist or is not a file")
+    table, meta = _read_locs(locs)
+    mov = _run(Movie.open, movie)
+    with mov:
+        if not 0 <= frame < mov.n_frames:
+            _fail(
+                f"--frame {frame} is outside the movie {movie.name!r}, whose frames are "
+                f"0 to {mov.n_frames - 1}"
+            )
+        shape = meta.get("shape") if isinstance(meta, dict) else None
+        if isinstance(shape, list | tuple) and tuple(shape) != tuple(mov.shape):
+            _fail(
+                f"the table was made from frames of {tuple(shape)} pixels, but the movie's are "
+                f"{tuple(mov.shape)}: is it the right movie?"
+            )
+        px = _run(_overlay_pixel_size, pixel_size, meta, mov.pixel_size)
+        image = _run(mov.__getitem__, frame)
+    n = int((table["frame"] == frame).sum()) if "frame" in table else 0
+    _run(plot_overlay, image, table, frame_index=frame, pixel_size=px, path=out)
+    typer.echo(f"wrote {out} (frame {frame}, {n} localizations)")
 
 
 def main() -> None:

@@ -9,6 +9,9 @@ first frame with both marked, and a short text report.
 from __future__ import annotations
 
 import logging
+import os
+import shutil
+import tempfile
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -18,7 +21,18 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_demo"]
+__all__ = ["DEMO_FILES", "run_demo"]
+
+#: The files the demo writes into its folder.
+DEMO_FILES = (
+    "movie.tif",
+    "movie_truth.csv",
+    "locs.parquet",
+    "render.png",
+    "frame0.png",
+    "psf.png",
+    "report.txt",
+)
 
 
 def _overlap_fraction(truth, radius_nm: float) -> float:
@@ -46,6 +60,7 @@ def run_demo(
     z_range: tuple[float, float] = (-600.0, 600.0),
     progress: bool = False,
     workers: int | None = None,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Simulate, localize, evaluate and render a dense double-helix filament movie.
 
@@ -66,6 +81,8 @@ def run_demo(
     workers : int, optional
         Processes solving frames; default the machine's cores, at most 2 (the demo's frames
         are small, more processes gain little).
+    overwrite : bool
+        Replace the files of an earlier demo in ``out_dir`` instead of refusing.
 
     Returns
     -------
@@ -73,37 +90,50 @@ def run_demo(
         ``files`` (paths written), ``text`` (the report), ``evaluation`` (the
         :class:`~sparseloc.evaluate.Evaluation` as a dict), ``seconds`` (per step) and the
         counts behind the report.
+
+    Raises
+    ------
+    ValueError
+        If ``out_dir`` is a file, its parent folder is missing, or it holds an earlier demo's
+        files and ``overwrite`` is false. Nothing is written then, nor when a step fails: the
+        files are made in a temporary folder beside ``out_dir`` and moved in at the end.
     """
     from .evaluate import evaluate
     from .psf import make_psf
     from .simulate import write_simulation
 
     setup = _Setup(n_frames, shape, pixel_size, density, z_range)
-    out = _output_folder(out_dir)
+    out = _output_folder(out_dir, overwrite)
+    work = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     files: list[Path] = []
     seconds: dict[str, float] = {}
+    try:
+        t0 = time.perf_counter()
+        dh = make_psf("dh")
+        sim = _simulate(dh, setup, seed, progress)
+        files.extend(write_simulation(sim, work / "movie.tif"))
+        seconds["simulate"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    dh = make_psf("dh")
-    sim = _simulate(dh, setup, seed, progress)
-    files.extend(write_simulation(sim, out / "movie.tif"))
-    seconds["simulate"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        frames = sim.movie.astype(np.float64) - sim.camera.offset  # ideal camera: gain 1
+        res = _localize(frames, dh, pixel_size, n_frames, progress, workers)
+        seconds["localize"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    frames = sim.movie.astype(np.float64) - sim.camera.offset  # ideal camera: gain 1
-    res = _localize(frames, dh, pixel_size, n_frames, progress, workers)
-    seconds["localize"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        ev = evaluate(res.table, sim.truth)
+        files.extend(_write_results(work, out, res, sim, frames, dh, setup))
+        stats = _truth_stats(sim.truth, dh, pixel_size)
+        seconds["evaluate and write"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    ev = evaluate(res.table, sim.truth)
-    files.extend(_write_results(out, res, sim, frames, dh, setup))
-    stats = _truth_stats(sim.truth, dh, pixel_size)
-    seconds["evaluate and write"] = time.perf_counter() - t0
-
-    text = "\n".join(_report_lines(setup, sim, res, ev, stats, seconds))
-    files.append(_write_report(out, text))
+        text = "\n".join(_report_lines(setup, sim, res, ev, stats, seconds))
+        files.append(_write_report(work, text))
+        out.mkdir(exist_ok=True)
+        for f in files:
+            os.replace(f, out / f.name)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
     return {
-        "files": [str(f) for f in files],
+        "files": [str(out / f.name) for f in files],
         "text": text,
         "evaluation": asdict(ev),
         "seconds": seconds,
@@ -124,12 +154,20 @@ class _Setup(NamedTuple):
     z_range: tuple[float, float]
 
 
-def _output_folder(out_dir: str | Path) -> Path:
-    """The output folder, created if missing (its parent must exist)."""
+def _output_folder(out_dir: str | Path, overwrite: bool) -> Path:
+    """The output folder, checked: its parent exists, it is not a file, and it holds no
+    earlier demo's files unless ``overwrite`` (it is created at the end)."""
     out = Path(out_dir)
-    if not out.parent.exists():
+    if not out.parent.is_dir():
         raise ValueError(f"the folder {str(out.parent)!r} does not exist")
-    out.mkdir(exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{str(out)!r} is a file; the demo writes a folder of files")
+    old = [name for name in DEMO_FILES if (out / name).exists()]
+    if old and not overwrite:
+        raise ValueError(
+            f"{str(out)!r} holds the files of an earlier demo ({', '.join(old)}); pass "
+            "--overwrite to replace them or choose another folder"
+        )
     return out
 
 
@@ -189,15 +227,16 @@ def _localize(
 
 
 def _write_results(
-    out: Path, res: Any, sim: Any, frames: np.ndarray, dh: Any, setup: _Setup
+    out: Path, final: Path, res: Any, sim: Any, frames: np.ndarray, dh: Any, setup: _Setup
 ) -> list[Path]:
-    """The table, the rendering beside the truth, frame 0 with both marked, the PSF montage."""
+    """The table, the rendering beside the truth, frame 0 with both marked, the PSF montage,
+    written into ``out``; the table's metadata names the movie in the ``final`` folder."""
     from .io.tables import write_table
     from .plotting import plot_psf_montage, plot_scene
     from .render import plot_projections
 
     n_frames, pixel_size, density = setup.n_frames, setup.pixel_size, setup.density
-    meta = {**res.metadata, "movie": str(out / "movie.tif"), "camera": sim.camera.to_dict()}
+    meta = {**res.metadata, "movie": str(final / "movie.tif"), "camera": sim.camera.to_dict()}
     files = [
         write_table(
             res.table,

@@ -16,7 +16,11 @@ scheduler and the chunk size.
 Resuming: a run started again with the same folder and the same analysis skips the chunks
 whose parts exist; a part exists only once complete (temporary name, then rename), so a
 killed run never leaves a half part. A folder written by a different analysis (parameters,
-PSF, movie, camera, frame range or chunk size) is refused unless ``overwrite``.
+PSF, movie, camera, frame range or chunk size) is refused unless ``overwrite``. A movie file
+is known by its path, size, modification time and a hash of a sample of its content, so one
+replaced by another of the same size and time (``cp -p``) is noticed. A folder that holds
+files but no sparseloc manifest is refused even with ``overwrite``: its files are not the
+run's to delete.
 
 Faults: on a Dask cluster a chunk whose worker dies is re-run elsewhere by the scheduler,
 and a chunk that raises is retried (``retries``); a chunk that still fails is reported with
@@ -72,6 +76,23 @@ logger = logging.getLogger(__name__)
 CHUNK_FRAMES = 500
 MANIFEST = "manifest.json"
 _PART = "part-{:09d}-{:09d}.parquet"
+#: Blocks of a movie hashed to identify its content (evenly spaced, each file's first and last
+#: included, shared out over a series' files): enough to tell two movies apart without
+#: reading a long movie whole.
+_SAMPLE_BLOCKS = 64
+_SAMPLE_BYTES = 1 << 16
+
+
+def _file_sample_digest(path: str | Path, blocks: int = _SAMPLE_BLOCKS) -> str:
+    """SHA-256 (16 hex digits) of ``blocks`` evenly spaced 64 KiB blocks of a file."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        size = fh.seek(0, os.SEEK_END)
+        last = max(size - _SAMPLE_BYTES, 0)
+        for off in sorted({int(v) for v in np.linspace(0, last, max(blocks, 2))}):
+            fh.seek(off)
+            h.update(fh.read(_SAMPLE_BYTES))
+    return h.hexdigest()[:16]
 
 
 class CameraFrames:
@@ -107,16 +128,19 @@ class CameraFrames:
 
     def identity(self) -> dict:
         """What identifies the data for resuming: the source's own ``identity()``, its files
-        (size, modification time) or a digest of an in-memory array."""
+        (size, modification time, digest of a sample of the content) or a digest of an
+        in-memory array."""
         paths = getattr(self.movie, "paths", None)
         own = getattr(self.movie, "identity", None)
         if callable(own):  # e.g. a SimulatedMovie: its generating parameters
             ident: dict[str, Any] = dict(own())
         elif paths:
             files = []
+            blocks = _SAMPLE_BLOCKS // len(paths)
             for p in paths:
                 st = os.stat(p)
-                files.append([str(Path(p).resolve()), st.st_size, int(st.st_mtime)])
+                digest = _file_sample_digest(p, blocks)
+                files.append([str(Path(p).resolve()), st.st_size, int(st.st_mtime), digest])
             ident = {"files": files}
         elif hasattr(self.movie, "frames"):
             raise ValueError(
@@ -263,13 +287,25 @@ def _prepare_run_dir(run_dir: Path, key: str, desc: dict, chunks, overwrite: boo
         raise ValueError(f"the folder {str(run_dir.parent)!r} does not exist")
     if run_dir.exists() and not run_dir.is_dir():
         raise ValueError(f"{str(run_dir)!r} exists and is not a folder")
-    run_dir.mkdir(exist_ok=True)
     man = run_dir / MANIFEST
+    # A manifest's temporary file, left by a run killed while writing it, is the run's own.
+    others = run_dir.is_dir() and not man.exists()
+    if others and any(not p.name.startswith(f".{MANIFEST}.") for p in run_dir.iterdir()):
+        raise ValueError(
+            f"{str(run_dir)!r} holds files but no sparseloc run manifest; give an empty or "
+            "new folder for the run's parts"
+        )
+    run_dir.mkdir(exist_ok=True)
     if man.exists():
         try:
             old = json.loads(man.read_text())
         except (ValueError, OSError) as exc:
             raise ValueError(f"cannot read {str(man)!r}: {exc}") from exc
+        if not (isinstance(old, dict) and "key" in old and isinstance(old.get("run"), dict)):
+            raise ValueError(
+                f"{str(man)!r} is not a sparseloc run manifest, so the folder is not a "
+                "sparseloc run's; give an empty or new folder for the run's parts"
+            )
         if old.get("key") != key and not overwrite:
             changed = sorted(
                 k

@@ -95,6 +95,7 @@ def rcc_drift(
     max_shift_nm: float = 1000.0,
     estimate_z: bool = True,
     min_locs_per_segment: int = 200,
+    all_flags: bool = False,
 ) -> DriftResult:
     """Drift by redundant cross-correlation of time segments (RCC).
 
@@ -105,8 +106,9 @@ def rcc_drift(
     Parameters
     ----------
     locs : DataFrame
-        Localization table with at least ``frame, x_nm, y_nm`` (``z_nm`` optional). Only rows
-        with ``flag == "ok"`` (where the column exists) and finite positions are used.
+        Localization table with at least ``frame, x_nm, y_nm`` (``z_nm`` optional). The rows
+        of :func:`sparseloc.postprocess.select_usable` (flag "ok" unless ``all_flags``, sane
+        coordinates) with a finite frame and z are used.
     segments : int
         Number of time segments (>= 2; at least 3 for a cross-checked result).
     bin_nm : float
@@ -125,6 +127,8 @@ def rcc_drift(
     min_locs_per_segment : int
         Fewest localizations a segment may hold; with fewer, the number of segments is reduced
         (with a warning).
+    all_flags : bool
+        Use rows flagged other than "ok" too.
 
     Returns
     -------
@@ -145,7 +149,7 @@ def rcc_drift(
         localizations for two segments of ``min_locs_per_segment``.
     """
     p = _rcc_params(segments, bin_nm, z_bin_nm, blur_nm, max_shift_nm, min_locs_per_segment)
-    data = read_locs(locs)
+    data = read_locs(locs, all_flags=all_flags)
     warnings: list[str] = []
     seg = _segments(data.frame, p.segments, p.min_locs, warnings)
     blur = p.blur_nm if p.blur_nm is not None else (data.sigma_lat or p.bin_nm)

@@ -117,8 +117,11 @@ class DriftLocs:
     n_input: int
 
 
-def read_locs(locs: pd.DataFrame) -> DriftLocs:
-    """Usable rows (flag "ok" where the column exists, finite positions) as arrays."""
+def read_locs(locs: pd.DataFrame, *, all_flags: bool = False) -> DriftLocs:
+    """Usable rows as arrays: those of :func:`sparseloc.postprocess.select_usable` (flag "ok"
+    unless ``all_flags``, coordinates finite and within bounds) with a finite frame and z."""
+    from .postprocess import select_usable
+
     if not isinstance(locs, pd.DataFrame):
         raise ValueError(
             f"the localization table must be a pandas DataFrame, got {type(locs).__name__}"
@@ -129,9 +132,8 @@ def read_locs(locs: pd.DataFrame) -> DriftLocs:
     n_input = len(locs)
     if n_input == 0:
         raise ValueError("the localization table is empty (0 rows): nothing to estimate drift from")
-    keep = np.ones(n_input, dtype=bool)
-    if "flag" in locs.columns:
-        keep &= locs["flag"].astype(str).to_numpy() == "ok"
+    locs = select_usable(locs, all_flags=all_flags).locs
+    keep = np.ones(len(locs), dtype=bool)
     try:
         frame = pd.to_numeric(locs["frame"]).to_numpy(dtype=np.float64)
         x = pd.to_numeric(locs["x_nm"]).to_numpy(dtype=np.float64)

@@ -48,6 +48,7 @@ def fiducial_drift(
     radius_nm: float = 150.0,
     min_fraction: float = 0.8,
     smooth_frames: int = 25,
+    all_flags: bool = False,
 ) -> DriftResult:
     """Drift from fiducials: spots present in at least ``min_fraction`` of the frames.
 
@@ -60,7 +61,8 @@ def fiducial_drift(
     ----------
     locs : DataFrame
         Table with at least ``frame, x_nm, y_nm`` (``z_nm`` optional; nm). Rows with a flag
-        other than "ok" are ignored.
+        other than "ok" are ignored unless ``all_flags``
+        (:func:`sparseloc.postprocess.select_usable`).
     radius_nm : float
         Grouping radius (nm): larger than the localization scatter of a fiducial, smaller than
         the distance between fiducials.
@@ -68,6 +70,8 @@ def fiducial_drift(
         Fraction of the frames (0..1] a fiducial must be found in.
     smooth_frames : int
         Length of the running filters and of the detection windows (frames).
+    all_flags : bool
+        Use flagged rows too.
 
     Returns
     -------
@@ -84,7 +88,7 @@ def fiducial_drift(
         frames the best candidates were present in).
     """
     radius_nm, smooth_frames = _check_params(radius_nm, min_fraction, smooth_frames)
-    data = read_locs(locs)
+    data = read_locs(locs, all_flags=all_flags)
     f0, f1 = int(data.frame.min()), int(data.frame.max())
     fi = data.frame - f0
     order = np.argsort(fi, kind="stable")

@@ -451,6 +451,7 @@ def evaluate(
     *,
     lateral_tol: float = 250.0,
     axial_tol: float = 500.0,
+    all_flags: bool = False,
 ) -> Evaluation:
     """Match ``locs`` to ``truth`` (:func:`match_localizations`) and compute challenge metrics.
 
@@ -458,9 +459,14 @@ def evaluate(
     ----------
     locs, truth : DataFrame
         Columns ``frame``, ``x_nm``, ``y_nm`` and optionally ``z_nm`` (nm). Without ``z_nm`` in
-        either table the evaluation is 2D and the axial metrics are NaN.
+        either table the evaluation is 2D and the axial metrics are NaN. Rows of ``locs`` whose
+        ``flag`` is not "ok" are left out unless ``all_flags``
+        (:func:`sparseloc.postprocess.flagged_rows`, the rule every consumer follows); NaN
+        coordinates are refused rather than dropped, so that no row is scored silently.
     lateral_tol, axial_tol : float
         Matching tolerances in nm (inclusive).
+    all_flags : bool
+        Score flagged rows too.
 
     Returns
     -------
@@ -468,6 +474,12 @@ def evaluate(
         Counts, Jaccard (percent), recall and precision (fractions), RMSE and bias (nm),
         efficiencies (percent).
     """
+    from .postprocess import flagged_rows
+
+    if isinstance(locs, pd.DataFrame):
+        flagged = flagged_rows(locs, all_flags=all_flags)
+        if flagged.any():
+            locs = locs.loc[~flagged].reset_index(drop=True)
     matches = match_localizations(locs, truth, lateral_tol=lateral_tol, axial_tol=axial_tol)
     three_d = _is_3d(locs, truth)
     n_t, n_l, tp = len(truth), len(locs), len(matches)

@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-__all__ = ["LOCALIZE_DEFAULTS", "check_options"]
+__all__ = ["LOCALIZE_DEFAULTS", "check_options", "read_config"]
 
 
 #: The options of ``sparseloc localize`` (and keys of a TOML file's ``[localize]`` table) with
@@ -53,6 +53,11 @@ _WHOLE = ("window", "margin", "workers", "chunk_frames", "relocate")
 _FLAGS = ("refine", "overwrite")
 _TEXT = ("psf", "camera", "method", "background", "frames", "format", "engine", "scheduler")
 _PATHS = ("offset_map", "variance_map", "gain_map", "run_dir")
+#: Whole-number options with a lower bound that no later check enforces (``workers = 0``
+#: would otherwise fall back to the default silently).
+_MINIMUM = {"workers": 1}
+#: Whole numbers beyond this overflow the C integers they end up in (a traceback otherwise).
+_WHOLE_MAX = 2**31 - 1
 
 
 def check_options(options: dict[str, Any], source: str = "the options") -> dict[str, Any]:
@@ -79,4 +84,47 @@ def check_options(options: dict[str, Any], source: str = "the options") -> dict[
         }[kind]
         if not ok:
             raise ValueError(f"{key} in {source} must be {kind}; got {value!r}")
+        if kind == "a whole number":
+            if key in _MINIMUM and value < _MINIMUM[key]:
+                raise ValueError(f"{key} must be >= {_MINIMUM[key]} in {source}, got {value}")
+            if abs(value) > _WHOLE_MAX:
+                raise ValueError(f"{key} in {source} is too large: {value}")
     return options
+
+
+def read_config(path: str | Path) -> dict[str, Any]:
+    """The options of a TOML file: its ``[localize]`` table (or its top level when it has
+    none), with ``-`` in keys read as ``_``, checked by :func:`check_options`.
+
+    Parameters
+    ----------
+    path : str or Path
+        TOML file.
+
+    Returns
+    -------
+    dict
+        Option name -> value.
+
+    Raises
+    ------
+    ValueError
+        If the file does not exist, is not UTF-8 TOML, its ``localize`` entry is not a table,
+        or an option is unknown or wrongly typed (one sentence naming the file).
+    """
+    import tomllib
+
+    src = Path(path)
+    if not src.is_file():
+        raise ValueError(f"the config file {str(src)!r} does not exist")
+    try:
+        cfg = tomllib.loads(src.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, OSError) as exc:
+        raise ValueError(f"cannot read the config file {str(src)!r}: {exc}") from exc
+    table = cfg.get("localize", cfg)
+    if not isinstance(table, dict):
+        raise ValueError(
+            f"localize in {src.name} must be a table ([localize] and its keys below it); "
+            f"got {table!r}"
+        )
+    return check_options({str(k).replace("-", "_"): v for k, v in table.items()}, src.name)

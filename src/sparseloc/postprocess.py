@@ -1,4 +1,19 @@
-"""Post-processing of localization tables: quality filters and merging of blinks.
+"""Post-processing of localization tables: the rows every consumer uses, quality filters and
+merging of blinks.
+
+Which rows a consumer uses (:func:`select_usable`)
+--------------------------------------------------
+One rule, used by ``render``, ``report``, ``filter`` (and ``filter --merge``), ``drift``,
+``evaluate`` and ``overlay``:
+
+* Rows whose ``flag`` is not ``"ok"`` (a fit at the edge of the z range, with impossible
+  uncertainties, outside its window, diverged or not converged) are **excluded by default**;
+  ``all_flags=True`` (``--all-flags`` on the command line) includes them. A table without a
+  ``flag`` column is all "ok".
+* Rows whose ``x_nm`` or ``y_nm`` is not finite, or whose ``x_nm``, ``y_nm`` or ``z_nm`` lies
+  beyond :data:`MAX_COORDINATE_NM` (0.1 m, beyond any microscope's field), or whose ``z_nm`` is
+  infinite, are **always dropped, with a warning** that counts them: no image or array can be
+  sized by them. A NaN ``z_nm`` (a 2D localization) is kept.
 
 Filtering (:func:`filter_locs`)
 -------------------------------
@@ -80,13 +95,19 @@ from .io.tables import LOCS_COLUMNS, check_locs, complete_locs
 
 __all__ = [
     "FILTER_CRITERIA",
+    "MAX_COORDINATE_NM",
     "MERGE_COLUMNS",
     "FilterResult",
+    "Usable",
     "default_merge_distance",
     "default_z_scale",
+    "excluded_note",
     "filter_locs",
+    "flagged_rows",
     "link_blinks",
     "merge_blinks",
+    "select_usable",
+    "usable_locs",
 ]
 
 logger = logging.getLogger(__name__)
@@ -100,9 +121,130 @@ _MIN_DEFAULT_DISTANCE_NM = 20.0
 _FALLBACK_DISTANCE_NM = 50.0
 _GATE_SIGMAS = 4.0
 _FALLBACK_Z_SCALE = 0.5
+#: Largest |coordinate| (nm) a usable row may have: 0.1 m, far beyond any microscope's field.
+MAX_COORDINATE_NM: float = 1e8
 # Below this many (track, localization) pairs in a frame a dense distance matrix is cheaper than
 # building two k-d trees.
 _BRUTE_FORCE_PAIRS = 4096
+
+
+# --------------------------------------------------------------------------------------------
+# the rows every consumer uses
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Usable:
+    """Outcome of :func:`select_usable`.
+
+    Attributes
+    ----------
+    locs : DataFrame
+        The rows used, in input order, index reset; columns as given.
+    n_input : int
+        Rows of the input table.
+    n_flagged : int
+        Rows excluded because their flag is not "ok" (0 with ``all_flags``).
+    n_bad_position : int
+        Rows dropped for a non-finite or absurd coordinate.
+    """
+
+    locs: pd.DataFrame
+    n_input: int
+    n_flagged: int
+    n_bad_position: int
+
+    def note(self) -> str:
+        """One line saying how many flagged rows were excluded, or ``""`` when none was (the
+        rows dropped for their coordinates are reported by a logged warning instead)."""
+        return excluded_note(self.n_flagged)
+
+
+def excluded_note(n_flagged: int) -> str:
+    """The line that says ``n_flagged`` flagged rows were excluded (``""`` for none)."""
+    if not n_flagged:
+        return ""
+    return f"excluded {n_flagged:,} flagged localizations (--all-flags includes them)"
+
+
+def select_usable(locs: pd.DataFrame, *, all_flags: bool = False) -> Usable:
+    """The rows a consumer uses, by the rule of the module docstring.
+
+    Parameters
+    ----------
+    locs : DataFrame
+        Localization table with at least ``x_nm`` and ``y_nm`` (nm); ``z_nm`` (nm) and ``flag``
+        are read when present. Not modified.
+    all_flags : bool
+        Include rows whose flag is not "ok".
+
+    Returns
+    -------
+    Usable
+        The rows used and the counts of those left out. Rows dropped for their coordinates are
+        also reported by a logged warning.
+
+    Raises
+    ------
+    ValueError
+        If ``locs`` is not a table with ``x_nm`` and ``y_nm``, or no row is left.
+    """
+    if not isinstance(locs, pd.DataFrame):
+        raise ValueError(f"expected a localization table (DataFrame), got {type(locs).__name__}")
+    missing = [c for c in ("x_nm", "y_nm") if c not in locs.columns]
+    if missing:
+        raise ValueError(f"the localization table has no column(s) {', '.join(missing)}")
+    n = len(locs)
+    flagged = flagged_rows(locs, all_flags=all_flags)
+    with np.errstate(invalid="ignore"):
+        x, y = _column(locs, "x_nm"), _column(locs, "y_nm")
+        good = np.isfinite(x) & np.isfinite(y)
+        good &= (np.abs(x) <= MAX_COORDINATE_NM) & (np.abs(y) <= MAX_COORDINATE_NM)
+        if "z_nm" in locs.columns:
+            z = _column(locs, "z_nm")
+            good &= np.isnan(z) | (np.abs(z) <= MAX_COORDINATE_NM)
+    bad_position = ~good & ~flagged
+    if bad_position.any():
+        logger.warning(
+            "dropped %d localizations with a non-finite coordinate or one beyond %g nm",
+            int(bad_position.sum()),
+            MAX_COORDINATE_NM,
+        )
+    keep = good & ~flagged
+    if n and not keep.any():
+        why = "flag 'ok' and " if not all_flags and "flag" in locs.columns else ""
+        hint = " (--all-flags includes flagged rows)" if flagged.any() else ""
+        raise ValueError(
+            f"none of the {n:,} localizations is usable ({why}finite coordinates within "
+            f"{MAX_COORDINATE_NM:g} nm){hint}"
+        )
+    out = locs.loc[keep].reset_index(drop=True)
+    return Usable(out, n, int(flagged.sum()), int(bad_position.sum()))
+
+
+def flagged_rows(locs: pd.DataFrame, *, all_flags: bool = False) -> np.ndarray:
+    """The flag part of the rule: which rows of ``locs`` are excluded for their flag.
+
+    Parameters
+    ----------
+    locs : DataFrame
+        Localization table; ``flag`` is read when present (absent: every row "ok").
+    all_flags : bool
+        Exclude no row.
+
+    Returns
+    -------
+    ndarray of bool, shape (len(locs),)
+        True where the flag is not "ok" (all False with ``all_flags``).
+    """
+    if all_flags or "flag" not in locs.columns:
+        return np.zeros(len(locs), dtype=bool)
+    return locs["flag"].astype(str).to_numpy() != "ok"
+
+
+def usable_locs(locs: pd.DataFrame, *, all_flags: bool = False) -> pd.DataFrame:
+    """The rows of ``locs`` a consumer uses (:func:`select_usable`), as a table."""
+    return select_usable(locs, all_flags=all_flags).locs
 
 
 # --------------------------------------------------------------------------------------------
@@ -609,7 +751,8 @@ def _link(t: pd.DataFrame, dist: float, max_gap: int, z_scale: float) -> np.ndar
     rows = np.flatnonzero(finite)
     rows = rows[np.argsort(frame[rows], kind="stable")]
     fr = frame[rows]
-    cut = np.flatnonzero(np.r_[True, fr[1:] != fr[:-1], True])
+    # One cut per change of frame; no rows, no frames (not one empty frame).
+    cut = np.flatnonzero(np.r_[True, fr[1:] != fr[:-1], True]) if rows.size else np.zeros(1, int)
     d2 = dist * dist
     # The cylinder |lateral| <= d, |scaled dz| <= d lies inside the sphere of radius d * sqrt(2).
     radius = dist * np.sqrt(2.0) * (1 + 1e-12)

@@ -5,8 +5,15 @@ Rendering
     (``sigma_x_nm``, ``sigma_y_nm``, ``sigma_z_nm``), never narrower than a floor
     (``sigma_min_nm``, default half a render pixel, so no spot falls between pixels). Each spot
     integrates to one: images count localizations (per pixel or voxel), they are not weighted by
-    photons. Missing, NaN or non-positive uncertainties fall back to ``default_sigma_nm``
-    (lateral, 15 nm) and 2.5 times that axially.
+    photons. Missing, NaN or non-positive uncertainties (``localize`` writes NaN for flagged
+    fits) are drawn at ``default_sigma_nm`` (lateral, 15 nm) and 2.5 times that axially.
+
+Memory
+    The image is sized by the positions and the pixel size, never by the widths: widths wider
+    than the data's range do not pad the extent (:func:`~sparseloc.render_grid.axis_grid`) and
+    spots wider than the image are left out (:mod:`sparseloc.render_accumulate`).
+    Which rows to draw (flag "ok" by default, finite coordinates) is the caller's choice, by
+    the rule of :func:`sparseloc.postprocess.select_usable`.
 
     Spots of similar widths are drawn together (:mod:`sparseloc.render_accumulate`), each
     localization shared between the two width levels around its own (ratio
@@ -53,6 +60,7 @@ from .render_grid import (
 )
 
 __all__ = [
+    "DEPTH_CMAP",
     "FRC_THRESHOLD",
     "MAX_PIXELS",
     "SIGMA_BIN_RATIO",
@@ -70,6 +78,9 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: Colour map of depth (z) in every figure: renders, overlays, reports.
+DEPTH_CMAP: str = "turbo"
 
 _PROJECTIONS: dict[str, tuple[str, str]] = {"xy": ("x", "y"), "xz": ("x", "z"), "yz": ("y", "z")}
 # Relative density below which the mean depth of a pixel is left undefined (NaN).
@@ -241,7 +252,7 @@ def to_rgb(
     rendered: Rendered,
     *,
     z_range: tuple[float, float] | None = None,
-    cmap: str = "turbo",
+    cmap: str = DEPTH_CMAP,
     gamma: float = 1.0,
     saturate: float = 99.5,
     vmax: float | None = None,
@@ -676,7 +687,7 @@ def _projections_figure(
 
     lay = _layout(panels, ext, is3d, title)
     fig = Figure(figsize=(lay.fig_w, lay.fig_h), facecolor="black")
-    cmap = "turbo"
+    cmap = DEPTH_CMAP
     um = (ext[0] / 1000, ext[1] / 1000, ext[3] / 1000, ext[2] / 1000)
     for i, (label, xy, side) in enumerate(panels):
         x_xy = lay.left + i * (lay.block + lay.between)

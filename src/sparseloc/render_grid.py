@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 __all__ = [
     "AXIAL_DEFAULT_FACTOR",
     "MAX_PIXELS",
+    "PAD_CAP_PX",
     "POSITION_COLUMNS",
     "SIGMA_COLUMNS",
     "TRUNCATE",
@@ -35,6 +36,8 @@ log = logging.getLogger("sparseloc.render")
 MAX_PIXELS: int = 200_000_000
 #: Spots are cut at this many standard deviations.
 TRUNCATE: float = 4.0
+#: Widths up to this many pixels always count when an extent is padded (see :func:`axis_grid`).
+PAD_CAP_PX: float = 100.0
 #: Axial default width as a multiple of the lateral one when a table has no ``sigma_z_nm``.
 AXIAL_DEFAULT_FACTOR: float = 2.5
 
@@ -105,9 +108,14 @@ def axis_grid(
 
     Without ``given`` the data range padded by TRUNCATE (4) 95th-percentile widths, snapped to
     multiples of ``step`` so that images with the same pixel size share a grid; with ``given``
-    its start, and its end moved up to a whole number of pixels."""
+    its start, and its end moved up to a whole number of pixels. Widths larger than the data's
+    range (or :data:`PAD_CAP_PX` pixels, if more) are left out of the percentile: such a spot
+    spreads over more than the whole image, so the image is sized by the positions, never by
+    an absurd uncertainty."""
     if given is None:
-        pad = TRUNCATE * float(np.percentile(sig, 95))
+        cap = max(float(pos.max() - pos.min()), PAD_CAP_PX * step)
+        usable = sig[sig <= cap]
+        pad = TRUNCATE * float(np.percentile(usable, 95)) if usable.size else 0.0
         lo = math.floor((float(pos.min()) - pad) / step) * step
         n = max(1, math.ceil((float(pos.max()) + pad - lo) / step))
         return lo, n

@@ -3,8 +3,14 @@
 The page holds a summary table; histograms of photons, uncertainties, z and fit quality;
 localizations per frame; the drift estimated by redundant cross-correlation (when the movie
 is long and dense enough); the rendered image (xy with xz and yz) and its FRC resolution;
-and, given the ground truth, the evaluation figures and the error against z. Figures are
-embedded as PNG data URIs, so the file can be mailed or archived on its own.
+and, given the ground truth, the evaluation figures and the error against z; given the movie,
+the localizations over the frame that holds the most of them (:mod:`sparseloc.overlay`).
+Figures are embedded as PNG data URIs, so the file can be mailed or archived on its own.
+
+Rows: the summary's flag counts cover the whole table; everything else uses the rows of
+:func:`sparseloc.postprocess.select_usable` (flag "ok" unless ``all_flags``; rows with a
+non-finite or absurd coordinate dropped with a warning). Arrays are sized by the rows and the
+distinct frames, never by the largest frame number.
 
 A small inline script counts the figures the browser decoded and writes the count on the
 ``<body>`` (``data-figures-ok``): a headless browser's DOM dump shows at once whether the page
@@ -75,17 +81,29 @@ def _hist_figure(t: pd.DataFrame) -> str:
     return _png(fig)
 
 
+#: Frame ranges up to this many frames (or 4 per distinct frame) are drawn frame by frame.
+_DENSE_FRAMES = 100_000
+
+
 def _per_frame_figure(t: pd.DataFrame, n_frames: int) -> str:
     from matplotlib.figure import Figure
 
-    counts = np.bincount(t["frame"].to_numpy(np.int64), minlength=n_frames)
+    frames, per = np.unique(t["frame"].to_numpy(np.int64), return_counts=True)
     fig = Figure(figsize=(12, 3), layout="constrained")
     ax = fig.subplots()
-    ax.plot(np.arange(len(counts)), counts, lw=0.6, color="#999999", label="per frame")
-    w = max(1, len(counts) // 100)
-    if w > 1:
-        smooth = np.convolve(counts, np.ones(w) / w, mode="same")
-        ax.plot(np.arange(len(counts)), smooth, color="k", lw=1.2, label=f"mean over {w}")
+    if n_frames <= max(_DENSE_FRAMES, 4 * len(frames)):
+        counts = np.zeros(n_frames, dtype=np.int64)
+        counts[frames] = per
+        ax.plot(np.arange(len(counts)), counts, lw=0.6, color="#999999", label="per frame")
+        w = max(1, len(counts) // 100)
+        if w > 1:
+            smooth = np.convolve(counts, np.ones(w) / w, mode="same")
+            ax.plot(np.arange(len(counts)), smooth, color="k", lw=1.2, label=f"mean over {w}")
+            ax.legend(fontsize=8)
+    else:
+        # Frame numbers far beyond the rows' count: only the frames that hold rows are drawn,
+        # so the arrays stay as small as the table.
+        ax.plot(frames, per, ".", ms=3, color="#3b75af", label="frames with localizations")
         ax.legend(fontsize=8)
     ax.set_xlabel("frame")
     ax.set_ylabel("localizations")
@@ -179,6 +197,9 @@ def build_report(
     metadata: Mapping[str, Any] | None = None,
     title: str = "sparseloc report",
     render_px: float | None = None,
+    all_flags: bool = False,
+    movie: str | Path | None = None,
+    pixel_size: float | None = None,
 ) -> str:
     """The report as an HTML string (see the module docstring).
 
@@ -195,26 +216,42 @@ def build_report(
     render_px : float, optional
         Pixel size (nm) of the rendered image; default chosen by
         :func:`sparseloc.render.plot_projections`.
+    all_flags : bool
+        Use flagged rows too (default: only rows flagged "ok").
+    movie : str or Path, optional
+        The camera movie the table was made from: adds the overlay of one frame.
+    pixel_size : float, optional
+        Camera pixel size (nm) for the overlay; default from ``metadata`` (``params``) or the
+        movie's own.
 
     Raises
     ------
     ValueError
-        If the table is empty.
+        If the table is empty or has no usable row, or the movie cannot be read.
     """
     from .io.tables import complete_locs
+    from .postprocess import select_usable
 
     if len(locs) == 0:
         raise ValueError("the localization table is empty: nothing to report")
-    t = complete_locs(locs)
+    full = complete_locs(locs)
+    sel = select_usable(full, all_flags=all_flags)
+    t = sel.locs
     n_frames = int(t["frame"].max()) + 1
     sections: list[str] = []
-    sections.append(_table_html("Summary", _summary_rows(t, n_frames)))
+    summary = _summary_rows(t, n_frames, full["flag"])
+    if sel.note():
+        summary.append(("left out", sel.note()))
+    sections.append(_table_html("Summary", summary))
     sections.append(_figure_html("Distributions", _hist_figure(t)))
     sections.append(_figure_html("Localizations per frame", _per_frame_figure(t, n_frames)))
     text, fig = _drift_section(t, n_frames)
     sections.append(_figure_html("Drift", fig, text))
     render_b64, frc_text = _render_section(t, render_px)
     sections.append(_figure_html("Rendered image (colour = z)", render_b64, frc_text))
+    if movie is not None:
+        heading, fig = _overlay_section(full, movie, pixel_size, metadata)
+        sections.append(_figure_html(heading, fig))
     if truth is not None:
         table, fig = _truth_section(t, truth)
         sections.append(_figure_html("Against the ground truth", fig, table))
@@ -228,9 +265,10 @@ def build_report(
     )
 
 
-def _summary_rows(t: pd.DataFrame, n_frames: int) -> list[tuple[str, str]]:
-    """Counts, field, z range, median photons, uncertainties and fit quality, and the flags."""
-    flags = t["flag"].value_counts().to_dict()
+def _summary_rows(t: pd.DataFrame, n_frames: int, flag: pd.Series) -> list[tuple[str, str]]:
+    """Counts, field, z range, median photons, uncertainties and fit quality of the rows used,
+    and the flags of the whole table."""
+    flags = flag.value_counts().to_dict()
     return [
         ("localizations", f"{len(t):,}"),
         ("frames", f"{n_frames:,} ({len(t) / n_frames:.1f} localizations per frame)"),
@@ -267,6 +305,49 @@ def _render_section(t: pd.DataFrame, render_px: float | None) -> tuple[str, str]
     return render_b64, frc_text
 
 
+def _overlay_section(
+    locs: pd.DataFrame,
+    movie: str | Path,
+    pixel_size: float | None,
+    metadata: Mapping[str, Any] | None,
+) -> tuple[str, str]:
+    """Heading and figure of the overlay on the movie's frame with the most localizations."""
+    from .io.movie import Movie
+    from .overlay import overlay_figure
+
+    with Movie.open(movie) as m:
+        px = _overlay_pixel_size(pixel_size, metadata, m.pixel_size)
+        frame = locs["frame"].to_numpy(np.int64)
+        inside = frame[(frame >= 0) & (frame < m.n_frames)]
+        if inside.size == 0:
+            raise ValueError(
+                f"no localization lies in the {m.n_frames} frames of the movie {str(movie)!r}"
+            )
+        values, counts = np.unique(inside, return_counts=True)
+        best = int(values[np.argmax(counts)])
+        image = m[best]
+    fig = overlay_figure(image, locs, frame_index=best, pixel_size=px)
+    return f"Localizations over frame {best}", _png(fig)
+
+
+def _overlay_pixel_size(
+    given: float | None, metadata: Mapping[str, Any] | None, movie_px: float | None
+) -> float:
+    """The camera pixel size (nm): given, else the analysis' (metadata), else the movie's."""
+    if given is not None:
+        return float(given)
+    params = metadata.get("params") if isinstance(metadata, Mapping) else None
+    value = params.get("pixel_size") if isinstance(params, Mapping) else None
+    if isinstance(value, int | float) and not isinstance(value, bool) and value > 0:
+        return float(value)
+    if movie_px is not None:
+        return float(movie_px)
+    raise ValueError(
+        "the overlay needs the camera pixel size: give it (--pixel-size), as neither the "
+        "table's metadata nor the movie records it"
+    )
+
+
 def write_report(
     locs: pd.DataFrame,
     path: str | Path,
@@ -275,14 +356,27 @@ def write_report(
     metadata: Mapping[str, Any] | None = None,
     title: str = "sparseloc report",
     render_px: float | None = None,
+    all_flags: bool = False,
+    movie: str | Path | None = None,
+    pixel_size: float | None = None,
 ) -> Path:
-    """Write :func:`build_report` to ``path`` (``.html``) atomically and return the path."""
+    """Write :func:`build_report` to ``path`` (``.html``) atomically and return the path;
+    parameters as :func:`build_report`."""
     p = Path(path)
     if p.suffix.lower() not in (".html", ".htm"):
         raise ValueError(f"the report is an HTML file: give a .html path, not {p.name!r}")
     if not p.parent.is_dir():
         raise ValueError(f"the folder {str(p.parent)!r} does not exist")
-    page = build_report(locs, truth=truth, metadata=metadata, title=title, render_px=render_px)
+    page = build_report(
+        locs,
+        truth=truth,
+        metadata=metadata,
+        title=title,
+        render_px=render_px,
+        all_flags=all_flags,
+        movie=movie,
+        pixel_size=pixel_size,
+    )
     return write_text_atomic(p, page)
 
 

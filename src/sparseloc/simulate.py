@@ -47,6 +47,7 @@ __all__ = [
     "filament_scene",
     "render_movie",
     "simulate",
+    "truth_path_for",
     "uniform_scene",
     "write_simulation",
 ]
@@ -497,6 +498,12 @@ def _scene_truth(
     return truth, scene_name
 
 
+def truth_path_for(path_tif: str | Path) -> Path:
+    """The ground-truth CSV written beside the movie ``path_tif``: ``OUT_truth.csv``."""
+    p = Path(path_tif)
+    return p.with_name(p.stem + "_truth.csv")
+
+
 def write_simulation(sim: Simulation, path_tif: str | Path) -> tuple[Path, Path]:
     """Write a simulation as ``OUT.tif`` (uint16 movie) and ``OUT_truth.csv``.
 
@@ -510,23 +517,29 @@ def write_simulation(sim: Simulation, path_tif: str | Path) -> tuple[Path, Path]
     Returns
     -------
     (tif_path, truth_path) : (Path, Path)
-        Paths written. Both files are written atomically.
+        Paths written. Both files are written to temporary names and renamed only when both
+        are complete, so a failure leaves neither (no movie without its truth).
     """
+    from .io.atomic import atomic_path
+    from .io.table_files import dest_path
     from .io.tiff import write_tiff
     from .io.truth import write_truth_csv
 
     p = Path(path_tif)
     if p.suffix.lower() not in (".tif", ".tiff"):
         raise ValueError(f"the movie path must end with .tif or .tiff, got {str(p)!r}")
-    truth_path = p.with_name(p.stem + "_truth.csv")
+    truth_path = truth_path_for(p)
+    for dest in (p, truth_path):
+        dest_path(dest)  # a folder in the way is refused before anything is written
     check_truth_table(sim.truth)  # fail before writing anything
     meta = {"sparseloc_" + k: v for k, v in sim.params.items() if k in ("scene", "seed")}
     meta["camera_offset_adu"] = sim.camera.offset
     meta["camera_gain_e_per_adu"] = sim.camera.gain
     meta["camera_em_gain"] = sim.camera.em_gain
     meta["camera_qe"] = sim.camera.qe
-    write_tiff(p, sim.movie, pixel_size=sim.pixel_size, metadata=meta)
-    write_truth_csv(truth_path, sim.truth)
+    with atomic_path(p) as tmp_tif, atomic_path(truth_path) as tmp_truth:
+        write_tiff(tmp_tif, sim.movie, pixel_size=sim.pixel_size, metadata=meta)
+        write_truth_csv(tmp_truth, sim.truth)
     log.info("wrote %s and %s", p, truth_path)
     return p, truth_path
 

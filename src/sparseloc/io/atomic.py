@@ -18,14 +18,20 @@ __all__ = ["atomic_path", "write_text_atomic"]
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success rename it to ``path``.
 
-    Raises ``ValueError`` if the destination folder does not exist. On any exception the
-    temporary file is removed and ``path`` is left untouched.
+    Raises ``ValueError`` if the destination folder does not exist or cannot be written in.
+    On any exception the temporary file is removed and ``path`` is left untouched.
     """
     dest = Path(path)
     folder = dest.parent if str(dest.parent) else Path(".")
     if not folder.is_dir():
         raise ValueError(f"the output folder {str(folder)!r} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=dest.suffix, dir=folder)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=dest.suffix, dir=folder)
+    except OSError as exc:  # a read-only folder, a full disk: one sentence, not a traceback
+        raise ValueError(
+            f"cannot write {dest.name!r} in the folder {str(folder)!r}: "
+            f"{exc.strerror or exc}".rstrip()
+        ) from exc
     os.close(fd)
     # mkstemp creates 0600; give the file the permissions a plain open() would have
     umask = os.umask(0)

@@ -33,7 +33,7 @@ from .table_files import (
     source_path,
 )
 
-__all__ = ["PICASSO_DTYPE", "read_picasso_hdf5", "write_picasso_hdf5"]
+__all__ = ["PICASSO_DTYPE", "psf_width_table", "read_picasso_hdf5", "write_picasso_hdf5"]
 
 # Messages keep the logger of sparseloc.io.tables, where the table formats have always logged.
 log = logging.getLogger("sparseloc.io.tables")
@@ -57,6 +57,83 @@ PICASSO_DTYPE = np.dtype(
         ("window_id", "<i8"),
     ]
 )
+
+
+#: ``/locs`` fields when the PSF widths are known: Picasso's ``sx``, ``sy`` after ``photons``.
+_DTYPE_WITH_WIDTH = np.dtype(
+    [
+        *[(n, PICASSO_DTYPE[n]) for n in PICASSO_DTYPE.names[:5]],
+        ("sx", "<f4"),
+        ("sy", "<f4"),
+        *[(n, PICASSO_DTYPE[n]) for n in PICASSO_DTYPE.names[5:]],
+    ]
+)
+
+#: Side (camera pixels) of the window over which :func:`psf_width_table` takes moments.
+_WIDTH_WINDOW = 15
+
+
+def psf_width_table(model: Any, pixel_size: float, n_planes: int = 25) -> dict[str, list[float]]:
+    """The PSF's width along x and y at ``n_planes`` depths over its axial range, for the
+    ``sx``, ``sy`` fields of a Picasso table.
+
+    Picasso's ``sx``, ``sy`` are the standard deviations of the Gaussian fitted to each spot.
+    sparseloc fits no Gaussian, so the width written is the model's: the RMS extent of its
+    unit-photon image at the row's depth (second moments over a 15 px window, negative values
+    clipped, less the ``pixel^2 / 12`` that pixelation adds). For a Gaussian PSF this is the
+    Gaussian's sigma; for a double helix it grows with the lobes' separation along each axis.
+
+    Parameters
+    ----------
+    model : PSFModel
+        The PSF model the table was localized with (anything with ``images`` and ``z_range``).
+    pixel_size : float
+        Camera pixel size (nm).
+    n_planes : int
+        Depths sampled (evenly over ``model.z_range``).
+
+    Returns
+    -------
+    dict
+        ``z_nm``, ``sx_nm``, ``sy_nm``: lists of ``n_planes`` floats (JSON-ready, for a
+        table's metadata under ``psf_width``).
+    """
+    px = _positive_number(pixel_size, "pixel_size")
+    z = np.linspace(*(float(v) for v in model.z_range), int(n_planes))
+    c = np.full(z.size, _WIDTH_WINDOW * px / 2)
+    img = np.clip(np.asarray(model.images(c, c, z, (_WIDTH_WINDOW,) * 2, px)), 0.0, None)
+    pos = (np.arange(_WIDTH_WINDOW) + 0.5) * px
+    total = img.sum(axis=(1, 2))
+    widths = []
+    for axis in (2, 1):  # x runs along columns, y along rows
+        w = img.sum(axis=3 - axis) / total[:, None]
+        mean = w @ pos
+        var = w @ pos**2 - mean**2 - px**2 / 12.0
+        widths.append(np.sqrt(np.clip(var, (0.05 * px) ** 2, None)))
+    return {"z_nm": z.tolist(), "sx_nm": widths[0].tolist(), "sy_nm": widths[1].tolist()}
+
+
+def _width_columns(
+    table: Mapping[str, Any] | None, z_nm: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """``sx``, ``sy`` (nm) of rows at depths ``z_nm``, interpolated in a :func:`psf_width_table`
+    (values beyond its range take its end values); ``None`` when ``table`` is ``None``."""
+    if table is None:
+        return None
+    try:
+        z, sx, sy = (np.asarray(table[k], dtype=np.float64) for k in ("z_nm", "sx_nm", "sy_nm"))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(
+            "psf_width must hold z_nm, sx_nm and sy_nm lists of numbers (see psf_width_table)"
+        ) from exc
+    ok = z.ndim == 1 and z.size >= 1 and z.shape == sx.shape == sy.shape
+    ok = ok and bool(np.all(np.isfinite(z)) and np.all(np.diff(z) > 0))
+    if not ok or not (np.all(sx > 0) and np.all(sy > 0)):
+        raise ValueError(
+            "psf_width must hold z_nm (increasing), sx_nm and sy_nm (> 0) of one length"
+        )
+    zq = np.nan_to_num(z_nm, nan=float(z[z.size // 2]))
+    return np.interp(zq, z, sx), np.interp(zq, z, sy)
 
 
 def _positive_number(value: Any, name: str) -> float:
@@ -101,6 +178,7 @@ def write_picasso_hdf5(
     shape: tuple[int, int],
     n_frames: int,
     metadata: Mapping[str, Any] | None = None,
+    psf_width: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write a localization table as Picasso HDF5 plus its YAML sidecar, atomically.
 
@@ -112,8 +190,15 @@ def write_picasso_hdf5(
     code; the code table is in the YAML) and ``window_id`` (int64), all float32 unless noted.
     Picasso reads extra fields as extra columns and saves them again; the flag is numeric so
     that Picasso Filter can histogram it and keep ``flag == 0`` ("ok"), which a text field
-    would not allow. ``sx`` and ``sy`` (Gaussian PSF widths) are not written: sparseloc fits
-    no Gaussian, and Picasso treats them as optional.
+    would not allow. ``sx`` and ``sy`` (Picasso's Gaussian PSF widths, camera pixels) follow
+    ``photons`` when the PSF's widths are known (``psf_width``, or the ``psf_width`` entry of
+    ``metadata`` that ``sparseloc localize`` records): sparseloc fits no Gaussian, so they are
+    the model's width at each row's depth (:func:`psf_width_table`), not a per-spot fit.
+    Without a width table they are left out (Picasso treats them as optional), never written
+    as NaN, which Picasso's loader would drop every row for.
+
+    An existing ``.yaml`` sidecar is replaced only together with its own table: one beside a
+    missing ``.hdf5`` belongs to something else and is refused.
 
     The sidecar ``path.with_suffix(".yaml")`` holds two YAML documents: first ``Width``,
     ``Height``, ``Frames``, ``Pixelsize`` (nm); then ``Generated by`` and a ``sparseloc``
@@ -138,6 +223,9 @@ def write_picasso_hdf5(
         Number of frames in the movie (``Frames``); every ``frame`` must be below it.
     metadata : dict, optional
         Analysis metadata for the second YAML document (JSON-serialisable).
+    psf_width : dict, optional
+        :func:`psf_width_table` of the PSF the table was localized with; default
+        ``metadata["psf_width"]`` when present.
 
     Returns
     -------
@@ -148,7 +236,8 @@ def write_picasso_hdf5(
     ------
     ValueError
         If the folder does not exist, the table is invalid, ``pixel_size``, ``shape`` or
-        ``n_frames`` are not positive, or a frame is ``>= n_frames``.
+        ``n_frames`` are not positive, a frame is ``>= n_frames``, the width table is
+        malformed, or the sidecar exists without the table.
     """
     t = check_locs(df)
     pixel = _positive_number(pixel_size, "pixel_size")
@@ -160,11 +249,19 @@ def write_picasso_hdf5(
         )
     meta = plain_metadata(metadata)
     dest = dest_path(path)
+    sidecar = dest.with_suffix(".yaml")
+    if sidecar.exists() and not dest.exists():
+        raise ValueError(
+            f"{str(sidecar)!r} exists without the table {dest.name!r}, so it is not that "
+            "table's sidecar; move it or choose another output name"
+        )
+    if psf_width is None and isinstance(meta.get("psf_width"), dict):
+        psf_width = meta["psf_width"]
     mapping = flag_mapping(t["flag"])
-    locs = _picasso_locs(t, pixel, mapping)
+    locs = _picasso_locs(t, pixel, mapping, _width_columns(psf_width, t["z_nm"].to_numpy()))
     info = _picasso_documents(rows, cols, frames, pixel, meta, mapping)
     yaml_text = yaml.safe_dump_all(info, default_flow_style=False, sort_keys=False)
-    with atomic_path(dest) as tmp_h5, atomic_path(dest.with_suffix(".yaml")) as tmp_yaml:
+    with atomic_path(dest) as tmp_h5, atomic_path(sidecar) as tmp_yaml:
         with h5py.File(tmp_h5, "w") as fh:
             fh.create_dataset("locs", data=locs)
             fh.create_dataset("metadata", data=json.dumps(info))
@@ -173,9 +270,17 @@ def write_picasso_hdf5(
     return dest
 
 
-def _picasso_locs(t: pd.DataFrame, pixel: float, mapping: Mapping[str, int]) -> np.ndarray:
-    """The ``/locs`` structured array of the checked table ``t`` (pixel size ``pixel`` nm)."""
-    locs = np.zeros(len(t), dtype=PICASSO_DTYPE)
+def _picasso_locs(
+    t: pd.DataFrame,
+    pixel: float,
+    mapping: Mapping[str, int],
+    widths: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """The ``/locs`` structured array of the checked table ``t`` (pixel size ``pixel`` nm),
+    with ``sx``, ``sy`` when the rows' PSF ``widths`` (nm) are given."""
+    locs = np.zeros(len(t), dtype=PICASSO_DTYPE if widths is None else _DTYPE_WITH_WIDTH)
+    if widths is not None:
+        locs["sx"], locs["sy"] = widths[0] / pixel, widths[1] / pixel
     locs["frame"] = t["frame"].to_numpy()
     locs["x"] = t["x_nm"].to_numpy() / pixel - 0.5
     locs["y"] = t["y_nm"].to_numpy() / pixel - 0.5
@@ -209,7 +314,8 @@ def _picasso_documents(
                 "metadata": meta,
                 "flag_codes": mapping,
                 "coordinates": (
-                    "x, y, lpx, lpy in camera pixels with the centre of the first pixel at 0; "
+                    "x, y, lpx, lpy, sx, sy in camera pixels with the centre of the first "
+                    "pixel at 0; sx, sy the PSF model's width at the row's z, not a fit; "
                     "z, lpz in nm; photons, bg (per pixel) in photons; frame 0-based"
                 ),
             },

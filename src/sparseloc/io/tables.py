@@ -179,9 +179,49 @@ def read_parquet(path: str | Path) -> tuple[pd.DataFrame, dict[str, Any]]:
     except (pa.ArrowInvalid, OSError) as exc:
         raise ValueError(f"{str(src)!r} is not a readable Parquet file ({exc})") from exc
     raw = (arrow.schema.metadata or {}).get(_PARQUET_KEY)
-    meta: dict[str, Any] = json.loads(raw.decode("utf-8")) if raw else {}
+    meta = _checked_metadata(raw, src.name) if raw else {}
     df = check_locs(arrow.to_pandas(), what=src.name)
     return df, meta
+
+
+def _is_number(value: Any, *, whole: bool = False) -> bool:
+    kinds = (int, np.integer) if whole else (int, float, np.integer, np.floating)
+    return isinstance(value, kinds) and not isinstance(value, bool) and np.isfinite(value)
+
+
+def _checked_metadata(raw: bytes, name: str) -> dict[str, Any]:
+    """The sparseloc metadata of a Parquet file, with the entries that commands compute with
+    (``params.pixel_size``, ``shape``, ``frames``, ``n_frames``) checked, so that a damaged or
+    foreign file is refused in one sentence instead of failing later."""
+    where = f"the sparseloc metadata of {name}"
+    try:
+        meta = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise ValueError(f"{where} is not JSON ({exc})") from exc
+    if not isinstance(meta, dict):
+        raise ValueError(f"{where} is a JSON {type(meta).__name__}, not an object")
+    params = meta.get("params")
+    if params is not None and not isinstance(params, dict):
+        raise ValueError(f"{where} holds params that are not an object: {params!r}")
+    pixel = (params or {}).get("pixel_size")
+    if pixel is not None and not (_is_number(pixel) and pixel > 0):
+        raise ValueError(f"{where} holds a pixel_size that is not a number > 0: {pixel!r}")
+    for key in ("shape", "frames"):
+        value = meta.get(key)
+        if value is None:
+            continue
+        if not (
+            isinstance(value, list)
+            and len(value) >= 2
+            and all(_is_number(v, whole=True) and v >= 0 for v in value)
+        ):
+            raise ValueError(
+                f"{where} holds a {key} that is not a list of whole numbers: {value!r}"
+            )
+    n_frames = meta.get("n_frames")
+    if n_frames is not None and not (_is_number(n_frames, whole=True) and n_frames > 0):
+        raise ValueError(f"{where} holds an n_frames that is not a whole number > 0")
+    return meta
 
 
 # --------------------------------------------------------------------------------------------

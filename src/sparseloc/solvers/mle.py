@@ -33,9 +33,12 @@ nm, photons), with the background parameters in ``F``. Goodness of fit: the devi
 ``2 w sum(y log(y / mu) - (y - mu))`` per degree of freedom, with the likelihood's weight ``w``
 (EMCCD, ``qe``), about 1 for a good fit.
 
-Flags (one string per emitter, ``"ok"`` when fine): ``"z_edge"`` (z within 1 nm of the model's
-range, where the true z may lie outside), ``"outside"`` (x or y outside the window),
-``"not_converged"``, ``"diverged"`` (non-finite or vanishing photons).
+Flags (one string per emitter, ``"ok"`` when fine) and the uncertainties written with them come
+from one rule, :func:`fit_flags`: ``"z_edge"`` (z within 1 nm of the model's range, where the
+true z may lie outside), ``"outside"`` (x or y outside the window), ``"bad_sigma"`` (a Fisher
+matrix that is not positive definite, or an uncertainty that is not finite or absurd),
+``"not_converged"``, ``"diverged"`` (non-finite or vanishing photons). ``z_edge``,
+``bad_sigma`` and ``diverged`` rows have NaN uncertainties.
 """
 
 from __future__ import annotations
@@ -57,16 +60,24 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "NOISE_MODELS",
+    "SIGMA_FLOOR_NM",
     "FitResult",
     "LikelihoodProblem",
+    "background_image",
     "check_qe",
     "fit_emitters",
+    "fit_flags",
     "likelihood_weight",
 ]
 
 NOISE_MODELS = ("poisson", "emccd", "scmos")
 _MIN_PHOTONS = 1.0
 _MIN_BG = 1e-3
+#: Smallest position uncertainty (nm) a fit may report: ten times below the best optical
+#: localization precisions (tenths of a nm); a smaller one is a numerical artefact.
+SIGMA_FLOOR_NM = 0.01
+# Smallest squared Cholesky pivot of the unit-diagonal Fisher matrix that counts as informative.
+_FISHER_RCOND = 1e-12
 
 
 @dataclass
@@ -129,6 +140,25 @@ def likelihood_weight(noise: str, qe: float = 1.0) -> float:
     return (0.5 if noise == "emccd" else 1.0) * check_qe(qe)
 
 
+def background_basis(shape: tuple[int, int], plane: bool) -> list[NDArray[np.float64]]:
+    """The background's basis images over a window (see the module notes): a constant, and
+    with ``plane`` the two tilts ``u`` and ``v``."""
+    rows, cols = shape
+    u = (np.arange(cols) - (cols - 1) / 2) / max(cols / 2, 1)
+    v = (np.arange(rows) - (rows - 1) / 2) / max(rows / 2, 1)
+    basis = [np.ones(shape)]
+    if plane:
+        basis += [np.broadcast_to(u[None, :], shape), np.broadcast_to(v[:, None], shape)]
+    return basis
+
+
+def background_image(b: ArrayLike, shape: tuple[int, int]) -> NDArray[np.float64]:
+    """The background (photons/pixel) of parameters ``b`` (1 or 3 values) over a window."""
+    b = np.asarray(b, dtype=np.float64).ravel()
+    basis = background_basis(shape, b.size == 3)
+    return sum(bi * bb for bi, bb in zip(b, basis, strict=True))
+
+
 class LikelihoodProblem:
     """The window, the PSF and the noise model: likelihood, gradient and Fisher matrix."""
 
@@ -172,14 +202,7 @@ class LikelihoodProblem:
         rows, cols = y.shape
         self.plane = plane
         self.n_bg = 3 if plane else 1
-        u = (np.arange(cols) - (cols - 1) / 2) / max(cols / 2, 1)
-        v = (np.arange(rows) - (rows - 1) / 2) / max(rows / 2, 1)
-        self.bg_basis = [np.ones(y.shape)]
-        if plane:
-            self.bg_basis += [
-                np.broadcast_to(u[None, :], y.shape),
-                np.broadcast_to(v[:, None], y.shape),
-            ]
+        self.bg_basis = background_basis(y.shape, plane)
         self.zlo, self.zhi = model.z_range
         m = xy_margin * self.px
         self.xlo = self.origin[0] - m
@@ -406,37 +429,124 @@ def _numba_fit(prob: LikelihoodProblem, theta, lo, hi, max_iter: int, tol: float
     return theta, mu, float(f), fisher, bool(converged), int(n_iter)
 
 
-def _result(prob: LikelihoodProblem, theta, mu, f, fisher, converged, n_iter) -> FitResult:
-    """The :class:`FitResult` of a fit that ended at ``theta`` (``fisher``: its Fisher
-    matrix, from which the standard errors come)."""
-    em, b = prob.split(theta)
+def _standard_errors(fisher: NDArray) -> tuple[NDArray, bool]:
+    """``sqrt(diag(F^-1))`` and whether ``F`` is positive definite.
+
+    ``F`` is scaled to unit diagonal before the Cholesky test, so that parameters of different
+    units (nm, photons) do not decide it; a matrix that fails it has no inverse that is a
+    covariance, and its standard errors are all NaN.
+    """
+    f = np.asarray(fisher, dtype=np.float64)
+    d = np.diag(f)
+    if f.size == 0 or not np.all(np.isfinite(f)) or np.any(d <= 0):
+        return np.full(len(d), np.nan), False
+    s = np.sqrt(d)
+    corr = f / np.outer(s, s)
     try:
-        cov = np.linalg.inv(fisher)
-        var = np.diag(cov)
+        chol = np.linalg.cholesky(corr)
     except np.linalg.LinAlgError:
-        var = np.diag(np.linalg.pinv(fisher))
-    sd = np.sqrt(np.where(var > 0, var, np.nan))
+        return np.full(len(d), np.nan), False
+    # A near-zero pivot means a combination of parameters the data do not constrain.
+    if np.min(np.diag(chol)) ** 2 < _FISHER_RCOND:
+        return np.full(len(d), np.nan), False
+    inv = np.linalg.inv(corr)
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(np.diag(inv)) / s, True
+
+
+def fit_flags(
+    emitters: NDArray,
+    sigma: NDArray,
+    *,
+    z_range: tuple[float, float],
+    window: tuple[float, float, float, float],
+    converged: bool,
+    fisher_ok: bool = True,
+) -> tuple[NDArray[np.float64], NDArray[np.str_]]:
+    """The one rule that turns a fit's standard errors into the uncertainties and flags written
+    to a localization table.
+
+    A flag other than ``"ok"`` names the first reason, in this order: ``"diverged"``
+    (non-finite position or photons at their floor), ``"outside"`` (x or y outside the window),
+    ``"z_edge"`` (z within 1 nm of the model's z range, where the true z may lie beyond it),
+    ``"bad_sigma"`` (the Fisher matrix is not positive definite, or an uncertainty is not
+    finite, is larger than the window along x or y or than the z range along z, or is below
+    :data:`SIGMA_FLOOR_NM`), ``"not_converged"``. Rows flagged ``"diverged"``, ``"z_edge"`` or
+    ``"bad_sigma"`` get NaN uncertainties: their Cramer-Rao bound does not describe the error.
+
+    Parameters
+    ----------
+    emitters : ndarray, shape (K, 4)
+        Fitted ``x, y, z`` (nm) and photons.
+    sigma : ndarray, shape (K, 4)
+        Standard errors of ``x, y, z`` (nm) and photons, ``sqrt(diag(F^-1))``.
+    z_range : (float, float)
+        The PSF model's z range (nm).
+    window : (x0, y0, x1, y1)
+        Edges of the fitted window (nm).
+    converged : bool
+        Whether the fit converged.
+    fisher_ok : bool
+        Whether the Fisher matrix was positive definite.
+
+    Returns
+    -------
+    sigma : ndarray, shape (K, 4)
+        The uncertainties to write (nm, nm, nm, photons), NaN where the rule voids them.
+    flags : ndarray of str, shape (K,)
+    """
+    em = np.asarray(emitters, dtype=np.float64).reshape(-1, 4)
+    sd = np.array(sigma, dtype=np.float64).reshape(-1, 4)
     k = len(em)
     flags = np.full(k, "ok", dtype="<U16")
-    if k:
-        at_edge = (em[:, 2] <= prob.zlo + 1.0) | (em[:, 2] >= prob.zhi - 1.0)
-        rows, cols = prob.shape
-        outside = (
-            (em[:, 0] < prob.origin[0])
-            | (em[:, 0] > prob.origin[0] + cols * prob.px)
-            | (em[:, 1] < prob.origin[1])
-            | (em[:, 1] > prob.origin[1] + rows * prob.px)
-        )
-        bad = ~np.all(np.isfinite(em), axis=1) | (em[:, 3] <= _MIN_PHOTONS * 1.01)
-        flags[at_edge] = "z_edge"
-        flags[outside] = "outside"
-        if not converged:
-            flags[flags == "ok"] = "not_converged"
-        flags[bad] = "diverged"
+    if k == 0:
+        return sd, flags
+    zlo, zhi = (float(v) for v in z_range)
+    x0, y0, x1, y1 = (float(v) for v in window)
+    with np.errstate(invalid="ignore"):
+        upper = np.array([x1 - x0, y1 - y0, zhi - zlo])
+        bad_sd = ~np.all(np.isfinite(sd), axis=1) | ~np.all(sd[:, 3:] > 0, axis=1)
+        bad_sd |= np.any((sd[:, :3] > upper) | (sd[:, :3] < SIGMA_FLOOR_NM), axis=1)
+        bad_sd |= not fisher_ok
+        at_edge = (em[:, 2] <= zlo + 1.0) | (em[:, 2] >= zhi - 1.0)
+        outside = (em[:, 0] < x0) | (em[:, 0] > x1) | (em[:, 1] < y0) | (em[:, 1] > y1)
+        diverged = ~np.all(np.isfinite(em), axis=1) | (em[:, 3] <= _MIN_PHOTONS * 1.01)
+    if not converged:
+        flags[:] = "not_converged"
+    # Later assignments win: the list runs from the weakest reason to the strongest.
+    flags[bad_sd] = "bad_sigma"
+    flags[at_edge] = "z_edge"
+    flags[outside] = "outside"
+    flags[diverged] = "diverged"
+    sd[bad_sd | at_edge | diverged] = np.nan
+    return sd, flags
+
+
+def _result(prob: LikelihoodProblem, theta, mu, f, fisher, converged, n_iter) -> FitResult:
+    """The :class:`FitResult` of a fit that ended at ``theta`` (``fisher``: its Fisher
+    matrix, from which the standard errors come; flags by :func:`fit_flags`)."""
+    em, b = prob.split(theta)
+    sd, fisher_ok = _standard_errors(fisher)
+    k = len(em)
+    rows, cols = prob.shape
+    window = (
+        prob.origin[0],
+        prob.origin[1],
+        prob.origin[0] + cols * prob.px,
+        prob.origin[1] + rows * prob.px,
+    )
+    sigma, flags = fit_flags(
+        em,
+        sd[: 4 * k].reshape(k, 4),
+        z_range=(prob.zlo, prob.zhi),
+        window=window,
+        converged=converged,
+        fisher_ok=fisher_ok,
+    )
     dof = max(prob.y.size - theta.size, 1)
     return FitResult(
         emitters=Emitters.from_array(em),
-        sigma=sd[: 4 * k].reshape(k, 4),
+        sigma=sigma,
         background=b.copy(),
         background_sigma=sd[4 * k :],
         model_image=mu,

@@ -1,0 +1,372 @@
+"""Issue 27 items 1, 10 and 19 (render/report/merge): impossible uncertainties are flagged, every
+consumer treats flagged rows by one rule, absurd coordinates and frames cannot blow up memory,
+and ``sparseloc overlay`` draws localizations over a frame of the movie."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from sparseloc.cli import app
+from sparseloc.io.tables import complete_locs, read_parquet, write_table
+from sparseloc.psf import make_psf
+from sparseloc.solvers import Emitters
+from sparseloc.solvers.refine import fit_emitters
+
+PX = 100.0
+runner = CliRunner()
+
+
+def _table(n: int = 300, seed: int = 0) -> pd.DataFrame:
+    rng = np.random.default_rng(seed)
+    df = pd.DataFrame(
+        {
+            "frame": rng.integers(0, 50, n),
+            "x_nm": rng.uniform(0, 5000, n),
+            "y_nm": rng.uniform(0, 5000, n),
+            "z_nm": rng.uniform(-300, 300, n),
+            "photons": 2000.0,
+            "sigma_x_nm": 10.0,
+            "sigma_y_nm": 10.0,
+            "sigma_z_nm": 30.0,
+            "gof": 1.0,
+        }
+    )
+    return complete_locs(df)
+
+
+def _with_bad_rows(df: pd.DataFrame) -> pd.DataFrame:
+    """Rows as an old ``localize`` wrote them: flagged, with absurd or NaN uncertainties."""
+    t = df.copy()
+    t.loc[:59, "flag"] = "z_edge"
+    t.loc[:19, "sigma_z_nm"] = 9.7e9
+    t.loc[20:39, "sigma_z_nm"] = 1e-14
+    t.loc[40:59, ["sigma_x_nm", "sigma_y_nm", "sigma_z_nm"]] = np.nan
+    return t
+
+
+def _window(model, truth, shape=(17, 17), background=10.0, seed=0):
+    t = np.atleast_2d(truth)
+    mu = model.render(t[:, 0], t[:, 1], t[:, 2], t[:, 3], shape, PX) + background
+    return np.random.default_rng(seed).poisson(mu).astype(float)
+
+
+# -- item 1: the rule that writes uncertainties and flags --------------------------------------
+
+
+def test_fit_flags_rule_nans_impossible_uncertainties():
+    from sparseloc.solvers.mle import fit_flags
+
+    em = np.array(
+        [
+            [800.0, 800.0, 0.0, 3000.0],  # fine
+            [800.0, 800.0, 0.0, 3000.0],  # sigma_z 1e9 nm
+            [800.0, 800.0, 0.0, 3000.0],  # sigma_x 1e-14 nm
+            [800.0, 800.0, 0.0, 3000.0],  # NaN sigma
+            [800.0, 800.0, 1000.0, 3000.0],  # z on the range's edge
+        ]
+    )
+    good = [8.0, 8.0, 20.0, 60.0]
+    sd = np.array(
+        [good, [8.0, 8.0, 1e9, 60.0], [1e-14, 8.0, 20.0, 60.0], [8.0, np.nan, 20.0, 60.0], good]
+    )
+    sigma, flags = fit_flags(
+        em, sd, z_range=(-1000.0, 1000.0), window=(0.0, 0.0, 1700.0, 1700.0), converged=True
+    )
+    assert flags[0] == "ok" and np.allclose(sigma[0], good)
+    assert list(flags[1:4]) == ["bad_sigma"] * 3
+    assert flags[4] == "z_edge"
+    assert np.isnan(sigma[1:]).all()
+    # a Fisher matrix that is not positive definite voids every emitter of the fit
+    sigma, flags = fit_flags(
+        em[:1],
+        sd[:1],
+        z_range=(-1000.0, 1000.0),
+        window=(0.0, 0.0, 1700.0, 1700.0),
+        converged=True,
+        fisher_ok=False,
+    )
+    assert flags[0] == "bad_sigma" and np.isnan(sigma).all()
+
+
+def test_fit_at_the_z_edge_has_nan_uncertainties(dh_model):
+    narrow = make_psf("dh", z_range=(-300.0, 300.0))
+    img = _window(dh_model, [[850.0, 850.0, 700.0, 3000.0]], seed=6)
+    fit = fit_emitters(
+        img, narrow, Emitters.from_array([[850.0, 850.0, 200.0, 3000.0]]), pixel_size=PX
+    )
+    assert fit.flags[0] == "z_edge"
+    assert np.isnan(fit.sigma[0]).all()
+
+
+def test_fit_with_a_singular_fisher_matrix_is_flagged():
+    model = make_psf("dh-analytic")
+    img = _window(model, [[850.0, 850.0, 0.0, 3000.0]], seed=1)
+    # two identical starting emitters stay identical: their parameters cannot be told apart
+    start = Emitters.from_array([[850.0, 850.0, 0.0, 1500.0], [850.0, 850.0, 0.0, 1500.0]])
+    fit = fit_emitters(img, model, start, pixel_size=PX)
+    assert np.all(fit.flags != "ok")
+    assert np.isnan(fit.sigma).all()
+
+
+def test_well_posed_fit_keeps_its_uncertainties():
+    model = make_psf("dh-analytic")
+    truth = np.array([[860.0, 830.0, 250.0, 3000.0]])
+    img = _window(model, truth, seed=2)
+    fit = fit_emitters(img, model, Emitters.from_array(truth + 20.0), pixel_size=PX)
+    assert fit.flags[0] == "ok"
+    assert np.all(np.isfinite(fit.sigma)) and 1.0 < fit.sigma[0, 0] < 50.0
+
+
+# -- item 1: one rule for the consumers ---------------------------------------------------------
+
+
+def test_usable_locs_excludes_flagged_rows_unless_all_flags():
+    from sparseloc.postprocess import usable_locs
+
+    t = _with_bad_rows(_table())
+    assert len(usable_locs(t)) == len(t) - 60
+    assert (usable_locs(t)["flag"] == "ok").all()
+    assert len(usable_locs(t, all_flags=True)) == len(t)
+
+
+def test_render_excludes_flagged_rows_and_all_flags_includes_them(tmp_path):
+    src = tmp_path / "locs.parquet"
+    write_table(_with_bad_rows(_table()), src)
+    r = runner.invoke(app, ["render", str(src), "-o", str(tmp_path / "a.png")])
+    assert r.exit_code == 0, r.output
+    assert "60 flagged" in r.output
+    r = runner.invoke(app, ["render", str(src), "--all-flags", "-o", str(tmp_path / "b.png")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "b.png").stat().st_size > 0
+
+
+def test_render_memory_is_bounded_by_the_image_not_the_sigmas():
+    from sparseloc.render import render_gaussian
+
+    t = _table()
+    t.loc[:100, ["sigma_x_nm", "sigma_y_nm"]] = 2e9  # a third of the rows, beyond the 95th pct
+    img = render_gaussian(t, px_nm=10.0)
+    # the image covers the data (5 um) and a margin, not 4 x 2e9 nm
+    assert max(img.density.shape) * 10.0 < 50_000
+
+
+def test_report_excludes_flagged_rows(tmp_path):
+    from sparseloc.report import build_report
+
+    t = _with_bad_rows(_table())
+    page = build_report(t)
+    assert "excluded 60 flagged" in page
+    page = build_report(t, all_flags=True)
+    assert "excluded 60 flagged" not in page
+
+
+def test_evaluate_excludes_flagged_rows(tmp_path):
+    from sparseloc.evaluate import evaluate
+
+    t = _table()
+    truth = t[["frame", "x_nm", "y_nm", "z_nm", "photons"]].copy()
+    t.loc[:99, "flag"] = "z_edge"
+    assert evaluate(t, truth).n_locs == len(t) - 100
+    assert evaluate(t, truth, all_flags=True).n_locs == len(t)
+    src, tr = tmp_path / "l.parquet", tmp_path / "truth.csv"
+    write_table(t, src)
+    truth.to_csv(tr, index=False)
+    r = runner.invoke(app, ["evaluate", str(src), str(tr), "--all-flags"])
+    assert r.exit_code == 0, r.output
+
+
+def test_drift_accepts_all_flags(tmp_path):
+    from sparseloc.drift_common import read_locs
+
+    t = _table()
+    t.loc[:99, "flag"] = "z_edge"
+    assert len(read_locs(t).frame) == len(t) - 100
+    assert len(read_locs(t, all_flags=True).frame) == len(t)
+    src = tmp_path / "l.parquet"
+    write_table(t, src)
+    r = runner.invoke(
+        app, ["drift", str(src), "--all-flags", "--segments", "2", "-o", str(tmp_path / "d.csv")]
+    )
+    assert "No such option" not in r.output
+
+
+def test_filter_merge_excludes_flagged_rows(tmp_path):
+    t = _table()
+    t.loc[:99, "flag"] = "z_edge"
+    src, out = tmp_path / "l.parquet", tmp_path / "m.parquet"
+    write_table(t, src)
+    r = runner.invoke(app, ["filter", str(src), "--merge", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    merged, _ = read_parquet(out)
+    assert (merged["flag"] == "ok").all()
+
+
+# -- item 19: absurd coordinates, frames and all-NaN tables -------------------------------------
+
+
+@pytest.mark.parametrize("bad", [np.inf, 1e300])
+def test_render_drops_absurd_coordinates_with_a_warning(tmp_path, bad, caplog):
+    t = _table()
+    t.loc[:4, "x_nm"] = bad
+    src, out = tmp_path / "l.parquet", tmp_path / "r.png"
+    write_table(t, src)
+    with caplog.at_level(logging.WARNING):
+        r = runner.invoke(app, ["render", str(src), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    assert r.exception is None
+    assert any("5 localizations" in m and "coordinate" in m for m in caplog.messages), (
+        caplog.messages
+    )
+    assert out.stat().st_size > 0
+
+
+@pytest.mark.parametrize("bad", [np.inf, 1e300])
+def test_report_drops_absurd_coordinates(tmp_path, bad, caplog):
+    t = _table()
+    t.loc[:4, "y_nm"] = bad
+    src, out = tmp_path / "l.parquet", tmp_path / "r.html"
+    write_table(t, src)
+    with caplog.at_level(logging.WARNING):
+        r = runner.invoke(app, ["report", str(src), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    assert r.exception is None
+    assert any("5 localizations" in m and "coordinate" in m for m in caplog.messages)
+    assert out.is_file()
+
+
+def test_report_with_a_huge_frame_number_stays_small(tmp_path):
+    from sparseloc.report import build_report
+
+    t = _table()
+    t.loc[0, "frame"] = 2**40
+    page = build_report(t)  # the old code asked for 8 TiB
+    assert "<img" in page
+
+
+def test_filter_merge_of_an_all_nan_table_is_one_sentence(tmp_path):
+    t = _table()
+    for c in ["x_nm", "y_nm", "z_nm", "photons", "sigma_x_nm", "sigma_y_nm", "sigma_z_nm"]:
+        t[c] = np.nan
+    src, out = tmp_path / "nan.parquet", tmp_path / "m.parquet"
+    write_table(t, src)
+    r = runner.invoke(app, ["filter", str(src), "--merge", "-o", str(out)])
+    assert r.exit_code == 2, r.output
+    assert "Traceback" not in r.output
+    assert r.exception is None or isinstance(r.exception, SystemExit)
+    assert r.output.strip().startswith("error:") and r.output.count("\n") == 1
+    assert not out.exists()
+
+
+def test_merge_blinks_of_nan_positions_does_not_crash():
+    from sparseloc.postprocess import merge_blinks
+
+    t = _table(5)
+    t["x_nm"] = np.nan
+    assert len(merge_blinks(t)) == 5
+
+
+# -- item 10: overlay ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def movie_and_locs(tmp_path_factory):
+    """A small dense simulated movie and localizations of its emitters (truth + noise)."""
+    import tifffile
+
+    tmp = tmp_path_factory.mktemp("overlay")
+    model = make_psf("dh-analytic")
+    rng = np.random.default_rng(5)
+    frames, rows = [], []
+    for f in range(3):
+        k = 12
+        em = np.column_stack(
+            [
+                rng.uniform(300, 2900, k),
+                rng.uniform(300, 2900, k),
+                rng.uniform(-400, 400, k),
+                rng.uniform(2000, 4000, k),
+            ]
+        )
+        mu = model.render(em[:, 0], em[:, 1], em[:, 2], em[:, 3], (32, 32), PX) + 10.0
+        frames.append(rng.poisson(mu).astype(np.uint16) + 100)
+        for e in em:
+            rows.append((f, *e))
+    movie = tmp / "movie.tif"
+    tifffile.imwrite(movie, np.stack(frames), photometric="minisblack")
+    df = pd.DataFrame(rows, columns=["frame", "x_nm", "y_nm", "z_nm", "photons"])
+    df["x_nm"] += rng.normal(0, 10, len(df))
+    df = complete_locs(df)
+    df.loc[::5, "flag"] = "z_edge"
+    locs = tmp / "locs.parquet"
+    write_table(df, locs)
+    return movie, locs, df
+
+
+def test_overlay_library_draws_a_frame(movie_and_locs, tmp_path):
+    from sparseloc.overlay import plot_overlay
+
+    movie, _, df = movie_and_locs
+    from sparseloc.io.movie import Movie
+
+    with Movie.open(movie) as m:
+        frame = m[1]
+    out = plot_overlay(frame, df, frame_index=1, pixel_size=PX, path=tmp_path / "o.png")
+    assert out.stat().st_size > 1000
+
+
+def test_overlay_cli_writes_a_png(movie_and_locs, tmp_path):
+    movie, locs, _ = movie_and_locs
+    out = tmp_path / "overlay.png"
+    r = runner.invoke(
+        app,
+        ["overlay", str(movie), str(locs), "--frame", "1", "--pixel-size", "100", "-o", str(out)],
+    )
+    assert r.exit_code == 0, r.output
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not list(tmp_path.glob("*.tmp*"))
+
+
+def test_overlay_cli_refuses_a_frame_outside_the_movie(movie_and_locs, tmp_path):
+    movie, locs, _ = movie_and_locs
+    out = tmp_path / "overlay.png"
+    r = runner.invoke(
+        app,
+        ["overlay", str(movie), str(locs), "--frame", "7", "--pixel-size", "100", "-o", str(out)],
+    )
+    assert r.exit_code == 2
+    assert r.output.startswith("error:") and "frame" in r.output
+    assert not out.exists()
+
+
+def test_report_with_the_movie_has_an_overlay(movie_and_locs, tmp_path):
+    movie, locs, _ = movie_and_locs
+    out = tmp_path / "r.html"
+    r = runner.invoke(
+        app, ["report", str(locs), "--movie", str(movie), "--pixel-size", "100", "-o", str(out)]
+    )
+    assert r.exit_code == 0, r.output
+    page = out.read_text()
+    assert "Localizations over frame" in page
+
+
+def test_report_without_the_movie_has_no_overlay(movie_and_locs):
+    from sparseloc.report import build_report
+
+    _, _, df = movie_and_locs
+    assert "Localizations over frame" not in build_report(df)
+
+
+def test_warnings_name_the_dropped_rows(caplog):
+    from sparseloc.postprocess import usable_locs
+
+    t = _table()
+    t.loc[:2, "x_nm"] = np.inf
+    with caplog.at_level(logging.WARNING):
+        out = usable_locs(t)
+    assert len(out) == len(t) - 3
+    assert any("3 localizations" in r.getMessage() for r in caplog.records)
