@@ -190,13 +190,14 @@ def test_z0_slice_and_gain(scan):
 # -- rejection -----------------------------------------------------------------------------
 
 # (col, row) in pixels: three good beads, one at the edge, a pair 17 px apart (closer than
-# the ROI), a bright bead. The ROI is given so that the reasons do not hang on the default ROI
+# the ROI, but their cores do not overlap: both are used, each cleaned of the other's light),
+# a bright bead. The ROI is given so that the reasons do not hang on the default ROI
 # estimate. A pair much closer (13 px) is found as one bead: see
 # test_rejected_outlier_leaves_no_trace.
 ROI = 21
 REJECT_PX = np.array([(30, 30), (90, 30), (30, 90), (4, 60), (75, 75), (92, 75), (62, 105)])
 REJECT_PHOTONS = np.array([PHOTONS] * 6 + [2 * PHOTONS])
-EXPECTED = ["", "", "", "edge", "too close to another bead", "too close to another bead"]
+EXPECTED = ["", "", "", "edge", "", ""]
 
 
 @pytest.fixture(scope="module")
@@ -222,8 +223,11 @@ def test_edge_close_and_saturated_beads_are_rejected(crowded):
     cal = calibrate_beads(movie, PX, Z_STEP, offset=OFFSET, saturation=1300.0, roi_size=ROI)
     assert cal.params["roi_size_px"] == ROI
     check_reasons(cal.beads, positions, "saturated")
-    assert cal.n_used == 3
-    assert cal.bead_ncc.shape[0] == 3
+    assert cal.n_used == 5
+    assert cal.bead_ncc.shape[0] == 5
+    assert cal.params["n_beads_with_neighbours"] == 2
+    # the pair's neighbour light was removed: each agrees with the model as the others do
+    assert np.median(cal.bead_ncc, axis=1).min() > 0.99
 
 
 def test_bead_at_the_integer_type_maximum_is_saturated(crowded):
@@ -714,3 +718,34 @@ def test_tables_record_the_hash_that_calibrate_prints(tmp_path, cal, scan):
     assert (
         res.metadata["psf_hash"] == cal.content_hash == read_calibration_info(path)["content_hash"]
     )
+
+
+# -- the model error -------------------------------------------------------------------------
+
+
+def test_model_error_is_measured_and_saved(tmp_path, cal):
+    # nine beads of one PSF: what is left beyond the Poisson noise is small
+    e = cal.params["model_error"]
+    assert 0.0 <= e < 0.03
+    assert len(cal.params["model_error_z"]) == cal.z.size
+    loaded = load_calibration(save_calibration(cal, tmp_path / "psf.h5"))
+    assert loaded.model_error == pytest.approx(e)
+
+
+def test_model_error_grows_when_the_beads_differ(cal):
+    # half the beads have wider lobes than the other half: no one model fits them all
+    positions = np.array([(x, y) for y in (25.0, 60.0, 95.0) for x in (25.0, 60.0, 95.0)]) * PX
+    narrow = simulate_scan(make_psf("dh-analytic"), positions[::2], seed=3)
+    wide = simulate_scan(make_psf("dh-analytic", lobe_sigma=190.0), positions[1::2], seed=4)
+    movie = (narrow.astype(np.int64) + wide.astype(np.int64) - int(OFFSET)).astype(np.uint16)
+    mixed = calibrate_beads(movie, PX, Z_STEP, offset=OFFSET)
+    assert mixed.n_used >= 6
+    assert mixed.params["model_error"] > max(0.05, 3 * cal.params["model_error"])
+
+
+def test_calibration_too_far_from_its_beads_is_refused(monkeypatch, scan):
+    import sparseloc.calibrate as calibrate_module
+
+    monkeypatch.setattr(calibrate_module, "MAX_MODEL_ERROR", 0.001)
+    with pytest.raises(ValueError, match=r"depart from their average by \d+ %"):
+        calibrate_beads(scan["movie"], PX, Z_STEP, offset=OFFSET)

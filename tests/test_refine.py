@@ -405,3 +405,38 @@ def test_split_merge_search_result_is_checked_on_the_model_itself(analytic, capl
         out = refine.split_merge_search(img, analytic, cs, pixel_size=PX, search_model=table)
     assert out is cs
     assert "not kept" in caplog.text
+
+
+def _relative_misfit(true_model, used_model, row) -> float:
+    """The relative rms misfit of ``used_model``'s best least-squares image of an emitter
+    drawn by ``true_model`` (noise free): the model error a calibration would measure."""
+    img = true_model.render(row[:1], row[1:2], row[2:3], row[3:4], (W, W), PX)
+    fit = fit_emitters(img + 10.0, used_model, Emitters.from_array(row[None]), pixel_size=PX)
+    signal = fit.model_image - fit.background[0]
+    return float(np.linalg.norm(img + 10.0 - fit.model_image) / np.linalg.norm(signal))
+
+
+def test_model_error_stops_additions_that_explain_only_the_model_misfit():
+    # Bright emitters drawn with wider lobes than the model: with an exact-model threshold the
+    # misfit reads as a second emitter; with the measured model error it does not, while a
+    # real second emitter is still added.
+    true_model = make_psf("dh-analytic", lobe_sigma=175.0)
+    row = np.array([850.0, 850.0, 0.0, 20000.0])
+    exact = make_psf("dh-analytic")
+    known = make_psf("dh-analytic")
+    known.model_error = _relative_misfit(true_model, exact, row)
+    assert 0.05 < known.model_error < 0.5
+    n_exact, n_known = [], []
+    for seed in range(4):
+        img = window(true_model, row, seed=seed)
+        for model, out in ((exact, n_exact), (known, n_known)):
+            fit = fit_with_count_selection(
+                img, model, Emitters.from_array(row[None]), pixel_size=PX
+            )
+            out.append(len(fit.emitters))
+    assert max(n_exact) > 1  # the misfit is read as more emitters
+    assert n_known == [1, 1, 1, 1]
+    second = np.vstack([row, [1250.0, 1000.0, 200.0, 5000.0]])
+    img = window(true_model, second, seed=9)
+    fit = fit_with_count_selection(img, known, Emitters.from_array(row[None]), pixel_size=PX)
+    assert len(fit.emitters) == 2

@@ -8,14 +8,15 @@ The steps (each a function over NumPy arrays; file reading only in :func:`calibr
    (double helix, tetrapod) may show several maxima per bead; maxima closer than half an ROI
    are merged and the bead's centre is the centroid of its z-averaged image (the midpoint of
    a double helix's lobes).
-3. ROI size from the PSF's extent (the radius beyond which every plane stays below 3 % of
-   its peak), unless given.
-4. Reject beads too close to the edge or to another bead, saturated beads, and, after
-   registration, beads whose registered stack differs from the others' average far more than
-   the rest (outliers: dirt, aggregates, a bead stuck to another one).
+3. ROI size from the PSF's light: it holds 97 % of a plane's light on average
+   (:mod:`sparseloc.calibrate_crowd`), unless given.
+4. Reject beads too close to the edge, beads whose cores overlap another's, saturated beads,
+   and, after registration, beads whose registered stack differs from the others' average far
+   more than the rest (outliers: dirt, aggregates, a bead stuck to another one).
 5. Register beads to each other in x, y, z with sub-pixel accuracy by fitting each bead with
    the spline model of the current average (Gauss-Newton on shift and scale), resample, and
-   average weighted by brightness; repeat.
+   average weighted by brightness; repeat. Where beads lie closer than an ROI, each bead's
+   ROI is cleaned of its neighbours' modelled light and the beads are registered again.
 6. Subtract what is left of the background (the median of the ROI's border per plane),
    normalise each plane to one photon, and build a :class:`~sparseloc.psf.spline.SplinePSF`.
 
@@ -37,6 +38,8 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
+from .calibrate_crowd import LightProfile, light_profile, neighbour_light, plane_photons
+from .calibrate_error import MAX_MODEL_ERROR, bead_model_error
 from .calibrate_scan import BeadScan, read_bead_positions, read_scan, read_z_file
 from .psf.spline import SplinePSF
 
@@ -183,28 +186,6 @@ def find_beads(
         if all((r - r0) ** 2 + (c - c0) ** 2 > (merge_radius / 2) ** 2 for r0, c0 in merged):
             merged.append((r, c))
     return np.array(merged, dtype=np.float64).reshape(-1, 2)
-
-
-def _extent(stack: NDArray[np.float64], centre: tuple[float, float], max_radius: int) -> float:
-    """Radius (px) beyond which every plane's azimuthal median stays under 3 % of the peak.
-
-    The median over each ring ignores neighbouring beads, which fill only part of a ring;
-    averaging 5 neighbouring planes first takes the integer steps out of camera counts.
-    """
-    from scipy.ndimage import uniform_filter1d
-
-    stack = uniform_filter1d(stack, min(5, stack.shape[0]), axis=0)
-    nz, h, w = stack.shape
-    rows, cols = np.indices((h, w))
-    rb = np.round(np.hypot(rows - centre[0], cols - centre[1])).astype(int).ravel()
-    flat = stack.reshape(nz, -1)
-    prof = np.zeros((nz, max_radius + 1))  # (nz, radii); an empty ring (r = 0) stays 0
-    for k in range(max_radius + 1):
-        idx = np.nonzero(rb == k)[0]
-        if idx.size:
-            prof[:, k] = np.median(flat[:, idx], axis=1)
-    above = np.nonzero((prof >= 0.03 * prof.max()).any(axis=0))[0]
-    return float(above.max()) if above.size else 0.0
 
 
 def _roi(stack: NDArray[np.float64], r: int, c: int, half: int) -> NDArray[np.float64]:
@@ -369,13 +350,20 @@ def _calibrate_scan(
     """Find the beads, vet them, register and average them, and build the spline model."""
     p, step = scan.pixel_size, scan.step
     centres = _detect(scan.projection, detect_sigma, threshold, roi_size)
-    roi, half = _roi_size(scan.data, centres, roi_size)
-    reason, used = _vet_beads(centres, half, roi, scan)
+    roi, half, profile = _roi_size(scan.data, centres, roi_size)
+    # Beads share one PSF, so a neighbour's light can be modelled and removed; only beads
+    # whose cores overlap are rejected.
+    core = profile.core if profile is not None else half / 2.0
+    reason, used = _vet_beads(centres, half, 2.0 * max(core, 1.0), scan)
     nb = centres.shape[0]
     residual = dict.fromkeys(range(nb), np.nan)
     stacks = _BeadStacks(scan.data, centres, used, half, p, step)
-    used, avg = _register_beads(
-        stacks, used, reason, residual, scan.zplanes, iterations, min_beads, name
+    avg = stacks.register(used, scan.zplanes, iterations, name)
+    neighbours = _neighbour_pairs(centres, reason, roi)
+    for _ in range(NEIGHBOUR_ROUNDS if neighbours else 0):
+        avg = _without_neighbours(stacks, scan, centres, used, neighbours, avg, iterations, name)
+    used, avg = _drop_outliers(
+        stacks, used, avg, reason, residual, scan.zplanes, iterations, min_beads, name
     )
     if len(used) < min_beads:
         raise ValueError(
@@ -396,6 +384,8 @@ def _calibrate_scan(
     cr, cc = centre
     origin["centroid_over_z_nm"] = _centroid_over_z(clean, centre, half, p)
     psf = SplinePSF(clean, p, zplanes, centre=(cr, cc), name=name)
+    error = _model_error(psf, stacks, used, scan)
+    psf.model_error = error.overall  # the solvers' allowance (sparseloc.solvers.variance)
     params = {
         "pixel_size_nm": p,
         "z_step_nm": step,
@@ -408,6 +398,10 @@ def _calibrate_scan(
         "z_smooth_planes": int(zwin),
         "n_beads_found": nb,
         "n_beads_used": len(used),
+        "roi_energy_fraction": _held(profile, half),
+        "n_beads_with_neighbours": sum(1 for i in used if neighbours.get(i)),
+        "model_error": error.overall,
+        "model_error_z": [float(v) for v in error.per_plane],
         **origin,
     }
     return Calibration(
@@ -420,6 +414,23 @@ def _calibrate_scan(
         params=params,
         bead_ncc=bead_ncc,
     )
+
+
+def _model_error(psf: SplinePSF, stacks: _BeadStacks, used: list[int], scan: BeadScan):
+    """The finished model's error on its beads (:mod:`sparseloc.calibrate_error`);
+    ``ValueError`` when it is too large to trust."""
+    bg = scan.background if scan.background is not None else np.zeros(scan.zplanes.size)
+    rois = [stacks.rois[i] for i in used]
+    shifts = [_fit_shift(psf, roi, scan.zplanes)[0] for roi in rois]
+    error = bead_model_error(psf, rois, shifts, scan.zplanes, bg)
+    log.info("model error: %.1f %% of the signal per pixel (rms over planes)", 100 * error.overall)
+    if not error.overall <= MAX_MODEL_ERROR:
+        raise ValueError(
+            f"the beads depart from their average by {100 * error.overall:.0f} % of the signal "
+            f"(more than {100 * MAX_MODEL_ERROR:.0f} %), too much to trust the model: check the "
+            "z step or z file, the camera offset, and that the beads are single and not drifting"
+        )
+    return error
 
 
 def _detect(
@@ -438,38 +449,133 @@ def _detect(
 
 def _roi_size(
     data: NDArray[np.float64], centres: NDArray[np.float64], roi_size: int | None
-) -> tuple[int, int]:
-    """ROI side and half side (px): ``roi_size`` made odd, or from the PSF's extent around
-    the five brightest beads."""
-    h, w = data.shape[1:]
+) -> tuple[int, int, LightProfile | None]:
+    """ROI side and half side (px), ``roi_size`` made odd or sized to hold
+    :data:`~sparseloc.calibrate_crowd.ROI_ENERGY` of the light of the brightest beads, and
+    the light profile it came from (None where no bead leaves room to measure it)."""
+    profile = _light_profile(data, centres)
     if roi_size is None:
-        max_r = int(min(40, max(6, min(h, w) // 2 - 1)))
-        extents = []
-        for r, c in centres[:5]:
-            ri, ci = int(np.round(r)), int(np.round(c))
-            # Search as far as the frame allows around this bead (at most max_r).
-            rad = min(max_r, ri, ci, h - 1 - ri, w - 1 - ci)
-            if rad >= 6:
-                sub = _roi(data, ri, ci, rad)
-                extents.append(_extent(sub, (r - ri + rad, c - ci + rad), rad))
-        ext = float(np.median(extents)) if extents else 6.0
-        half = int(np.clip(np.ceil(ext) + 2, 5, 40))
+        half = int(np.clip(profile.half, 5, 40)) if profile is not None else 8
         roi = 2 * half + 1
-        log.info("PSF extent %.1f px: ROI %d x %d px", ext, roi, roi)
+        if profile is not None:
+            mean, least = profile.held(half)
+            log.info(
+                "ROI %d x %d px holds %.1f %% of a plane's light (at least %.1f %%)",
+                roi,
+                roi,
+                100 * mean,
+                100 * least,
+            )
     else:
         roi = int(roi_size)
         if roi < 7:
             raise ValueError(f"--roi-size must be at least 7 px, got {roi_size}")
         roi += 1 - roi % 2
         half = roi // 2
-    return roi, half
+    return roi, half, profile
+
+
+def _light_profile(data: NDArray[np.float64], centres: NDArray[np.float64]) -> LightProfile | None:
+    """The light profile of the brightest of the five brightest beads that leaves the most
+    room around it (up to 40 px), or None."""
+    h, w = data.shape[1:]
+    max_r = int(min(40, max(6, min(h, w) // 2 - 1)))
+    best: tuple[int, LightProfile] | None = None
+    for i, (r, c) in enumerate(centres[:5]):
+        ri, ci = int(np.round(r)), int(np.round(c))
+        rad = min(max_r, ri, ci, h - 1 - ri, w - 1 - ci)
+        if rad >= 6 and (best is None or rad > best[0]):
+            others = np.delete(centres, i, axis=0)
+            best = (rad, light_profile(data, (r, c), others, rad))
+    return None if best is None else best[1]
+
+
+#: Rounds of removing the neighbours' modelled light and registering again.
+NEIGHBOUR_ROUNDS = 2
+
+
+def _held(profile: LightProfile | None, half: int) -> list[float] | None:
+    """Mean and smallest fraction of a plane's light the ROI holds, where measured."""
+    return None if profile is None else [round(v, 4) for v in profile.held(half)]
+
+
+def _neighbour_pairs(
+    centres: NDArray[np.float64], reason: list[str], roi: int
+) -> dict[int, list[int]]:
+    """For each usable bead, the other beads (not at the edge) whose light can reach its ROI
+    (centres closer than an ROI diagonal)."""
+    out: dict[int, list[int]] = {}
+    ok = [j for j in range(len(centres)) if reason[j] != "edge"]
+    for i in range(len(centres)):
+        if reason[i]:
+            continue
+        d = np.hypot(*(centres[ok] - centres[i]).T)
+        near = [j for j, dj in zip(ok, d, strict=True) if j != i and dj < roi * np.sqrt(2)]
+        if near:
+            out[i] = near
+    return out
+
+
+def _without_neighbours(
+    stacks: _BeadStacks,
+    scan: BeadScan,
+    centres: NDArray[np.float64],
+    used: list[int],
+    neighbours: dict[int, list[int]],
+    avg: NDArray[np.float64],
+    iterations: int,
+    name: str,
+) -> NDArray[np.float64]:
+    """Clean each usable bead's ROI of its neighbours' light, modelled with the current
+    average at their fitted positions and brightness, and register the beads again."""
+    p, half = stacks.p, stacks.half
+    model = SplinePSF(_clean_average(avg), p, scan.zplanes, name=name)
+    placed: dict[int, tuple[float, float, float, NDArray[np.float64]]] = {}
+    for j in sorted({j for near in neighbours.values() for j in near}):
+        ri, ci = (int(v) for v in np.round(centres[j]))
+        if j in stacks.rois:
+            roi, shift = stacks.rois[j], stacks.shifts[j]
+        else:  # a bead that is not used still shines on its neighbours
+            roi = _roi(scan.data, ri, ci, half)
+            shift = _fit_shift(model, roi, scan.zplanes)[0]
+        photons = plane_photons(model, roi, shift, scan.zplanes)
+        placed[j] = ((ci + 0.5) * p + shift[0], (ri + 0.5) * p + shift[1], shift[2], photons)
+    h, w = scan.projection.shape
+    for i in used:
+        _recentre(stacks, centres, i, (h, w))
+        ri, ci = (int(v) for v in np.round(centres[i]))
+        light = neighbour_light(
+            model,
+            (ri - half, ci - half, 2 * half + 1),
+            [placed[j] for j in neighbours.get(i, [])],
+            scan.zplanes,
+        )
+        stacks.rois[i] = _roi(scan.data, ri, ci, half) - light
+    return stacks.register(used, scan.zplanes, iterations, name)
+
+
+def _recentre(
+    stacks: _BeadStacks, centres: NDArray[np.float64], i: int, shape: tuple[int, int]
+) -> None:
+    """Move bead ``i``'s ROI to the pixel nearest its fitted position (a neighbour's light
+    pulls the detected centroid), keeping its position: its centre and shift change by the
+    same whole pixels. The ROI must stay inside the frame."""
+    p, half = stacks.p, stacks.half
+    ri, ci = (int(v) for v in np.round(centres[i]))
+    dr = int(np.round(stacks.shifts[i][1] / p))
+    dc = int(np.round(stacks.shifts[i][0] / p))
+    r, c = ri + dr, ci + dc
+    if (dr or dc) and half <= r < shape[0] - half and half <= c < shape[1] - half:
+        centres[i] = (r, c)
+        stacks.shifts[i] = stacks.shifts[i] - np.array([dc * p, dr * p, 0.0])
 
 
 def _vet_beads(
-    centres: NDArray[np.float64], half: int, roi: int, scan: BeadScan
+    centres: NDArray[np.float64], half: int, min_distance: float, scan: BeadScan
 ) -> tuple[list[str], list[int]]:
     """The rejection reason of each bead ("" when usable: not at the edge, not closer than
-    an ROI to another bead, not saturated) and the usable ones; ``ValueError`` when none is."""
+    ``min_distance`` px to another bead, not saturated) and the usable ones; ``ValueError``
+    when none is."""
     h, w = scan.projection.shape
     nb = centres.shape[0]
     reason = [""] * nb
@@ -480,7 +586,7 @@ def _vet_beads(
             continue
         d = np.hypot(*(centres - centres[i]).T)
         d[i] = np.inf
-        if np.any(d < roi):
+        if np.any(d < min_distance):
             reason[i] = "too close to another bead"
             continue
         if scan.saturation is not None:
@@ -513,7 +619,7 @@ class _BeadStacks:
         p: float,
         step: float,
     ) -> None:
-        self.p, self.step = p, step
+        self.p, self.step, self.half = p, step, half
         self.rois: dict[int, NDArray[np.float64]] = {}
         self.shifts: dict[int, NDArray[np.float64]] = {}
         for i in used:
@@ -573,9 +679,10 @@ class _BeadStacks:
         return out
 
 
-def _register_beads(
+def _drop_outliers(
     stacks: _BeadStacks,
     used: list[int],
+    avg: NDArray[np.float64],
     reason: list[str],
     residual: dict[int, float],
     zplanes: NDArray[np.float64],
@@ -583,9 +690,8 @@ def _register_beads(
     min_beads: int,
     name: str,
 ) -> tuple[list[int], NDArray[np.float64]]:
-    """Register the beads, then drop clear outliers (dirt, aggregates, two beads seen as
+    """Drop clear outliers among the registered beads (dirt, aggregates, two beads seen as
     one) and register the rest again; returns the beads kept and their average."""
-    avg = stacks.register(used, zplanes, iterations, name)
     # Each bead is compared with the average of the others; the rest are registered again
     # from scratch, so that nothing fitted against a bad bead remains.
     for _ in range(3):

@@ -117,6 +117,7 @@ class BeadScan:
     sat_frames: NDArray  # the ADU frames the saturation test looks at
     offset: float  # ADU
     gain: float  # photons per ADU
+    background: NDArray[np.float64] | None = None  # (Nz,) each frame's background (photons/px)
 
 
 def read_scan(
@@ -148,7 +149,9 @@ def read_scan(
     if np.median(bg) < 0 and offset > 0:
         raise ValueError(f"the offset {offset:g} ADU is above most pixel values; check --offset")
     data = photons - bg[:, None, None]
-    return BeadScan(data, data.mean(axis=0), zplanes, step, p, saturation, sat_frames, offset, gain)
+    return BeadScan(
+        data, data.mean(axis=0), zplanes, step, p, saturation, sat_frames, offset, gain, bg
+    )
 
 
 def _checked_stack(

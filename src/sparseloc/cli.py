@@ -657,6 +657,10 @@ def calibrate(
         f"{cal.z[0]:.0f}..{cal.z[-1]:.0f} nm, ROI {nr} x {nc} px; hash {cal.content_hash}; "
         f"{time.perf_counter() - t0:.1f} s"
     )
+    typer.echo(
+        f"  model error: the beads depart from the model by {100 * cal.params['model_error']:.1f} %"
+        " of their signal per pixel (rms beyond noise; the count selection allows for it)"
+    )
     wander = cal.params["centroid_over_z_nm"]
     typer.echo(
         f"  model origin: {cal.params['lateral_origin']}; each plane's light centroid lies "

@@ -502,7 +502,16 @@ def plot_calibration(cal, path: str | Path, *, n_planes: int = 7) -> Path:
         a.set_ylim(max(0.0, float(np.nanmin(cal.bead_ncc)) - 0.02), 1.0)
     a.set_xlabel("z (nm)")
     a.set_ylabel("bead vs average NCC")
-    a.set_title(f"residual scale: +-{res_lim:.2g} of a unit-photon plane", fontsize=9)
+    title = f"residual scale: +-{res_lim:.2g} of a unit-photon plane"
+    err_z = cal.params.get("model_error_z")
+    if err_z is not None and len(err_z) == len(z):
+        # the model error the solvers allow for, per plane (calibrate_error)
+        b = a.twinx()
+        b.plot(z, 100 * np.asarray(err_z, float), "k--", lw=1.2)
+        b.set_ylabel("model error (% of signal)")
+        b.set_ylim(0, max(1.0, 110 * float(np.nanmax(err_z))))
+        title += f"; model error {100 * cal.params['model_error']:.1f} % (dashed)"
+    a.set_title(title, fontsize=9)
     fig.tight_layout()
     return save_figure(fig, path)
 

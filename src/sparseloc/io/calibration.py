@@ -93,6 +93,9 @@ def save_calibration(cal: Any, path: str | Path, *, model: str = "spline") -> Pa
         f.attrs["sparseloc_version"] = __version__
         f.attrs["created"] = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
         f.attrs["params"] = json.dumps(cal.params, default=str)
+        # The beads' departure from the model (relative, per pixel): the solvers' tests add it
+        # to the camera's variance.
+        f.attrs["model_error"] = float(cal.params.get("model_error", 0.0))
         g = f.create_group("spline")
         g.create_dataset("stack", data=psf.stack, compression="gzip")
         g.create_dataset("z", data=psf.z)
@@ -187,6 +190,12 @@ def load_calibration(path: str | Path, model: str | None = None):
         raise ValueError(f"{p.name} is an incomplete calibration file (missing {exc})") from exc
 
 
+def _model_error(f) -> float:
+    """The file's model error (0 for files written before it was measured)."""
+    e = float(f.attrs.get("model_error", 0.0))
+    return e if np.isfinite(e) and e > 0 else 0.0
+
+
 def _load(p: Path, model: str | None):
     from ..psf.base import ShiftedPSF
     from ..psf.masks import ArrayMask
@@ -214,6 +223,7 @@ def _load(p: Path, model: str | None):
                 normalise=False,
                 oversample=int(g.attrs.get("oversample", 1)),
             )
+            out.model_error = _model_error(f)
             return out
         if kind == "pupil":
             if "pupil" not in f:
@@ -235,5 +245,6 @@ def _load(p: Path, model: str | None):
             out = ShiftedPSF(pupil, dx, dy, dz, z_range=zr)
             out.pixel_size = px
             out.content_hash = str(f.attrs["content_hash"])
+            out.model_error = _model_error(f)
             return out
         raise ValueError(f"model must be 'spline' or 'pupil', got {kind!r}")

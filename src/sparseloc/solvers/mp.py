@@ -36,6 +36,7 @@ from scipy.optimize import nnls
 
 from ..dictionary import check_window
 from .emitters import MIN_LINK_NM, WindowSolution, group_coefficients
+from .variance import pixel_variance
 
 log = logging.getLogger(__name__)
 
@@ -97,9 +98,7 @@ def pearson_chi2(
     ``var = noise_factor * max(mu, 1) + (model_error * signal)^2``: Poisson-like noise plus a
     relative model error on the emitters' part of the model (``signal``, photons/pixel).
     """
-    var = noise_factor * np.maximum(model, 1.0)
-    if signal is not None and model_error > 0:
-        var = var + (model_error * signal) ** 2
+    var = pixel_variance(model, noise_factor, signal, model_error)
     return float(np.sum((window - model) ** 2 / var))
 
 
@@ -365,7 +364,7 @@ def pursuit_steps(
             stop = "min_photons"
             break
         atom = dictionary.atoms([k])[0]
-        var = noise_factor * np.maximum(fit + b, 1.0) + (model_error * fit) ** 2
+        var = pixel_variance(fit + b, noise_factor, fit, model_error)
         centred = atom - atom.mean() if centred_scores else atom
         sigma = np.sqrt(np.sum(centred**2 * var)) * inv[k] ** 2
         if amp < min_snr * sigma:

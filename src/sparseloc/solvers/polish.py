@@ -20,6 +20,7 @@ from scipy.optimize import nnls
 
 from ..dictionary import Dictionary
 from .emitters import Emitters
+from .variance import pixel_variance
 
 __all__ = ["PointModel", "nearest_atoms", "polish", "prune"]
 
@@ -89,7 +90,7 @@ class PointModel:
         if self.index.size == 0:
             return np.zeros(0)
         sig = self.signal
-        var = noise_factor * np.maximum(sig + self.background, 1.0) + (model_error * sig) ** 2
+        var = pixel_variance(sig + self.background, noise_factor, sig, model_error)
         a = self._matrix()
         if not self.fixed_bg:
             a = np.column_stack([a, np.ones(a.shape[0])])

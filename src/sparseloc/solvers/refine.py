@@ -37,11 +37,13 @@ from .emitters import Emitters, WindowSolution
 from .mle import (
     NOISE_MODELS,
     FitResult,
+    background_image,
     check_qe,
     fit_emitters,
     likelihood_weight,
 )
 from .mp import MIN_PHOTONS
+from .variance import error_allowance, model_error_of
 
 log = logging.getLogger(__name__)
 
@@ -195,6 +197,23 @@ def _addition_passes(
     )
 
 
+def _error_allowance(null: FitResult, model: PSFModel, kw: dict) -> float:
+    """The model error's allowance on a ratio against the fit ``null`` (see
+    :mod:`sparseloc.solvers.variance`): the camera's variance and the emitters' light (the
+    neighbours' included) come from that fit."""
+    e = model_error_of(model)
+    if e <= 0:
+        return 0.0
+    qe = check_qe(kw.get("qe", 1.0))
+    rv = kw.get("read_variance")
+    mu = null.model_image
+    noise_var = (mu + qe * (0.0 if rv is None else np.asarray(rv, float))) / likelihood_weight(
+        kw.get("noise", "poisson"), qe
+    )
+    signal = mu - background_image(null.background, mu.shape)
+    return error_allowance(noise_var, signal, e)
+
+
 def fit_with_count_selection(
     window: ArrayLike,
     model: PSFModel,
@@ -243,14 +262,15 @@ def fit_with_count_selection(
             arr = best.emitters.as_array()
             weakest = int(np.argmin(arr[:, 3]))
             # sigma comes from the weighted Fisher matrix: (N / sigma)^2 is on the scale of
-            # the (weighted) likelihood ratio below
+            # the (weighted) likelihood ratio below; the model error raises the bar of both
+            bar = lr_threshold + _error_allowance(best, model, fit_kwargs)
             wald = (arr[weakest, 3] / best.sigma[weakest, 3]) ** 2
         # An emitter whose Wald statistic (the quadratic approximation of the removal's
         # likelihood ratio) is at or above REMOVE_SKIP_FACTOR times the lr_threshold would not be
         # removed: skip that refit.
         if k >= 1 and (
             not np.isfinite(wald)
-            or wald < REMOVE_SKIP_FACTOR * lr_threshold
+            or wald < REMOVE_SKIP_FACTOR * bar
             or arr[weakest, 3] < min_photons
         ):
             fewer = fit_emitters(
@@ -260,7 +280,7 @@ def fit_with_count_selection(
                 **{**kw, "background": bg},
             )
             ratio = 2.0 * (best.log_likelihood - fewer.log_likelihood)
-            if ratio < lr_threshold or arr[weakest, 3] < min_photons:
+            if ratio < bar or arr[weakest, 3] < min_photons:
                 best = fewer
                 best.history.append(f"removed one: K={k - 1}, LR={ratio:.1f}")
                 changes += 1
@@ -283,7 +303,8 @@ def fit_with_count_selection(
                     more = trial
             if more is not None:
                 ratio = 2.0 * (more.log_likelihood - best.log_likelihood)
-                if _addition_passes(more, ratio, lr_threshold, min_photons):
+                bar = lr_threshold + _error_allowance(best, model, fit_kwargs)
+                if _addition_passes(more, ratio, bar, min_photons):
                     best = more
                     best.history.append(f"added one: K={k + 1}, LR={ratio:.1f}")
                     changes += 1

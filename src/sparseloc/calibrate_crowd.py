@@ -1,0 +1,164 @@
+"""Bead calibration in crowded fields: an ROI sized to the PSF's light, and neighbours' light.
+
+Real bead slides are crowded, and an engineered PSF (double helix, tetrapod) is microns wide.
+
+- **ROI**: the light profile around the brightest beads (ring means over z-smoothed planes,
+  leaving out pixels nearer another bead) gives the fraction of a plane's light within each
+  radius; the ROI's half side is the smallest radius that holds :data:`ROI_ENERGY` of it on
+  average over the planes, and the PSF's core is the radius that holds half of it.
+- **Neighbours**: beads closer than an ROI are used. All beads share one PSF, so each bead's
+  ROI is cleaned of its neighbours' modelled light (the current model at the neighbours'
+  fitted positions and per-plane brightness), and the beads are registered again; only beads
+  whose cores overlap (closer than two core radii) are rejected.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .psf.spline import SplinePSF
+
+__all__ = ["ROI_ENERGY", "LightProfile", "light_profile", "neighbour_light", "plane_photons"]
+
+#: Fraction of a plane's light the automatic ROI holds (on average over the planes).
+ROI_ENERGY = 0.97
+
+
+@dataclass
+class LightProfile:
+    """How a bead's light spreads: radii (px) and the fraction of light within them.
+
+    Attributes
+    ----------
+    half : int
+        Smallest radius holding :data:`ROI_ENERGY` of the light (mean over planes).
+    core : float
+        Radius holding half of the light (mean over planes).
+    fraction : ndarray, shape (R + 1,)
+        Mean over planes of the fraction of light within each radius 0..R.
+    fraction_min : ndarray, shape (R + 1,)
+        The smallest fraction over the planes at each radius.
+    """
+
+    half: int
+    core: float
+    fraction: NDArray[np.float64]
+    fraction_min: NDArray[np.float64]
+
+    def held(self, half: int) -> tuple[float, float]:
+        """Mean and smallest fraction of a plane's light within ``half`` px."""
+        k = int(min(max(half, 0), self.fraction.size - 1))
+        return float(self.fraction[k]), float(self.fraction_min[k])
+
+
+def light_profile(
+    data: NDArray[np.float64],
+    centre: tuple[float, float],
+    others: NDArray[np.float64],
+    max_radius: int,
+) -> LightProfile:
+    """The light profile of the bead at ``centre`` (row, col; px) in the stack ``data``
+    (Nz, H, W; photons less background), out to ``max_radius`` px; pixels nearer one of
+    ``others`` (n, 2; row, col) than to this bead are left out."""
+    from scipy.ndimage import uniform_filter1d
+
+    r0, c0 = int(np.round(centre[0])), int(np.round(centre[1]))
+    rad = max_radius
+    sub = data[:, r0 - rad : r0 + rad + 1, c0 - rad : c0 + rad + 1]
+    sub = uniform_filter1d(sub, min(5, sub.shape[0]), axis=0)
+    rows, cols = np.indices(sub.shape[1:])
+    rows = rows + r0 - rad
+    cols = cols + c0 - rad
+    dist = np.hypot(rows - centre[0], cols - centre[1])
+    mine = np.ones(dist.shape, bool)
+    for r, c in np.asarray(others, float).reshape(-1, 2):
+        mine &= dist <= np.hypot(rows - r, cols - c)
+    ring = np.round(dist).astype(int)
+    flat = sub.reshape(sub.shape[0], -1)
+    energy = np.zeros((sub.shape[0], rad + 1))
+    for k in range(rad + 1):
+        idx = np.flatnonzero((ring.ravel() == k) & mine.ravel())
+        n_ring = int(np.count_nonzero(ring == k))
+        if idx.size:
+            # the ring's mean over the pixels that are this bead's, times the whole ring
+            energy[:, k] = np.clip(flat[:, idx].mean(axis=1), 0.0, None) * n_ring
+    cum = np.cumsum(energy, axis=1)
+    total = np.maximum(cum[:, -1:], 1e-12)
+    frac = cum / total
+    mean = frac.mean(axis=0)
+    half = int(np.argmax(mean >= ROI_ENERGY)) if np.any(mean >= ROI_ENERGY) else rad
+    core = float(np.argmax(mean >= 0.5))
+    return LightProfile(half, core, mean, frac.min(axis=0))
+
+
+def neighbour_light(
+    model: SplinePSF,
+    window: tuple[int, int, int],
+    neighbours: list[tuple[float, float, float, NDArray[np.float64]]],
+    zplanes: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """The modelled light of ``neighbours`` in one bead's ROI stack.
+
+    Parameters
+    ----------
+    model : SplinePSF
+        The current PSF (unit photons per plane).
+    window : (int, int, int)
+        The ROI's first row, first column and side (px).
+    neighbours : list of (x nm, y nm, dz nm, photons per plane (Nz,))
+        Each neighbour's position in the frame, its z shift and its brightness per plane.
+    zplanes : ndarray, shape (Nz,)
+        The planes' z (nm).
+
+    Returns
+    -------
+    ndarray, shape (Nz, side, side)
+        Photons per pixel.
+    """
+    r0, c0, side = window
+    p = model.pixel_size
+    out = np.zeros((zplanes.size, side, side))
+    lo, hi = model.z_range
+    for x, y, dz, photons in neighbours:
+        z = zplanes + dz
+        ok = (z >= lo) & (z <= hi)
+        if not ok.any():
+            continue
+        n = int(ok.sum())
+        imgs = model.images(np.full(n, x - c0 * p), np.full(n, y - r0 * p), z[ok], (side, side), p)
+        out[ok] += imgs * photons[ok, None, None]
+    return out
+
+
+def plane_photons(
+    model: SplinePSF,
+    roi: NDArray[np.float64],
+    shift: NDArray[np.float64],
+    zplanes: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """A bead's photons per plane: the least-squares scale of the model (with an offset) at
+    its fitted ``shift`` (x, y, z nm from the ROI's centre) on each plane of ``roi``."""
+    nz, h, w = roi.shape
+    p = model.pixel_size
+    z = zplanes + shift[2]
+    lo, hi = model.z_range
+    ok = (z >= lo) & (z <= hi)
+    out = np.zeros(nz)
+    if not ok.any():
+        return out
+    idx = np.flatnonzero(ok)
+    imgs = model.images(
+        np.full(idx.size, w * p / 2 + shift[0]),
+        np.full(idx.size, h * p / 2 + shift[1]),
+        z[idx],
+        (h, w),
+        p,
+    )
+    for k, m in zip(idx, imgs, strict=True):
+        design = np.stack([m.ravel(), np.ones(m.size)], axis=1)
+        (a, _), *_ = np.linalg.lstsq(design, roi[k].ravel(), rcond=None)
+        out[k] = max(float(a), 0.0)
+    return out

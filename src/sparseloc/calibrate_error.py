@@ -1,0 +1,122 @@
+"""The calibration's own model error: how far the beads depart from the model beyond noise.
+
+Each used bead is fitted with the finished model (one shift for the whole stack, a scale and
+an offset per plane). Per plane, the residual power left over the Poisson variance expected
+from the fitted light and the frame's background, divided by the power of the fitted signal,
+is the squared relative model error ``e(z)^2``: the model error a localization meets is a
+per-pixel standard deviation of about ``e * signal``. The model is the beads' average, so each
+bead's own deviation is partly in it: the residual power is scaled by ``n / (n - 1)`` for
+``n`` beads.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .psf.spline import SplinePSF
+
+__all__ = ["MAX_MODEL_ERROR", "ModelError", "bead_model_error"]
+
+#: A calibration whose model error exceeds this fraction of the signal is refused: its model
+#: would leave more than a quarter of a bead's signal power unexplained.
+MAX_MODEL_ERROR = 0.5
+
+
+@dataclass
+class ModelError:
+    """The model error of a calibration.
+
+    Attributes
+    ----------
+    overall : float
+        ``sqrt(sum_z excess(z) / sum_z signal(z))``: the relative error over all planes.
+    per_plane : ndarray, shape (Nz,)
+        ``e(z)`` of each of the model's planes (NaN where no bead covers the plane).
+    """
+
+    overall: float
+    per_plane: NDArray[np.float64]
+
+
+def bead_model_error(
+    psf: SplinePSF,
+    rois: list[NDArray[np.float64]],
+    shifts: list[NDArray[np.float64]],
+    zplanes: NDArray[np.float64],
+    background: NDArray[np.float64],
+) -> ModelError:
+    """Measure the model error of ``psf`` on the beads it was made from.
+
+    Parameters
+    ----------
+    psf : SplinePSF
+        The finished model.
+    rois : list of ndarray, each shape (Nz, R, R)
+        Each used bead's ROI stack in photons less the frame's background, on ``zplanes``.
+    shifts : list of ndarray, each shape (3,)
+        Each bead's x, y, z (nm) relative to its ROI's centre and the planes' z.
+    zplanes : ndarray, shape (Nz,)
+        The z (nm) of the ROI stacks' planes; only those inside the model's range are used.
+    background : ndarray, shape (Nz,)
+        Each plane's frame background (photons/pixel), part of the noise variance.
+
+    Returns
+    -------
+    ModelError
+    """
+    nz = zplanes.size
+    excess = np.zeros(nz)
+    signal = np.zeros(nz)
+    n = len(rois)
+    for roi, shift in zip(rois, shifts, strict=True):
+        res2, noise, sig2, ok = _bead_residual(psf, roi, shift, zplanes, background)
+        excess[ok] += res2[ok] * (n / (n - 1) if n > 1 else 1.0) - noise[ok]
+        signal[ok] += sig2[ok]
+    covered = signal > 0
+    per_plane = np.full(nz, np.nan)
+    per_plane[covered] = np.sqrt(np.maximum(excess[covered], 0.0) / signal[covered])
+    total = float(signal[covered].sum())
+    overall = float(np.sqrt(max(excess[covered].sum(), 0.0) / total)) if total > 0 else np.nan
+    lo, hi = psf.z_range
+    inside = (zplanes >= lo - 1e-6) & (zplanes <= hi + 1e-6)
+    return ModelError(overall, per_plane[inside])
+
+
+def _bead_residual(
+    psf: SplinePSF,
+    roi: NDArray[np.float64],
+    shift: NDArray[np.float64],
+    zplanes: NDArray[np.float64],
+    background: NDArray[np.float64],
+) -> tuple[NDArray, NDArray, NDArray, NDArray[np.bool_]]:
+    """Per plane: the residual power, the expected noise power and the signal power of one
+    bead against the model (scale and offset fitted per plane), and which planes count."""
+    nz, h, w = roi.shape
+    p = psf.pixel_size
+    z = zplanes + shift[2]
+    lo, hi = psf.z_range
+    ok = (z >= lo) & (z <= hi)
+    res2, noise, sig2 = np.zeros(nz), np.zeros(nz), np.zeros(nz)
+    if not ok.any():
+        return res2, noise, sig2, ok
+    idx = np.flatnonzero(ok)
+    imgs = psf.images(
+        np.full(idx.size, w * p / 2 + shift[0]),
+        np.full(idx.size, h * p / 2 + shift[1]),
+        z[idx],
+        (h, w),
+        p,
+    )
+    for k, m in zip(idx, imgs, strict=True):
+        d = roi[k].ravel()
+        mm = m.ravel()
+        design = np.stack([mm, np.ones_like(mm)], axis=1)
+        (a, b), *_ = np.linalg.lstsq(design, d, rcond=None)
+        fit = a * mm + b
+        res2[k] = float(np.sum((d - fit) ** 2))
+        noise[k] = float(np.sum(np.maximum(fit + background[k], 0.0)))
+        sig2[k] = float(np.sum((a * mm) ** 2))
+    return res2, noise, sig2, ok

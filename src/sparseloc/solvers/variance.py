@@ -1,0 +1,72 @@
+"""The pixel variance every test of the solvers uses: the camera's noise plus the model's error.
+
+A pixel's variance is the camera's (Poisson photons, EMCCD excess noise, read noise) plus
+``(e * signal)^2``: the PSF model is not exact, and its error grows with the emitters' light
+at that pixel (``e``: relative model error; a bead calibration measures it, see
+:mod:`sparseloc.calibrate_error`; a dictionary's grid adds its quantization error).
+
+A likelihood-ratio test of one emitter more or fewer asks whether the data depart from the
+smaller model by more than noise. A model error is not independent noise: it has the shape of
+the PSF's features, and a trial emitter can absorb much of it. Its expected share of the
+window's chi-square, ``B = sum((e * signal)^2 / V)`` with ``V`` the camera's variance, is the
+most it can add to the ratio: the model error's allowance. The count selection requires a
+ratio above its chi-square threshold plus ``B``, so an emitter must explain more light than
+the model's error in the window (``B = 0`` for an exact model).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["error_allowance", "model_error_of", "pixel_variance"]
+
+
+def model_error_of(model: object) -> float:
+    """A PSF model's relative error ``e`` (0 for an exact model, or one that does not say)."""
+    e = float(getattr(model, "model_error", 0.0) or 0.0)
+    return e if np.isfinite(e) and e > 0 else 0.0
+
+
+def pixel_variance(
+    mu: NDArray,
+    noise_factor: float = 1.0,
+    signal: NDArray | None = None,
+    model_error: float = 0.0,
+) -> NDArray:
+    """Variance (photons^2) of each pixel: ``noise_factor * max(mu, 1) + (e * signal)^2``.
+
+    Parameters
+    ----------
+    mu : ndarray
+        Expected photons per pixel (emitters and background).
+    noise_factor : float
+        The camera's variance per expected photon (1 photon counting, 2 EMCCD).
+    signal : ndarray, optional
+        The emitters' part of ``mu`` (photons/pixel), which the model error scales with.
+    model_error : float
+        Relative model error ``e``.
+    """
+    var = noise_factor * np.maximum(mu, 1.0)
+    if signal is not None and model_error > 0:
+        var = var + (model_error * signal) ** 2
+    return var
+
+
+def error_allowance(noise_var: NDArray, signal: NDArray, model_error: float) -> float:
+    """The model error's expected chi-square over a window (see the module notes), on the
+    scale of the likelihood ratio ``2 delta log L``.
+
+    Parameters
+    ----------
+    noise_var : ndarray
+        The camera's variance of each pixel under the smaller model (photons^2).
+    signal : ndarray
+        The emitters' light (photons/pixel) under the smaller model, neighbours' included.
+    model_error : float
+        Relative model error ``e``; 0 gives 0.
+    """
+    if model_error <= 0:
+        return 0.0
+    v = np.maximum(noise_var, 1e-12)
+    return float(model_error**2 * np.sum(signal**2 / v))
