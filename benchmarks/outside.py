@@ -9,15 +9,23 @@ from a bead calibration of the same data set, as a microscopist would:
   bead z-scan, with the RMSE over the Cramer-Rao bound of the calibrated model at the truth;
 - the SMLM 2016 challenge's 64 real LD astigmatic frames, calibrated from the challenge's
   astigmatic bead stack with the challenge's EMCCD camera: once with the model centred on its
-  light's centroid (the default) and once on the beads' known positions (``--beads``).
+  light's centroid (the default) and once on the beads' known positions (``--beads``);
+- double-helix and astigmatic movies rendered from the challenge's measured bead stacks
+  (``challenge_render.py``: numpy/scipy only, no sparseloc code) with the challenge's LD and HD
+  ground truth (the first 300 LD and 40 HD frames, 64 x 64 px of 100 nm), its EMCCD (baseline
+  100 ADU, 45 e-/ADU, EM gain 300, QE 0.9, read noise 74.4 e-) and a background of 100 photons/px;
+  each localized from a calibration on the same bead stack, with ``--beads`` (the main rows) and
+  with the centroid rule (rows marked "centroid").
 
 Scores follow the SMLM challenge (250 nm lateral, 500 nm axial, one-to-one per frame; efficiency
 with alpha 1/nm lateral and 0.5/nm axial). The peer figures come from the data's READMEs.
-Not yet here: movies rendered from the challenge's bead stacks with the LD/HD ground truth.
 
 Usage::
 
     python benchmarks/outside.py [--data ../shared/data] [--out FILE]
+        [--ld-frames 300] [--hd-frames 40] [--no-centroid] [--quick]
+
+``--quick`` renders 100 LD and 20 HD frames and skips the centroid variant of the rendered rows.
 """
 
 from __future__ import annotations
@@ -33,6 +41,7 @@ import numpy as np
 import pandas as pd
 import tifffile
 
+from challenge_render import BeadPSF, read_activations, render_movie
 from sparseloc.calibrate import calibrate_file, read_bead_positions
 from sparseloc.config import build_job
 from sparseloc.crlb import crlb
@@ -145,6 +154,51 @@ def challenge_rows(data: Path, workdir: Path) -> list[dict]:
     return rows
 
 
+#: Rendered challenge movies: (modality label, bead stack), (density label, activations file,
+#: seed of the camera noise).
+RENDER_PSFS = (("DH", "beads_dh.tif"), ("AS", "beads_as.tif"))
+RENDER_DENSITIES = (("LD", "activations_LD.csv", 1), ("HD", "activations_HD.csv", 2))
+
+
+def rendered_rows(
+    data: Path, workdir: Path, ld_frames: int, hd_frames: int, centroid: bool = True
+) -> list[dict]:
+    """Double-helix and astigmatic movies rendered from the challenge's bead stacks
+    (``challenge_render``) with its LD and HD ground truth and camera, localized from a
+    calibration on the same stack: with ``--beads`` (label "... (rendered)") and, if
+    ``centroid``, with the centroid rule (label "... (rendered) centroid")."""
+    folder = data / "smlm2016"
+    n_frames = {"LD": ld_frames, "HD": hd_frames}
+    variants = [("", read_bead_positions(folder / "beads_gt.csv", PX))]
+    if centroid:
+        variants.append((" centroid", None))
+    rows = []
+    for kind, stack in RENDER_PSFS:
+        psf = BeadPSF.from_beads(folder / stack, folder / "beads_gt.csv")
+        movies = {}
+        for dens, acts, seed in RENDER_DENSITIES:
+            n = n_frames[dens]
+            frames = render_movie(psf, read_activations(folder / acts, n), n, seed=seed)
+            path = workdir / f"render_{kind}_{dens}.tif"
+            tifffile.imwrite(path, frames)
+            movies[dens] = (path, challenge_truth(folder / acts, n))
+        for suffix, beads in variants:
+            cal = calibrate_file(folder / stack, PX, 10.0, z0_slice=75, offset=100.0, beads=beads)
+            psf_file = save_calibration(cal, workdir / f"smlm_{kind}.h5")
+            for dens, (path, truth) in movies.items():
+                with Movie.open(path) as movie:
+                    options = {"psf": str(psf_file), "pixel_size": PX, **CHALLENGE_CAMERA}
+                    job = build_job(options, movie)
+                    t0 = time.perf_counter()
+                    res = localize(CameraFrames(movie, job.camera), job.model, job.params)
+                label = f"SMLM16 {kind} {dens} (rendered){suffix}"
+                row = score(label, res.table, truth, time.perf_counter() - t0)
+                row["recall_by_photons"] = recall_by_photons(res.table, truth)
+                row["frames"] = n_frames[dens]
+                rows.append(row)
+    return rows
+
+
 #: Photon bins (of the truth) for the recall of the challenge rows.
 PHOTON_BINS = (0.0, 1000.0, 2000.0, 4000.0, np.inf)
 
@@ -181,9 +235,13 @@ def score(label: str, locs: pd.DataFrame, truth: pd.DataFrame, seconds: float) -
     }
 
 
+#: Width of the table's data column.
+W = 32
+
+
 def print_table(rows: list[dict]) -> None:
     hdr = (
-        f"{'data':>20} {'truth':>5} | {'Jac %':>5} {'rec':>5} {'prec':>5} | {'lat':>5} {'ax':>5} "
+        f"{'data':>{W}} {'truth':>5} | {'Jac %':>5} {'rec':>5} {'prec':>5} | {'lat':>5} {'ax':>5} "
         f"{'x':>5} {'y':>5} {'z':>5} nm | {'bias x':>6} {'y':>5} {'z':>5} nm | "
         f"{'E lat':>5} {'E ax':>5} | peer"
     )
@@ -195,18 +253,18 @@ def print_table(rows: list[dict]) -> None:
         x, y, z = r["rmse_xyz_nm"]
         bx, by, bz = r["bias_xyz_nm"]
         print(
-            f"{r['data']:>20} {r['n_truth']:5d} | {r['jaccard']:5.1f} {r['recall']:5.3f} "
+            f"{r['data']:>{W}} {r['n_truth']:5d} | {r['jaccard']:5.1f} {r['recall']:5.3f} "
             f"{r['precision']:5.3f} | {r['rmse_lateral_nm']:5.1f} {r['rmse_axial_nm']:5.1f} "
             f"{x:5.1f} {y:5.1f} {z:5.1f}    | {bx:6.1f} {by:5.1f} {bz:5.1f}    | "
             f"{r['efficiency_lateral']:5.1f} {r['efficiency_axial']:5.1f} | {peer_txt}"
         )
         if "recall_by_photons" in r:
             bins = ", ".join(f"{b}: {rc:.2f} of {n}" for b, n, rc in r["recall_by_photons"])
-            print(f"{'':>20}        recall by photons {bins}")
+            print(f"{'':>{W}}        recall by photons {bins}")
         if "rmse_over_crlb" in r:
             ratio = "/".join(f"{v:.2f}" for v in r["rmse_over_crlb"])
             print(
-                f"{'':>20}        RMSE / sqrt(CRLB) x/y/z {ratio} (sqrt CRLB "
+                f"{'':>{W}}        RMSE / sqrt(CRLB) x/y/z {ratio} (sqrt CRLB "
                 f"{r['crlb_x_nm']:.1f}/{r['crlb_y_nm']:.1f}/{r['crlb_z_nm']:.1f} nm)"
             )
 
@@ -215,10 +273,21 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", type=Path, default=Path("../shared/data"))
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/outside.json"))
+    ap.add_argument("--ld-frames", type=int, default=300, help="rendered LD frames")
+    ap.add_argument("--hd-frames", type=int, default=40, help="rendered HD frames")
+    ap.add_argument("--no-centroid", action="store_true", help="rendered rows with --beads only")
+    ap.add_argument(
+        "--quick", action="store_true", help="100 LD and 20 HD rendered frames, --beads only"
+    )
     args = ap.parse_args(argv)
+    if args.quick:
+        args.ld_frames, args.hd_frames, args.no_centroid = 100, 20, True
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         rows = storm_rows(args.data) + challenge_rows(args.data, Path(tmp))
+        rows += rendered_rows(
+            args.data, Path(tmp), args.ld_frames, args.hd_frames, not args.no_centroid
+        )
     print_table(rows)
     print(f"total {time.perf_counter() - t0:.0f} s")
     out = {"rows": rows}
