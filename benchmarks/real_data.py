@@ -19,8 +19,9 @@ Two more optical facts come from that work's settings, not from fitting this fra
   as the NA disc would shrink the mask's features by 1.45 / 1.33 (about 9 %).
 - The counts are not photons. Their simulations of these data add a baseline of 20-40 counts
   and read noise of 8-12 counts rms; the frame itself shows variance growing with the mean
-  (a photon-transfer line, measured below from pixel second differences in 6x6 blocks:
-  the slope is counts per photon, the intercept the read variance less slope x baseline).
+  (a photon-transfer line, measured below by :func:`sparseloc.camera.photon_transfer` from
+  pixel second differences in 6x6 blocks, as ``sparseloc camera`` does: the slope is counts
+  per photon, the intercept the read variance less slope x baseline).
   The frame is analysed as sCMOS data with that gain, the middle baseline (30 counts), and
   the read variance the line then implies.
 - Their image model blurs every emitter with a Gaussian of about 1 camera pixel (110 nm) to
@@ -41,24 +42,12 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
+from sparseloc.camera import photon_transfer
 from sparseloc.pipeline import LocalizeParams, localize
 from sparseloc.psf import make_psf
 
 # DeepSTORM3D demo-2 optics: f_4f 100 mm, magnification 100, SLM pixel 30 um, NA 1.45.
 _BFP_RADIUS_PX = 100e3 * 1.45 / np.sqrt(100.0**2 - 1.45**2) / 30.0
-
-
-def photon_transfer(img: np.ndarray, block: int = 6) -> tuple[float, float]:
-    """Slope and intercept of pixel variance against mean (counts) over ``block``-pixel
-    blocks; the variance from second differences along rows (smooth structure cancels)."""
-    h, w = (s - s % block for s in img.shape)
-    b = img[:h, :w].reshape(h // block, block, w // block, block).swapaxes(1, 2)
-    b = b.reshape(-1, block, block)
-    d2 = b[:, :, :-2] - 2 * b[:, :, 1:-1] + b[:, :, 2:]
-    var = d2.reshape(len(b), -1).var(axis=1) / 6.0
-    mean = b.reshape(len(b), -1).mean(axis=1)
-    slope, intercept = np.polyfit(mean, var, 1)
-    return float(slope), float(intercept)
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -39,3 +39,12 @@ def torch_device(request) -> str:
     if request.param == "cuda" and not torch.cuda.is_available():
         pytest.skip("no CUDA GPU")
     return request.param
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _spline_cache(tmp_path_factory):
+    """Spline tables (:mod:`sparseloc.psf.cache`) of the test run go to a folder of its own,
+    shared by the session's tests, never to the user's cache."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("SPARSELOC_CACHE_DIR", str(tmp_path_factory.mktemp("spline-cache")))
+        yield

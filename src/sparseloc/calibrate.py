@@ -8,7 +8,7 @@ The steps (each a function over NumPy arrays; file reading only in :func:`calibr
    (double helix, tetrapod) may show several maxima per bead; maxima closer than half an ROI
    are merged and the bead's centre is the centroid of its z-averaged image (the midpoint of
    a double helix's lobes).
-3. ROI size from the PSF's light: it holds 97 % of a plane's light on average
+3. ROI size from the PSF's light: it holds 99 % of a plane's light on average
    (:mod:`sparseloc.calibrate_crowd`), unless given.
 4. Reject beads too close to the edge, beads whose cores overlap another's, saturated beads,
    and, after registration, beads whose registered stack differs from the others' average far
@@ -391,7 +391,7 @@ def _calibrate_scan(
         "z_step_nm": step,
         "roi_size_px": roi,
         "offset_adu": float(scan.offset),
-        "gain": float(scan.gain),
+        "photons_per_adu": float(scan.gain),
         "threshold": float(threshold),
         "detect_sigma_px": float(detect_sigma),
         "iterations": int(iterations),
@@ -887,11 +887,16 @@ def _ncc_planes(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.fl
 
 
 def _clean_average(avg: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Subtract each plane's residual background (median of the ROI border) and normalise."""
+    """Subtract each plane's residual background (median of the ROI border), clip what falls
+    below zero and normalise.
+
+    The clip: after the background's subtraction half the dark pixels hold noise below zero,
+    and a model of light cannot be negative (simulations refuse it, fits on it give NaN).
+    """
     border = np.concatenate(
         [avg[:, 0, :], avg[:, -1, :], avg[:, 1:-1, 0], avg[:, 1:-1, -1]], axis=1
     )
-    out = avg - np.median(border, axis=1)[:, None, None]
+    out = np.maximum(avg - np.median(border, axis=1)[:, None, None], 0.0)
     sums = out.sum(axis=(1, 2), keepdims=True)
     if np.any(sums <= 0):
         raise ValueError(

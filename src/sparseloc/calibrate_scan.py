@@ -11,15 +11,59 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["BeadScan", "read_bead_positions", "read_scan", "read_z_file"]
+from .camera import CAMERA_MAP_OPTIONS, Camera, camera_from_options, to_photons
+
+__all__ = ["BeadScan", "read_bead_positions", "read_scan", "read_z_file", "scan_conversion"]
 
 # Messages keep the logger of sparseloc.calibrate, where the calibration has always logged.
 log = logging.getLogger("sparseloc.calibrate")
+
+
+def scan_conversion(camera: Camera | dict[str, Any]) -> tuple[float, float]:
+    """The offset (ADU) and photons per ADU (``gain / em_gain / qe``, gain in e-/ADU) that
+    convert a bead scan to photons, as :func:`sparseloc.camera.to_photons` converts a movie.
+
+    Parameters
+    ----------
+    camera : Camera or dict
+        The camera, or its options (:func:`sparseloc.camera.camera_from_options`).
+
+    Returns
+    -------
+    offset, photons_per_adu : float
+        The ``offset`` and ``gain`` arguments of :func:`sparseloc.calibrate.calibrate_beads`.
+
+    Raises
+    ------
+    ValueError
+        For invalid camera settings, or per-pixel sCMOS maps (a bead scan is converted with
+        one offset and gain).
+    """
+    if isinstance(camera, dict):
+        maps = [k for k in CAMERA_MAP_OPTIONS if camera.get(k)]
+        if maps:
+            flags = ", ".join("--" + k.replace("_", "-") for k in maps)
+            raise ValueError(
+                f"{flags}: calibrate converts the bead stack with one offset and gain "
+                "(--offset, --gain); per-pixel maps are for localize"
+            )
+        camera = camera_from_options(camera)
+    if camera.map_shape is not None:
+        raise ValueError("calibrate converts the bead stack with one offset and gain, not maps")
+    return camera.offset, camera.photons_per_adu
+
+
+def _adu_to_photons(raw: NDArray, offset: float, photons_per_adu: float) -> NDArray[np.float64]:
+    """``(ADU - offset) * photons_per_adu``: :func:`~sparseloc.camera.to_photons` of a camera
+    whose gain is ``photons_per_adu`` (its EM gain and QE folded in by
+    :func:`scan_conversion`)."""
+    return to_photons(raw, Camera(offset=offset, gain=photons_per_adu))
 
 
 def read_bead_positions(path: str | Path, pixel_size: float) -> NDArray[np.float64]:
@@ -116,7 +160,7 @@ class BeadScan:
     saturation: float | None  # ADU at which the camera saturates
     sat_frames: NDArray  # the ADU frames the saturation test looks at
     offset: float  # ADU
-    gain: float  # photons per ADU
+    gain: float  # photons per ADU: the camera's gain (e-/ADU) / EM gain / QE (scan_conversion)
     background: NDArray[np.float64] | None = None  # (Nz,) each frame's background (photons/px)
 
 
@@ -212,7 +256,7 @@ def _planes_from_z(
     step = float(z_step) if z_step else float(np.median(steps))
     if step <= 0:
         raise ValueError(f"z step must be > 0 nm, got {step}")
-    photons = (raw[keep].astype(np.float64) - offset) * gain
+    photons = _adu_to_photons(raw[keep], offset, gain)
     sat_frames = raw[keep]
     if np.ptp(steps) > 1e-3 * step or z_step:
         grid = np.arange(zk[0], zk[-1] + 1e-6 * step, step)
@@ -241,7 +285,7 @@ def _even_planes(
     if not 0 <= z0 <= n - 1:
         raise ValueError(f"--z0-slice {z0_slice} is outside the stack's 0..{n - 1} slices")
     zplanes = (np.arange(n) - z0) * step
-    photons = (raw.astype(np.float64) - offset) * gain
+    photons = _adu_to_photons(raw, offset, gain)
     return photons, raw, zplanes, step
 
 

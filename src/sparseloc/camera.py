@@ -33,12 +33,25 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["CAMERA_KINDS", "Camera", "apply_noise", "noise_variance", "to_photons"]
+__all__ = [
+    "CAMERA_KINDS",
+    "Camera",
+    "CameraEstimate",
+    "apply_noise",
+    "camera_from_options",
+    "estimate_camera",
+    "noise_variance",
+    "photon_transfer",
+    "to_photons",
+]
 
 #: Allowed values of :attr:`Camera.kind`.
 CAMERA_KINDS: tuple[str, ...] = ("ideal", "emccd", "scmos")
 
 _UINT16_MAX = np.iinfo(np.uint16).max
+#: Negative expected photons down to this fraction of the image's peak (or of one photon)
+#: count as none (a spline model's undershoot); lower ones are refused.
+_NEGATIVE_TOLERANCE = 1e-3
 
 
 def _as_map(name: str, value: ArrayLike | None) -> NDArray[np.float64] | None:
@@ -322,6 +335,14 @@ class Camera:
         return hash((self.kind, self.offset, self.gain, self.em_gain, self.qe, self.read_noise))
 
     @property
+    def photons_per_adu(self) -> float:
+        """Photons per ADU above the offset, ``gain / em_gain / qe``: the factor of
+        :func:`to_photons` for a camera without a gain map (ValueError otherwise)."""
+        if self.gain_map is not None:
+            raise ValueError("a camera with a gain map has no single photons-per-ADU factor")
+        return self.gain / (self.em_gain * self.qe)
+
+    @property
     def map_shape(self) -> tuple[int, int] | None:
         """Shape ``(rows, cols)`` of the sCMOS maps, or ``None`` when there are none."""
         for m in (self.offset_map, self.variance_map, self.gain_map):
@@ -365,6 +386,61 @@ class Camera:
         return self.read_noise**2
 
 
+#: The keys of a camera description in options (the command line's flags, a TOML file's
+#: ``[camera]`` table as :func:`sparseloc.options.read_config` gives it) and their
+#: :class:`Camera` fields; ``camera`` is the noise model's kind.
+CAMERA_OPTION_FIELDS: dict[str, str] = {
+    "camera": "kind",
+    "offset": "offset",
+    "gain": "gain",
+    "em_gain": "em_gain",
+    "qe": "qe",
+    "read_noise": "read_noise",
+}
+#: The option keys of the sCMOS map files and the :meth:`Camera.from_map_files` argument each
+#: fills.
+CAMERA_MAP_OPTIONS: dict[str, str] = {
+    "offset_map": "offset",
+    "variance_map": "variance",
+    "gain_map": "gain",
+}
+
+
+def camera_from_options(options: dict[str, Any]) -> Camera:
+    """The :class:`Camera` that options describe: the one reading of the camera's options by
+    every command (``calibrate``, ``localize``, ``simulate``) and the TOML file.
+
+    Parameters
+    ----------
+    options : dict
+        ``camera`` (kind: ideal, emccd or scmos), ``offset`` (ADU), ``gain`` (e-/ADU),
+        ``em_gain``, ``qe``, ``read_noise`` (e- rms) and the sCMOS map files ``offset_map``
+        (ADU), ``variance_map`` (ADU^2), ``gain_map`` (e-/ADU); missing keys or None take the
+        :class:`Camera` defaults.
+
+    Returns
+    -------
+    Camera
+
+    Raises
+    ------
+    ValueError
+        For invalid values, or maps without ``camera = "scmos"`` (one sentence naming the flag).
+    """
+    kw = {
+        field: options[key]
+        for key, field in CAMERA_OPTION_FIELDS.items()
+        if options.get(key) is not None
+    }
+    maps = {arg: options[key] for key, arg in CAMERA_MAP_OPTIONS.items() if options.get(key)}
+    if maps and kw.get("kind", "ideal") != "scmos":
+        raise ValueError("--offset-map, --variance-map and --gain-map need --camera scmos")
+    if maps:
+        kw.setdefault("kind", "scmos")
+        return Camera.from_map_files(**kw, **{k: str(v) for k, v in maps.items()})
+    return Camera(**kw)
+
+
 def check_camera(camera: object) -> None:
     """Raise a ``TypeError`` unless ``camera`` is a :class:`Camera`."""
     if not isinstance(camera, Camera):
@@ -379,9 +455,12 @@ def _check_expected(expected_photons: ArrayLike) -> NDArray[np.float64]:
         )
     if not np.all(np.isfinite(mu)):
         raise ValueError("expected_photons must be finite (no NaN or inf)")
-    if np.any(mu < 0):
+    # A cubic spline model rings slightly below zero beside its empty voxels: such values
+    # are no light, not an error. Larger negatives are a caller's mistake.
+    tiny = _NEGATIVE_TOLERANCE * max(float(mu.max(initial=0.0)), 1.0)
+    if np.any(mu < -tiny):
         raise ValueError("expected_photons must be >= 0")
-    return mu
+    return np.maximum(mu, 0.0)
 
 
 def apply_noise(
@@ -483,3 +562,161 @@ def noise_variance(expected_photons: ArrayLike, camera: Camera) -> NDArray[np.fl
         )
     var_e = camera._read_variance_e(mu.shape)
     return mu / qe + np.asarray(var_e) / qe**2
+
+
+# -- the camera from the data: photon transfer -------------------------------------------------
+
+
+def photon_transfer(frames: ArrayLike, block: int = 6) -> tuple[float, float]:
+    """The mean-variance (photon transfer) line of camera counts: ``variance = slope * mean
+    + intercept``, in ADU and ADU^2, from ``block`` x ``block`` pixel blocks of every frame.
+
+    Each block's noise variance comes from second differences along its rows (smooth
+    structure, such as a background gradient or a wide PSF, cancels), divided by 6 (the
+    variance of ``a - 2b + c`` for independent pixels); the line is a least-squares fit over
+    all blocks, weighted by each block's expected scatter (its variance).
+
+    Parameters
+    ----------
+    frames : array_like, shape (frames, rows, cols) or (rows, cols)
+        Camera counts (ADU); a few frames with a range of brightness give a well-defined line.
+    block : int
+        Block side (pixels, >= 3).
+
+    Returns
+    -------
+    slope : float
+        ADU per photoelectron (times the excess noise factor of an EMCCD, 2, times its EM
+        gain): ``1 / gain`` for an sCMOS or ideal camera with ``gain`` in e-/ADU.
+    intercept : float
+        ``read variance - slope * offset`` (ADU^2).
+
+    Raises
+    ------
+    ValueError
+        For frames smaller than one block, or blocks that all have the same mean (no line).
+    """
+    a = np.asarray(frames, dtype=np.float64)
+    if a.ndim == 2:
+        a = a[None]
+    if a.ndim != 3:
+        raise ValueError(f"frames must be (frames, rows, cols), got shape {a.shape}")
+    block = int(block)
+    if block < 3:
+        raise ValueError(f"block must be >= 3 pixels, got {block}")
+    h, w = (s - s % block for s in a.shape[1:])
+    if h == 0 or w == 0:
+        raise ValueError(f"frames of {a.shape[1]}x{a.shape[2]} px hold no {block}x{block} block")
+    b = a[:, :h, :w].reshape(a.shape[0], h // block, block, w // block, block).swapaxes(2, 3)
+    b = b.reshape(-1, block, block)
+    d2 = b[:, :, :-2] - 2 * b[:, :, 1:-1] + b[:, :, 2:]
+    var = d2.reshape(len(b), -1).var(axis=1) / 6.0
+    mean = b.reshape(len(b), -1).mean(axis=1)
+    if len(mean) < 2 or np.ptp(mean) <= 0 or not np.all(np.isfinite(mean)):
+        raise ValueError(
+            "the frames' blocks all have the same brightness: the mean-variance line needs "
+            "frames with brighter and darker parts"
+        )
+    slope, intercept = np.polyfit(mean, var, 1)
+    # Each block's variance estimate scatters in proportion to the variance itself, so dark
+    # blocks fix the intercept (the read noise) far better than bright ones: refit weighting
+    # each block by the inverse of its predicted variance's scatter.
+    for _ in range(3):
+        pred = slope * mean + intercept
+        if not np.all(pred > 0):
+            break
+        slope, intercept = np.polyfit(mean, var, 1, w=1.0 / pred)
+    return float(slope), float(intercept)
+
+
+@dataclass(frozen=True)
+class CameraEstimate:
+    """Camera settings estimated from a movie by :func:`estimate_camera`.
+
+    Attributes
+    ----------
+    offset : float
+        Baseline (ADU): the one given, or estimated (``offset_given`` False).
+    gain : float
+        Conversion gain (e-/ADU).
+    read_noise : float
+        Read noise (e- rms); 0 where the line says it is below measurement.
+    offset_given : bool
+        Whether the offset was given (then the read noise is measured) or estimated (then
+        the read noise is taken as the ``read_noise`` given, 0 by default).
+    slope, intercept : float
+        The photon-transfer line (ADU per e-, ADU^2), see :func:`photon_transfer`.
+    """
+
+    offset: float
+    gain: float
+    read_noise: float
+    offset_given: bool
+    slope: float
+    intercept: float
+
+
+def estimate_camera(
+    frames: ArrayLike,
+    *,
+    offset: float | None = None,
+    read_noise: float | None = None,
+    kind: str = "scmos",
+    em_gain: float = 1.0,
+    block: int = 6,
+) -> CameraEstimate:
+    """The offset (ADU), gain (e-/ADU) and read noise (e- rms) of the camera that recorded
+    ``frames`` (ADU), from their mean-variance line (:func:`photon_transfer`).
+
+    The line's slope gives the gain. Its intercept, ``read variance - slope * offset``, gives
+    the read noise where the offset is known, or the offset where the read noise is (0 by
+    default: then the offset is slightly high, by ``read variance / slope`` ADU).
+
+    Parameters
+    ----------
+    frames : array_like, shape (frames, rows, cols) or (rows, cols)
+        Camera counts (ADU).
+    offset : float, optional
+        The camera's baseline (ADU), where known.
+    read_noise : float, optional
+        The read noise (e- rms), where known and ``offset`` is not.
+    kind : {"ideal", "emccd", "scmos"}
+        Noise model: an EMCCD doubles the shot noise's variance and multiplies it by
+        ``em_gain``, which the gain then allows for.
+    em_gain : float
+        EM gain of an EMCCD (>= 1).
+    block : int
+        Block side (pixels) of :func:`photon_transfer`.
+
+    Returns
+    -------
+    CameraEstimate
+
+    Raises
+    ------
+    ValueError
+        For frames without a usable line (flat frames, a slope <= 0) or arguments out of range.
+    """
+    if kind not in CAMERA_KINDS:
+        raise ValueError(f"kind must be one of {', '.join(CAMERA_KINDS)}, got {kind!r}")
+    if offset is not None and read_noise is not None:
+        raise ValueError("give the offset or the read noise, not both: the other is measured")
+    if not em_gain >= 1:
+        raise ValueError(f"em_gain must be >= 1, got {em_gain}")
+    slope, intercept = photon_transfer(frames, block)
+    if not slope > 0:
+        raise ValueError(
+            f"the frames' variance does not grow with their mean (slope {slope:.3g}); "
+            "they are not raw camera counts (ADU)"
+        )
+    excess = 2.0 * em_gain if kind == "emccd" and em_gain > 1 else 1.0
+    gain = excess / slope  # e- per ADU
+    if offset is not None:
+        read_var_adu = intercept + slope * float(offset)
+        noise = float(np.sqrt(max(read_var_adu, 0.0)) * gain)
+        return CameraEstimate(float(offset), float(gain), noise, True, slope, intercept)
+    noise = 0.0 if read_noise is None else float(read_noise)
+    if noise < 0:
+        raise ValueError(f"read_noise must be >= 0 e- rms, got {noise}")
+    est_offset = ((noise / gain) ** 2 - intercept) / slope
+    return CameraEstimate(float(est_offset), float(gain), noise, False, slope, intercept)

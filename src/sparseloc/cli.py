@@ -9,6 +9,7 @@ import json
 import logging
 import sys
 import time
+from contextlib import contextmanager
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
@@ -98,10 +99,53 @@ class SceneKind(StrEnum):
     filaments = "filaments"
 
 
-class CameraKind(StrEnum):
-    ideal = "ideal"
-    emccd = "emccd"
-    scmos = "scmos"
+# The camera's flags, the same on every command (calibrate, localize, simulate, camera) and
+# the keys of a TOML file's [camera] table; None: the table's value, else CAMERA_DEFAULTS.
+_CameraFlag = Annotated[
+    str | None,
+    typer.Option(
+        "--camera", help=f"Camera noise model: ideal, emccd or scmos (default {_D['camera']})."
+    ),
+]
+_OffsetFlag = Annotated[
+    float | None, typer.Option("--offset", help=f"Camera offset (ADU; default {_D['offset']:g}).")
+]
+_GainFlag = Annotated[
+    float | None, typer.Option("--gain", help=f"Conversion gain (e-/ADU; default {_D['gain']:g}).")
+]
+_EmGainFlag = Annotated[
+    float | None,
+    typer.Option("--em-gain", help=f"EM gain of an EMCCD (default {_D['em_gain']:g})."),
+]
+_QeFlag = Annotated[
+    float | None,
+    typer.Option("--qe", help=f"Quantum efficiency, detected fraction (default {_D['qe']:g})."),
+]
+_ReadNoiseFlag = Annotated[
+    float | None,
+    typer.Option(
+        "--read-noise",
+        help="Read noise (e- rms; EMCCD at the output, sCMOS every pixel; default "
+        f"{_D['read_noise']:g}).",
+    ),
+]
+_OffsetMapFlag = Annotated[
+    Path | None, typer.Option("--offset-map", help="sCMOS offset map (ADU): .tif, .npy or .csv.")
+]
+_VarianceMapFlag = Annotated[
+    Path | None, typer.Option("--variance-map", help="sCMOS read-noise variance map (ADU^2).")
+]
+_GainMapFlag = Annotated[Path | None, typer.Option("--gain-map", help="sCMOS gain map (e-/ADU).")]
+
+
+def _camera_options(config: Path | None, given: dict[str, Any]) -> dict[str, Any]:
+    """The camera options of a command: its flags, else the [camera] table of ``config``,
+    else the defaults (:data:`sparseloc.options.CAMERA_DEFAULTS`)."""
+    from .options import CAMERA_DEFAULTS, read_camera_config
+
+    opts = {**CAMERA_DEFAULTS, **({} if config is None else _run(read_camera_config, config))}
+    opts.update({k: v for k, v in given.items() if v is not None})
+    return opts
 
 
 def _print_version(value: bool) -> None:
@@ -184,17 +228,23 @@ def simulate(
         float | None, typer.Option(help="Highest z (nm); default: the PSF's range.")
     ] = None,
     cluster_size: Annotated[int, typer.Option(help="Emitters per cluster (clusters scene).")] = 3,
-    camera: Annotated[CameraKind, typer.Option(help="Camera noise model.")] = CameraKind.ideal,
-    offset: Annotated[float, typer.Option(help="Camera offset (ADU).")] = 100.0,
-    gain: Annotated[float, typer.Option(help="Conversion gain (e-/ADU).")] = 1.0,
-    em_gain: Annotated[float, typer.Option(help="EM gain (EMCCD).")] = 1.0,
-    read_noise: Annotated[float, typer.Option(help="Read noise (e- rms, sCMOS).")] = 0.0,
-    qe: Annotated[float, typer.Option(help="Quantum efficiency (detected fraction).")] = 1.0,
+    camera: _CameraFlag = None,
+    offset: _OffsetFlag = None,
+    gain: _GainFlag = None,
+    em_gain: _EmGainFlag = None,
+    qe: _QeFlag = None,
+    read_noise: _ReadNoiseFlag = None,
+    offset_map: _OffsetMapFlag = None,
+    variance_map: _VarianceMapFlag = None,
+    gain_map: _GainMapFlag = None,
+    config: Annotated[
+        Path | None, typer.Option(help="TOML file whose [camera] table describes the camera.")
+    ] = None,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Simulate a movie with ground truth: writes OUT.tif and OUT_truth.csv."""
-    from .camera import Camera
+    from .camera import camera_from_options
     from .psf import make_psf
     from .simulate import simulate as run_simulation
     from .simulate import truth_path_for, write_simulation
@@ -203,18 +253,27 @@ def simulate(
     if out.suffix.lower() not in (".tif", ".tiff"):
         _fail(f"the output must be a .tif file, got {out.name!r}")
     out = _new_output(
-        out, overwrite=overwrite, inputs=[Path(psf)], companions=[truth_path_for(out)]
+        out,
+        overwrite=overwrite,
+        inputs=[Path(psf), config, offset_map, variance_map, gain_map],
+        companions=[truth_path_for(out)],
     )
     model = _run(make_psf, psf)
-    cam = _run(
-        Camera,
-        kind=camera.value,
-        offset=offset,
-        gain=gain,
-        em_gain=em_gain,
-        read_noise=read_noise,
-        qe=qe,
+    cam_opts = _camera_options(
+        config,
+        {
+            "camera": camera,
+            "offset": offset,
+            "gain": gain,
+            "em_gain": em_gain,
+            "qe": qe,
+            "read_noise": read_noise,
+            "offset_map": offset_map,
+            "variance_map": variance_map,
+            "gain_map": gain_map,
+        },
     )
+    cam = _run(camera_from_options, cam_opts)
     z_range = None
     if z_min is not None or z_max is not None:
         lo, hi = model.z_range
@@ -272,37 +331,41 @@ def localize(
     psf: Annotated[
         str | None,
         typer.Option(
-            help=f"PSF.h5 from 'calibrate', dh, astig, ... or a mask file (default {_D['psf']})."
+            help=f"PSF.h5 from 'calibrate', dh, astig, ... or a mask file (default {_D['psf']}, "
+            "the built-in pupil double helix; the run's summary says when it was used)."
         ),
     ] = None,
     pixel_size: Annotated[
         float | None, typer.Option(help="Pixel size in sample space (nm).")
     ] = None,
-    offset: Annotated[
-        float | None, typer.Option(help=f"Camera offset (ADU; default {_D['offset']:g}).")
+    camera: _CameraFlag = None,
+    offset: _OffsetFlag = None,
+    gain: _GainFlag = None,
+    em_gain: _EmGainFlag = None,
+    qe: _QeFlag = None,
+    read_noise: _ReadNoiseFlag = None,
+    offset_map: _OffsetMapFlag = None,
+    variance_map: _VarianceMapFlag = None,
+    gain_map: _GainMapFlag = None,
+    na: Annotated[
+        float | None,
+        typer.Option(help="Numerical aperture of a pupil model (default 1.45)."),
     ] = None,
-    gain: Annotated[
-        float | None, typer.Option(help=f"Conversion gain (e-/ADU; default {_D['gain']:g}).")
+    wavelength: Annotated[
+        float | None,
+        typer.Option(help="Emission wavelength of a pupil model (nm; default 670)."),
     ] = None,
-    em_gain: Annotated[
-        float | None, typer.Option(help=f"EM gain (default {_D['em_gain']:g}).")
+    mask_radius: Annotated[
+        float | None,
+        typer.Option(
+            help="Radius of the objective's pupil (NA disc) in a mask file's pixels "
+            "(default: the disc of the mask's non-zero values)."
+        ),
     ] = None,
-    qe: Annotated[
-        float | None, typer.Option(help=f"Quantum efficiency (default {_D['qe']:g}).")
+    blur: Annotated[
+        float | None,
+        typer.Option(help="Gaussian blur sigma of a pupil model (nm; default 0)."),
     ] = None,
-    camera: Annotated[
-        str | None, typer.Option(help=f"ideal, emccd or scmos (default {_D['camera']}).")
-    ] = None,
-    read_noise: Annotated[
-        float | None, typer.Option(help="Read noise (e- rms) of an sCMOS camera.")
-    ] = None,
-    offset_map: Annotated[
-        Path | None, typer.Option(help="sCMOS offset map (ADU): .tif, .npy or .csv.")
-    ] = None,
-    variance_map: Annotated[
-        Path | None, typer.Option(help="sCMOS read-noise variance map (ADU^2).")
-    ] = None,
-    gain_map: Annotated[Path | None, typer.Option(help="sCMOS gain map (e-/ADU).")] = None,
     method: Annotated[str | None, typer.Option(help="frame (default), hybrid, mp or co.")] = None,
     window: Annotated[
         int | None, typer.Option(help="Window size (px); default from a calibrated PSF, or 11.")
@@ -378,7 +441,10 @@ def localize(
     ] = None,
     scheduler: Annotated[
         str | None,
-        typer.Option(help="Chunked run on: sync, threads, or a Dask scheduler address."),
+        typer.Option(
+            help="Chunked run on: sync, threads, processes (--workers of them), or a Dask "
+            "scheduler address."
+        ),
     ] = None,
     overwrite: Annotated[
         bool | None,
@@ -386,13 +452,16 @@ def localize(
             help="Replace an existing output table; start a chunked run over in a used run folder."
         ),
     ] = None,
-    config: Annotated[Path | None, typer.Option(help="TOML file with the same keys.")] = None,
+    config: Annotated[
+        Path | None,
+        typer.Option(help="TOML file: a [localize] table of these options and a [camera] table."),
+    ] = None,
 ) -> None:
     """Localize a movie and write the localization table.
 
     With --run-dir, --chunk-frames or --scheduler the movie is cut into chunks of frames run
-    as tasks (in this process, in threads, on a Dask LocalCluster of --workers processes, or
-    on the scheduler given); each finished chunk is saved in the run folder, so the same
+    as tasks (in this process, in threads, in --workers local processes, or on the Dask
+    scheduler given); each finished chunk is saved in the run folder, so the same
     command started again after an interruption runs only the missing chunks."""
     from .config import LOCALIZE_DEFAULTS, build_job
     from .io.movie import Movie
@@ -420,6 +489,10 @@ def localize(
         "engine": engine,
         "n_sample": n_sample,
         "focal_depth": focal_depth,
+        "na": na,
+        "wavelength": wavelength,
+        "mask_radius": mask_radius,
+        "blur": blur,
         "read_noise": read_noise,
         "offset_map": offset_map,
         "variance_map": variance_map,
@@ -429,10 +502,12 @@ def localize(
         "scheduler": scheduler,
         "overwrite": overwrite,
     }
-    opts = {**LOCALIZE_DEFAULTS, **_load_config(config)}
+    cfg = _load_config(config)
+    opts = {**LOCALIZE_DEFAULTS, **cfg}
     opts.update({k: v for k, v in given.items() if v is not None})
+    default_psf = psf is None and cfg.get("psf") is None
     mov = _run(Movie.open, [str(p) for p in movie] if len(movie) > 1 else str(movie[0]))
-    with mov:
+    with mov, _info_from("sparseloc.psf.spline"):
         inputs = [*mov.paths, config, Path(str(opts["psf"]))]
         inputs += [opts[k] for k in ("offset_map", "variance_map", "gain_map")]
         out = _new_output(
@@ -443,53 +518,89 @@ def localize(
         )
         job = _run(build_job, opts, mov)
         if any(opts[k] is not None for k in ("run_dir", "chunk_frames", "scheduler")):
-            _localize_chunked(opts, out, mov, job)
+            _localize_chunked(opts, out, mov, job, default_psf)
             return
         workers = opts["workers"] or _auto_workers(job.stop - job.start)
         res = _localize_in_processes(mov, job, workers)
         _write_localized(res, out, opts, mov, job)
     typer.echo(f"{res.summary()}, {workers} process{'es' if workers > 1 else ''}")
+    _run_notes(res.metadata, opts["psf"] if default_psf else None)
     typer.echo(f"wrote {out}")
 
 
-def _localize_in_processes(mov, job, workers: int):
-    """The unchunked path of ``localize``: one process or a pool, with a progress bar."""
-    from tqdm import tqdm
+@contextmanager
+def _info_from(name: str):
+    """Show the INFO messages of logger ``name`` (e.g. the minute-long tabulation of a pupil
+    model) during the block, whatever ``--verbose`` says."""
+    logger = logging.getLogger(name)
+    level = logger.level
+    if logger.getEffectiveLevel() > logging.INFO:
+        logger.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
-    from .distributed import CameraFrames
-    from .pipeline import localize as run_localize
 
-    with tqdm(total=job.stop - job.start, unit="frame", disable=not sys.stderr.isatty()) as bar:
-        return _run(
-            run_localize,
-            CameraFrames(mov, job.camera),
-            job.model,
-            job.params,
-            start=job.start,
-            stop=job.stop,
-            progress=bar.update,
-            workers=workers,
-            read_variance=job.read_variance_map,
+def _run_notes(meta: dict, default_psf: str | None) -> None:
+    """The run summary's model check and, when ``--psf`` was not given, the PSF used."""
+    from .model_check import ModelCheck
+
+    check = meta.get("model_check")
+    if check:
+        typer.echo(ModelCheck(**check).summary())
+    if default_psf is not None:
+        typer.echo(
+            f"PSF: the built-in '{default_psf}' (the default, as --psf was not given; pass "
+            "--psf for a calibration, another built-in model or a mask file)"
         )
 
 
-def _localize_chunked(opts, out, mov, job) -> None:
-    """The chunked path of ``localize``: run, save parts, join, or report what is missing."""
-    from tqdm import tqdm
+def _localize_in_processes(mov, job, workers: int):
+    """The unchunked path of ``localize``: one process or a pool, with a progress bar (or
+    progress lines in a log file). Ctrl-C ends it with one sentence and exit code 130."""
+    from .distributed import CameraFrames
+    from .pipeline import localize as run_localize
+    from .progress import Progress
 
-    from .distributed import CHUNK_FRAMES, CameraFrames, local_cluster, localize_chunked
+    with Progress(job.stop - job.start) as bar:
+        try:
+            return _run(
+                run_localize,
+                CameraFrames(mov, job.camera),
+                job.model,
+                job.params,
+                start=job.start,
+                stop=job.stop,
+                progress=bar.update,
+                workers=workers,
+                read_variance=job.read_variance_map,
+            )
+        except KeyboardInterrupt:
+            typer.echo(
+                f"interrupted (Ctrl-C) after {bar.done} of {bar.total} frames: no output was "
+                "written, as the table is written when every frame is done (a run with "
+                "--run-dir or --chunk-frames keeps its finished chunks for a rerun)",
+                err=True,
+            )
+            raise typer.Exit(code=130) from None
+
+
+def _localize_chunked(opts, out, mov, job, default_psf: bool = False) -> None:
+    """The chunked path of ``localize``: run, save parts, join, or report what is missing."""
+    from .distributed import CHUNK_FRAMES, CameraFrames, localize_chunked
+    from .progress import Progress
 
     run_dir = Path(opts["run_dir"]) if opts["run_dir"] else out.with_name(out.stem + ".parts")
     sched = opts["scheduler"]
-    workers = int(opts["workers"] or 1)  # a Dask cluster only when asked for
-    client = None
+    workers = int(opts["workers"] or 1)
     if sched is None:
-        sched = "sync"
-        if workers > 1:
-            client = _run(local_cluster, workers)
-            sched = client
+        # Local worker processes, not a local Dask cluster: that one would take code from any
+        # local client, unauthenticated. A Dask cluster runs only at an address given.
+        sched = "processes" if workers > 1 else "sync"
+    bar = Progress(job.stop - job.start)
     try:
-        with tqdm(total=job.stop - job.start, unit="frame", disable=not sys.stderr.isatty()) as bar:
+        with bar:
             res = _run(
                 localize_chunked,
                 CameraFrames(mov, job.camera),
@@ -503,14 +614,19 @@ def _localize_chunked(opts, out, mov, job) -> None:
                 ),
                 scheduler=sched,
                 threads=max(workers, 2),
+                workers=workers,
                 overwrite=bool(opts["overwrite"]),
                 read_variance=job.read_variance_map,
                 progress=bar.update,
             )
-    finally:
-        if client is not None:
-            client.close()
-            client.cluster.close()
+    except KeyboardInterrupt:
+        typer.echo(
+            f"interrupted (Ctrl-C) after {bar.done} of {bar.total} frames: {out} was not "
+            f"written; the finished chunks are kept in {run_dir}, and the same command run "
+            "again continues from them",
+            err=True,
+        )
+        raise typer.Exit(code=130) from None
     typer.echo(res.summary())
     if not res.complete:
         typer.echo(
@@ -520,6 +636,7 @@ def _localize_chunked(opts, out, mov, job) -> None:
         )
         raise typer.Exit(code=1)
     _write_localized(res, out, opts, mov, job)
+    _run_notes(res.metadata, opts["psf"] if default_psf else None)
     typer.echo(f"wrote {out}")
 
 
@@ -558,8 +675,18 @@ def calibrate(
     z0_slice: Annotated[
         float | None, typer.Option(help="Slice at z = 0 (default: the middle one).")
     ] = None,
-    offset: Annotated[float, typer.Option(help="Camera offset (ADU).")] = 0.0,
-    gain: Annotated[float, typer.Option(help="Conversion gain (photons per ADU).")] = 1.0,
+    camera: _CameraFlag = None,
+    offset: _OffsetFlag = None,
+    gain: _GainFlag = None,
+    em_gain: _EmGainFlag = None,
+    qe: _QeFlag = None,
+    read_noise: _ReadNoiseFlag = None,
+    offset_map: _OffsetMapFlag = None,
+    variance_map: _VarianceMapFlag = None,
+    gain_map: _GainMapFlag = None,
+    config: Annotated[
+        Path | None, typer.Option(help="TOML file whose [camera] table describes the camera.")
+    ] = None,
     roi_size: Annotated[
         int | None, typer.Option(help="ROI side (px); default from the PSF's extent.")
     ] = None,
@@ -595,8 +722,12 @@ def calibrate(
     ] = None,
     overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
-    """Build a PSF model from a bead z-stack and write it to an HDF5 calibration file."""
+    """Build a PSF model from a bead z-stack and write it to an HDF5 calibration file.
+
+    The stack is converted to photons as localize converts a movie: (ADU - offset) x gain
+    (e-/ADU) / EM gain / QE."""
     from .calibrate import calibrate_file, read_bead_positions
+    from .calibrate_scan import scan_conversion
     from .io.calibration import save_calibration
     from .plotting import plot_calibration
 
@@ -610,7 +741,22 @@ def calibrate(
     if model == "pupil" and not fit_pupil:
         _fail("--model pupil needs --fit-pupil")
     fig_path = _output_path(figure) if figure else out.with_suffix(".png")
-    inputs = [stack, z_file, beads, Path(mask) if mask else None]
+    cam_opts = _camera_options(
+        config,
+        {
+            "camera": camera,
+            "offset": offset,
+            "gain": gain,
+            "em_gain": em_gain,
+            "qe": qe,
+            "read_noise": read_noise,
+            "offset_map": offset_map,
+            "variance_map": variance_map,
+            "gain_map": gain_map,
+        },
+    )
+    adu_offset, photons_per_adu = _run(scan_conversion, cam_opts)
+    inputs = [stack, z_file, beads, Path(mask) if mask else None, config]
     out = _new_output(out, overwrite=overwrite, inputs=inputs)
     fig_path = _new_output(fig_path, overwrite=overwrite, inputs=[*inputs, out])
     pupil_options = None
@@ -636,8 +782,8 @@ def calibrate(
         z_step,
         z_file=z_file,
         z0_slice=z0_slice,
-        offset=offset,
-        gain=gain,
+        offset=adu_offset,
+        gain=photons_per_adu,
         roi_size=roi_size,
         threshold=threshold,
         saturation=saturation,
@@ -686,6 +832,61 @@ def calibrate(
         terms = terms or "no term above 0.01 waves"
         typer.echo(f"  pupil fit: residual {cal.pupil.residual_rms:.3f}; {terms}")
     typer.echo(f"wrote {out} and {fig_path}")
+
+
+@app.command(name="camera")
+def camera_cmd(
+    movie: Annotated[
+        list[Path], typer.Argument(help="Movie of raw camera counts (ADU): TIFF/OME-TIFF file(s).")
+    ],
+    offset: Annotated[
+        float | None,
+        typer.Option(help="The camera's offset (ADU), where known: the read noise is measured."),
+    ] = None,
+    read_noise: Annotated[
+        float | None,
+        typer.Option(help="The read noise (e- rms), where known and the offset is not."),
+    ] = None,
+    camera: _CameraFlag = None,
+    em_gain: _EmGainFlag = None,
+    frames: Annotated[int, typer.Option(help="Frames read, from the first.", min=1)] = 20,
+) -> None:
+    """Estimate the camera's offset, gain (e-/ADU) and read noise from the movie's
+    mean-variance (photon transfer) relation, for localize's camera flags."""
+    from .camera import estimate_camera
+    from .io.movie import Movie
+
+    kind = camera or "scmos"
+    mov = _run(Movie.open, [str(p) for p in movie] if len(movie) > 1 else str(movie[0]))
+    with mov:
+        adu = _run(mov.frames, 0, min(frames, len(mov)))
+    est = _run(
+        estimate_camera,
+        adu,
+        offset=offset,
+        read_noise=read_noise,
+        kind=kind,
+        em_gain=1.0 if em_gain is None else em_gain,
+    )
+    how = "given" if est.offset_given else (
+        f"estimated, taking the read noise as {est.read_noise:g} e-; a read noise above that "
+        "puts the true offset lower: give --offset to measure the read noise"
+    )  # fmt: skip
+    typer.echo(f"offset {est.offset:.1f} ADU ({how})")
+    typer.echo(f"gain {est.gain:.4g} e-/ADU")
+    if est.offset_given:
+        below = "" if est.read_noise > 0 else " (below what the line resolves)"
+        typer.echo(f"read noise {est.read_noise:.3g} e- rms{below}")
+    typer.echo(
+        f"  from the line variance = {est.slope:.4g} x mean {est.intercept:+.4g} (ADU^2) over "
+        f"{adu.shape[0]} frame(s)"
+    )
+    flags = f"--camera {kind} --offset {est.offset:.1f} --gain {est.gain:.4g}"
+    if kind == "emccd" and em_gain is not None:
+        flags += f" --em-gain {em_gain:g}"
+    if est.read_noise > 0 and kind != "ideal":
+        flags += f" --read-noise {est.read_noise:.3g}"
+    typer.echo(f"localize with: {flags}")
 
 
 @app.command()

@@ -13,12 +13,13 @@ writes; the Python API builds :class:`LocalizeParams` directly.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .camera import Camera, noise_variance
+from .camera import Camera, camera_from_options, noise_variance
 from .engine import check_engine
 from .options import LOCALIZE_DEFAULTS, check_options
 from .psf import make_psf
@@ -247,13 +248,45 @@ class LocalizeJob:
     read_variance_map: NDArray[np.float64] | None
 
 
+#: Built-in pupil models (:data:`sparseloc.psf.PSF_NAMES`), which take the pupil's optics.
+_PUPIL_NAMES = ("dh", "astig", "clear")
+#: The pupil optics options (:data:`LOCALIZE_DEFAULTS`) and the :func:`make_psf` argument of
+#: each: NA, emission wavelength (nm) and Gaussian blur sigma (nm) of a pupil model; the
+#: pupil disc's radius (mask pixels) in a mask file.
+OPTICS_OPTIONS: dict[str, str] = {
+    "na": "na",
+    "wavelength": "wavelength",
+    "blur": "blur",
+    "mask_radius": "radius",
+}
+
+
 def build_model(options: dict[str, Any]) -> PSFModel:
-    """The PSF model of ``options["psf"]``, with the sample's optics and the user's z range
+    """The PSF model of ``options["psf"]``, with the sample's optics, the pupil's optics
+    (``na``, ``wavelength``, ``blur``; ``mask_radius`` for mask files) and the user's z range
     where it is a pupil model (which renders any depth)."""
+    from .psf.masks import MASK_SUFFIXES
     from .psf.pupil import PupilPSF
 
-    model = make_psf(options["psf"])
+    spec = options["psf"]
     optics = {k: float(options[k]) for k in ("n_sample", "focal_depth") if options[k] is not None}
+    pupil = {
+        arg: float(options[key])
+        for key, arg in OPTICS_OPTIONS.items()
+        if options.get(key) is not None
+    }
+    mask_file = Path(str(spec)).suffix.lower() in MASK_SUFFIXES
+    if "radius" in pupil and not mask_file:
+        raise ValueError(
+            f"--mask-radius applies to phase-mask files ({', '.join(MASK_SUFFIXES)}), not {spec!r}"
+        )
+    if pupil and not (mask_file or str(spec).lower() in _PUPIL_NAMES):
+        given = [k for k in OPTICS_OPTIONS if options.get(k) is not None]
+        flags = ", ".join("--" + k.replace("_", "-") for k in given)
+        raise ValueError(
+            f"{flags} apply to pupil models (dh, astig, clear, mask files), not {spec!r}"
+        )
+    model = make_psf(spec, **pupil)
     if optics and not isinstance(model, PupilPSF):
         raise ValueError(
             "--n-sample and --focal-depth apply to pupil models (built-in names, mask files)"
@@ -264,35 +297,22 @@ def build_model(options: dict[str, Any]) -> PSFModel:
     if isinstance(model, PupilPSF) and (optics or zmin is not None or zmax is not None):
         lo, hi = model.z_range
         z_range = (lo if zmin is None else float(zmin), hi if zmax is None else float(zmax))
-        model = make_psf(options["psf"], z_range=z_range, **optics)
+        model = make_psf(spec, z_range=z_range, **optics, **pupil)
     return model
 
 
 def build_camera(options: dict[str, Any], first: NDArray) -> Camera:
-    """The camera of ``options``, checked against the movie's first frame (ADU)."""
-    kw: dict[str, Any] = {
-        "kind": options["camera"],
-        "offset": options["offset"],
-        "gain": options["gain"],
-        "em_gain": options["em_gain"],
-        "qe": options["qe"],
-        "read_noise": options["read_noise"],
-    }
-    maps = {k: options[f"{k}_map"] for k in ("offset", "variance", "gain") if options[f"{k}_map"]}
-    if maps and options["camera"] != "scmos":
-        raise ValueError("--offset-map, --variance-map and --gain-map need --camera scmos")
-    if maps:
-        cam = Camera.from_map_files(**kw, **{k: str(v) for k, v in maps.items()})
-    else:
-        cam = Camera(**kw)
+    """The camera of ``options`` (:func:`~sparseloc.camera.camera_from_options`), checked
+    against the movie's first frame (ADU)."""
+    cam = camera_from_options(options)
     if cam.map_shape is not None and cam.map_shape != first.shape[-2:]:
         raise ValueError(
             f"the camera maps are {cam.map_shape[0]}x{cam.map_shape[1]} pixels but the "
             f"frames are {first.shape[-2]}x{first.shape[-1]}"
         )
-    if cam.offset_map is None and options["offset"] >= float(np.median(first)):
+    if cam.offset_map is None and cam.offset >= float(np.median(first)):
         raise ValueError(
-            f"the offset ({options['offset']:g} ADU) is not below the median pixel value "
+            f"the offset ({cam.offset:g} ADU) is not below the median pixel value "
             f"({float(np.median(first)):g} ADU) of the first frame; check --offset"
         )
     return cam

@@ -27,9 +27,13 @@ and a chunk that raises is retried (``retries``); a chunk that still fails is re
 its frame range while the other chunks go on, and the run ends without a joined table.
 
 Schedulers: ``"sync"`` (this process, one chunk after another), ``"threads"`` (a thread
-pool in this process), a :class:`distributed.Client`, or a scheduler address
-(``"tcp://host:8786"``). :func:`local_cluster` starts a ``LocalCluster`` of worker
-processes with one thread each.
+pool in this process), ``"processes"`` (a pool of worker processes of this machine,
+:mod:`sparseloc.pool`: what ``localize --workers N`` uses, with no network port that other
+local users could reach), a :class:`distributed.Client`, or a scheduler address
+(``"tcp://host:8786"``) of a cluster the user runs. :func:`local_cluster` starts a
+``LocalCluster`` of worker processes with one thread each, bound to this machine's loopback
+address; it has no authentication, so any local user can submit code to it: local runs use
+``"processes"`` instead.
 """
 
 from __future__ import annotations
@@ -55,7 +59,7 @@ from .camera import Camera, to_photons
 from .digest import array_digest, psf_hash
 from .io.atomic import write_text_atomic
 from .io.tables import LOCS_COLUMNS, empty_locs, read_parquet, write_parquet
-from .pipeline import LocalizeParams, localize, run_metadata, work_model_for
+from .pipeline import LocalizeParams, check_model, localize, run_metadata, work_model_for
 from .psf.base import PSFModel
 
 __all__ = [
@@ -223,6 +227,8 @@ def local_cluster(workers: int, **kwargs: Any):
     kwargs.setdefault("threads_per_worker", 1)
     kwargs.setdefault("processes", True)
     kwargs.setdefault("dashboard_address", None)
+    # Loopback only: no other machine can reach it (other local users still can).
+    kwargs.setdefault("host", "127.0.0.1")
     cluster = dask.LocalCluster(n_workers=workers, **kwargs)
     return dask.Client(cluster)
 
@@ -255,7 +261,13 @@ def _solve_chunk(
     """
     try:
         res = localize(
-            source, work_model, params, start=start, stop=stop, read_variance=read_variance
+            source,
+            work_model,
+            params,
+            start=start,
+            stop=stop,
+            read_variance=read_variance,
+            check=False,  # the whole run is checked once, on the joined table
         )
     except ValueError as exc:
         return None, str(exc)
@@ -371,6 +383,7 @@ def localize_chunked(
     chunk_frames: int = CHUNK_FRAMES,
     scheduler: Any = "sync",
     threads: int = 2,
+    workers: int = 2,
     overwrite: bool = False,
     retries: int = 2,
     read_variance: NDArray | None = None,
@@ -394,10 +407,13 @@ def localize_chunked(
         Frame range (stop exclusive; default the whole movie).
     chunk_frames : int
         Frames per task.
-    scheduler : "sync", "threads", distributed.Client or str
-        Where the chunks run; a string other than "sync"/"threads" is a scheduler address.
+    scheduler : "sync", "threads", "processes", distributed.Client or str
+        Where the chunks run; a string other than "sync"/"threads"/"processes" is a
+        scheduler address.
     threads : int
         Threads for ``scheduler="threads"``.
+    workers : int
+        Worker processes for ``scheduler="processes"``.
     overwrite : bool
         Discard the parts of a different earlier analysis in ``run_dir`` instead of refusing.
     retries : int
@@ -426,11 +442,17 @@ def localize_chunked(
     _prepare_run_dir(run_dir, key, desc, chunks, overwrite)
     done_before, todo = _done_and_todo(run_dir, chunks, chunk_frames, progress)
     writer = _PartWriter(run_dir, progress)
+    work_model = work_model_for(model, params)
     if todo:
-        args = (work_model_for(model, params), params)
-        _run_chunks(scheduler, source, args, todo, read_variance, writer, threads, retries)
+        args = (work_model, params)
+        pool = workers if scheduler == "processes" else threads
+        _run_chunks(scheduler, source, args, todo, read_variance, writer, pool, retries)
     meta = _run_metadata(model, params, source, (start, stop), run_dir, chunk_frames)
-    return _collect(run_dir, chunks, done_before, writer.failed, meta, t0)
+    res = _collect(run_dir, chunks, done_before, writer.failed, meta, t0)
+    if res.table is not None:
+        check = check_model(res.table, work_model, params, source.shape)
+        res.metadata["model_check"] = check.to_dict()
+    return res
 
 
 def _done_and_todo(
@@ -494,7 +516,8 @@ def _run_chunks(
     threads: int,
     retries: int,
 ) -> None:
-    """Solve the chunks ``todo`` on ``scheduler``, handing each result to ``writer``."""
+    """Solve the chunks ``todo`` on ``scheduler``, handing each result to ``writer``;
+    ``threads`` is the size of a thread or process pool."""
     if scheduler == "sync":
         for chunk in todo:
             writer.take(chunk, partial(_solve_chunk, source, *args, *chunk, read_variance))
@@ -506,8 +529,57 @@ def _run_chunks(
             }
             for fut in as_completed(futs):
                 writer.take(futs[fut], fut.result)
+    elif scheduler == "processes":
+        _run_in_processes(source, args, todo, read_variance, writer, threads)
     else:
         _run_on_cluster(scheduler, source, args, todo, read_variance, retries, writer)
+
+
+class _ChunkSolver:
+    """A worker process's solver of chunks (:func:`sparseloc.pool.in_processes`): the frame
+    source, model and parameters arrive once per process, each task is only its frames.
+
+    The source arrives pickled: a forked worker would otherwise share the parent's open
+    movie file, and its reads would move the others' file position. Unpickled, a
+    :class:`~sparseloc.io.movie.Movie` opens its files anew in each process.
+    """
+
+    def __init__(
+        self,
+        source: bytes,
+        work_model: PSFModel,
+        params: LocalizeParams,
+        read_variance: NDArray | None,
+    ) -> None:
+        import pickle
+
+        self.args = (pickle.loads(source), work_model, params)
+        self.read_variance = read_variance
+
+    def __call__(self, start: int, stop: int) -> tuple[pd.DataFrame | None, int | str]:
+        try:
+            return _solve_chunk(*self.args, start, stop, self.read_variance)
+        except OSError as exc:  # a file system that failed to answer: this chunk fails
+            return None, str(exc)
+
+
+def _run_in_processes(source, args, todo, read_variance, writer, workers: int) -> None:
+    """Solve the chunks ``todo`` in a pool of ``workers`` local processes."""
+    import pickle
+    from concurrent.futures.process import BrokenProcessPool
+
+    from .pool import in_processes
+
+    init = (_ChunkSolver, (pickle.dumps(source), *args, read_variance), args[1].engine)
+    done: set[tuple[int, int]] = set()
+    try:
+        for chunk, (table, nw) in zip(todo, in_processes(todo, int(workers), init), strict=False):
+            writer(chunk, table, nw)
+            done.add(chunk)
+    except BrokenProcessPool as exc:  # a worker died (killed, out of memory)
+        for chunk in todo:
+            if chunk not in done:
+                writer.failed[chunk] = f"a worker process died ({exc})"
 
 
 def _run_metadata(

@@ -1,5 +1,6 @@
-"""The options of ``sparseloc localize`` (also the keys of a TOML file's ``[localize]`` table):
-their defaults and types, checked once. Kept free of heavy imports, so that the command line
+"""The options of ``sparseloc localize`` (also the keys of a TOML file's ``[localize]`` table)
+and of the camera (every command's camera flags, a TOML file's ``[camera]`` table): their
+defaults and types, checked once. Kept free of heavy imports, so that the command line
 can show the defaults in ``--help`` without loading the solvers; :mod:`sparseloc.config`
 turns the options into a run.
 """
@@ -9,7 +10,32 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-__all__ = ["LOCALIZE_DEFAULTS", "check_options", "read_config"]
+__all__ = [
+    "CAMERA_DEFAULTS",
+    "LOCALIZE_DEFAULTS",
+    "check_options",
+    "read_camera_config",
+    "read_config",
+]
+
+#: The camera's options, the same on every command (``calibrate``, ``localize``,
+#: ``simulate``) and in a TOML file's ``[camera]`` table (where ``kind`` stands for
+#: ``camera``): the noise model, offset (ADU), gain (e-/ADU), EM gain, quantum efficiency,
+#: read noise (e- rms) and the sCMOS map files. :func:`sparseloc.camera.camera_from_options`
+#: turns them into a :class:`~sparseloc.camera.Camera`.
+CAMERA_DEFAULTS: dict[str, Any] = {
+    "camera": "ideal",
+    "offset": 100.0,
+    "gain": 1.0,
+    "em_gain": 1.0,
+    "qe": 1.0,
+    "read_noise": 0.0,
+    "offset_map": None,
+    "variance_map": None,
+    "gain_map": None,
+}
+#: Keys of a ``[camera]`` table that differ from the option's name.
+_CAMERA_TABLE_KEYS = {"kind": "camera"}
 
 
 #: The options of ``sparseloc localize`` (and keys of a TOML file's ``[localize]`` table) with
@@ -17,11 +43,7 @@ __all__ = ["LOCALIZE_DEFAULTS", "check_options", "read_config"]
 LOCALIZE_DEFAULTS: dict[str, Any] = {
     "psf": "dh",
     "pixel_size": None,
-    "offset": 100.0,
-    "gain": 1.0,
-    "em_gain": 1.0,
-    "qe": 1.0,
-    "camera": "ideal",
+    **CAMERA_DEFAULTS,
     "method": "frame",
     "window": None,
     "margin": None,
@@ -36,10 +58,11 @@ LOCALIZE_DEFAULTS: dict[str, Any] = {
     "engine": "auto",
     "n_sample": None,
     "focal_depth": None,
-    "read_noise": 0.0,
-    "offset_map": None,
-    "variance_map": None,
-    "gain_map": None,
+    # Optics of pupil models (None: the model's own, NA 1.45 and 670 nm for mask files).
+    "na": None,
+    "wavelength": None,
+    "mask_radius": None,
+    "blur": None,
     "run_dir": None,
     "chunk_frames": None,
     "scheduler": None,
@@ -48,7 +71,7 @@ LOCALIZE_DEFAULTS: dict[str, Any] = {
 }
 
 _NUMBERS = ("pixel_size", "offset", "gain", "em_gain", "qe", "z_min", "z_max", "min_snr")
-_NUMBERS += ("n_sample", "focal_depth", "read_noise")
+_NUMBERS += ("n_sample", "focal_depth", "read_noise", "na", "wavelength", "mask_radius", "blur")
 _WHOLE = ("window", "margin", "workers", "chunk_frames", "relocate")
 _FLAGS = ("refine", "overwrite")
 _TEXT = ("psf", "camera", "method", "background", "frames", "format", "engine", "scheduler")
@@ -92,9 +115,74 @@ def check_options(options: dict[str, Any], source: str = "the options") -> dict[
     return options
 
 
+def _read_toml(path: str | Path) -> tuple[Path, dict[str, Any]]:
+    """The parsed TOML file ``path``; ValueError in one sentence naming it otherwise."""
+    import tomllib
+
+    src = Path(path)
+    if not src.is_file():
+        raise ValueError(f"the config file {str(src)!r} does not exist")
+    try:
+        cfg = tomllib.loads(src.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, OSError) as exc:
+        raise ValueError(f"cannot read the config file {str(src)!r}: {exc}") from exc
+    return src, cfg
+
+
+def _table(cfg: dict[str, Any], name: str, src: Path) -> dict[str, Any]:
+    """The table ``name`` of a parsed TOML file (empty when absent), ``-`` in keys read as
+    ``_``."""
+    table = cfg.get(name, {})
+    if not isinstance(table, dict):
+        raise ValueError(
+            f"{name} in {src.name} must be a table ([{name}] and its keys below it); got {table!r}"
+        )
+    return {str(k).replace("-", "_"): v for k, v in table.items()}
+
+
+def _camera_table(cfg: dict[str, Any], src: Path) -> dict[str, Any]:
+    """The ``[camera]`` table of a parsed TOML file as camera options, checked."""
+    table = _table(cfg, "camera", src)
+    where = f"[camera] of {src.name}"
+    known = {*CAMERA_DEFAULTS, *_CAMERA_TABLE_KEYS} - set(_CAMERA_TABLE_KEYS.values())
+    unknown = sorted(set(table) - known)
+    if unknown:
+        raise ValueError(
+            f"unknown keys in {where}: {', '.join(unknown)}; allowed: {', '.join(sorted(known))}"
+        )
+    return check_options({_CAMERA_TABLE_KEYS.get(k, k): v for k, v in table.items()}, where)
+
+
+def read_camera_config(path: str | Path) -> dict[str, Any]:
+    """The camera options (:data:`CAMERA_DEFAULTS` keys) of a TOML file's ``[camera]`` table.
+
+    Parameters
+    ----------
+    path : str or Path
+        TOML file; its other tables are not read.
+
+    Returns
+    -------
+    dict
+        Option name -> value (``kind`` returned as ``camera``).
+
+    Raises
+    ------
+    ValueError
+        If the file does not exist or is not UTF-8 TOML, or a key is unknown or wrongly typed
+        (one sentence naming the file).
+    """
+    src, cfg = _read_toml(path)
+    return _camera_table(cfg, src)
+
+
 def read_config(path: str | Path) -> dict[str, Any]:
     """The options of a TOML file: its ``[localize]`` table (or its top level when it has
-    none), with ``-`` in keys read as ``_``, checked by :func:`check_options`.
+    neither a ``[localize]`` nor a ``[camera]`` table) and its ``[camera]`` table, with ``-``
+    in keys read as ``_``, checked by :func:`check_options`.
+
+    The camera keys may stand in ``[camera]`` (as every command reads them) or, as before, in
+    ``[localize]``; one given in both is refused.
 
     Parameters
     ----------
@@ -109,22 +197,21 @@ def read_config(path: str | Path) -> dict[str, Any]:
     Raises
     ------
     ValueError
-        If the file does not exist, is not UTF-8 TOML, its ``localize`` entry is not a table,
-        or an option is unknown or wrongly typed (one sentence naming the file).
+        If the file does not exist, is not UTF-8 TOML, its ``localize`` or ``camera`` entry is
+        not a table, or an option is unknown, wrongly typed or given twice (one sentence
+        naming the file).
     """
-    import tomllib
-
-    src = Path(path)
-    if not src.is_file():
-        raise ValueError(f"the config file {str(src)!r} does not exist")
-    try:
-        cfg = tomllib.loads(src.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError, OSError) as exc:
-        raise ValueError(f"cannot read the config file {str(src)!r}: {exc}") from exc
-    table = cfg.get("localize", cfg)
-    if not isinstance(table, dict):
+    src, cfg = _read_toml(path)
+    if "localize" in cfg or "camera" in cfg:
+        table = _table(cfg, "localize", src)
+    else:
+        table = {str(k).replace("-", "_"): v for k, v in cfg.items()}
+    options = check_options(table, src.name)
+    camera = _camera_table(cfg, src)
+    twice = sorted(set(camera) & set(options))
+    if twice:
         raise ValueError(
-            f"localize in {src.name} must be a table ([localize] and its keys below it); "
-            f"got {table!r}"
+            f"{', '.join(twice)} given in both [camera] and [localize] of {src.name}; "
+            "keep the camera in [camera]"
         )
-    return check_options({str(k).replace("-", "_"): v for k, v in table.items()}, src.name)
+    return {**options, **camera}

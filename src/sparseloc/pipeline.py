@@ -38,6 +38,7 @@ from .dictionary import Dictionary
 from .digest import array_digest, psf_hash
 from .engine import resolve_engine, use_engine
 from .io.tables import LOCS_COLUMNS, empty_locs
+from .model_check import ModelCheck, check_fit
 from .pool import in_processes
 from .psf.base import PSFModel
 from .psf.spline import SplinePSF
@@ -51,6 +52,7 @@ __all__ = [
     "METHODS",
     "LocalizeParams",
     "LocalizeResult",
+    "check_model",
     "localize",
     "psf_hash",
     "work_model_for",
@@ -265,8 +267,13 @@ def localize(
     progress: Callable[[int], None] | None = None,
     workers: int = 1,
     read_variance: NDArray | None = None,
+    check: bool = True,
 ) -> LocalizeResult:
     """Localize every frame of a movie (photons) and return the localization table.
+
+    After the run the table's goodness of fit is checked (:func:`check_model`): the verdict
+    goes to ``metadata["model_check"]``, and a warning with the likely causes is logged when
+    the model or the noise model does not describe the data.
 
     Parameters
     ----------
@@ -290,6 +297,8 @@ def localize(
         Per-pixel read-noise variance (photons^2) of an sCMOS camera, for ``noise="scmos"``
         (every solver: the windowed ones crop it to each window); replaces
         ``params.read_variance``.
+    check : bool
+        Run the model check (a chunk of a longer run leaves it to the whole run).
 
     Returns
     -------
@@ -317,7 +326,71 @@ def localize(
     )
     seconds = time.perf_counter() - t0
     meta = run_metadata(model, params, (start, stop), shape, read_variance)
-    return LocalizeResult(_table(parts), stop - start, n_windows, seconds, meta)
+    table = _table(parts)
+    if check:
+        meta["model_check"] = check_model(table, work_args[0], params, shape).to_dict()
+    return LocalizeResult(table, stop - start, n_windows, seconds, meta)
+
+
+def check_model(
+    table: pd.DataFrame,
+    work_model: PSFModel,
+    params: LocalizeParams,
+    shape: tuple[int, int],
+    *,
+    warn: bool = True,
+) -> ModelCheck:
+    """The model check of a run (:func:`sparseloc.model_check.check_fit`) on its table.
+
+    One ``gof`` per fitted window (its localizations share it), with the window's degrees of
+    freedom: its pixels, as the solver cut it (:func:`window_box` of its localizations and the
+    frame solver's pad, or the window of the window methods), less four parameters per
+    localization and one for the background.
+
+    Parameters
+    ----------
+    table : DataFrame
+        A localization table of this run.
+    work_model : PSFModel
+        The model the solvers rendered (:func:`work_model_for`).
+    params : LocalizeParams
+        The run's parameters.
+    shape : (int, int)
+        Frame shape (rows, cols).
+    warn : bool
+        Log the verdict's message as a warning when the check fails.
+
+    Returns
+    -------
+    ModelCheck
+    """
+    from .solvers.frame_windows import window_box
+
+    wins = table.groupby(["frame", "window_id"], sort=False).agg(
+        gof=("gof", "first"),
+        k=("gof", "size"),
+        x0=("x_nm", "min"),
+        x1=("x_nm", "max"),
+        y0=("y_nm", "min"),
+        y1=("y_nm", "max"),
+        background=("background", "median"),
+    )
+    px = params.pixel_size
+    if params.method == "frame" and len(wins):
+        pad = _FrameSolver(work_model, params, shape).pad
+        corners = np.zeros((2, 4))
+        pixels = np.empty(len(wins))
+        for i, (x0, x1, y0, y1) in enumerate(wins[["x0", "x1", "y0", "y1"]].to_numpy()):
+            corners[:, 0], corners[:, 1] = (x0, x1), (y0, y1)
+            r0, r1, c0, c1 = window_box(corners, shape[0], shape[1], px, pad)
+            pixels[i] = (r1 - r0) * (c1 - c0)
+    else:
+        pixels = np.full(len(wins), float(params.window) ** 2)
+    dof = pixels - (4 * wins["k"].to_numpy() + 1)
+    res = check_fit(wins["gof"], dof, params.qe * wins["background"].to_numpy())
+    if warn and not res.ok:
+        log.warning("%s", res.message)
+    return res
 
 
 def run_metadata(

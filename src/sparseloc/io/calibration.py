@@ -148,9 +148,14 @@ def _open(path: str | Path):
         raise ValueError(f"calibration file {str(p)!r} does not exist")
     try:
         f = h5py.File(p, "r")
-    except OSError as exc:
+    except Exception as exc:  # h5py raises OSError, RuntimeError, ... for a damaged file
         raise ValueError(f"{p.name} is not a readable HDF5 file ({exc})") from exc
-    if f.attrs.get("format") != FORMAT:
+    try:
+        fmt = f.attrs.get("format")
+    except Exception as exc:  # a damaged attribute table
+        f.close()
+        raise ValueError(f"{p.name} is a damaged HDF5 file ({type(exc).__name__}: {exc})") from exc
+    if fmt != FORMAT:
         f.close()
         raise ValueError(f"{p.name} is not a sparseloc PSF calibration (no format={FORMAT!r})")
     return f
@@ -197,6 +202,24 @@ def _model_error(f) -> float:
 
 
 def _load(p: Path, model: str | None):
+    """The model of the calibration file ``p``; every failure of a damaged file (h5py's
+    OSError, KeyError, RuntimeError, TypeError, zlib errors, a model refusing its data ...)
+    as a ValueError in one sentence naming the file."""
+    try:
+        return _read_model(p, model)
+    except KeyError as exc:
+        raise ValueError(f"{p.name} is an incomplete calibration file (missing {exc})") from exc
+    except ValueError as exc:
+        if p.name in str(exc):
+            raise
+        raise ValueError(f"{p.name} is not a usable calibration file: {exc}") from exc
+    except Exception as exc:
+        raise ValueError(
+            f"{p.name} is a damaged calibration file ({type(exc).__name__}: {exc})"
+        ) from exc
+
+
+def _read_model(p: Path, model: str | None):
     from ..psf.base import ShiftedPSF
     from ..psf.masks import ArrayMask
     from ..psf.pupil import PupilPSF

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from scipy.special import eval_genlaguerre
 
 __all__ = [
+    "MASK_SUFFIXES",
     "ArrayMask",
     "AstigmatismMask",
     "DoubleHelixMask",
@@ -25,6 +26,9 @@ __all__ = [
     "load_mask",
     "zernike",
 ]
+
+#: File types :func:`load_mask` reads.
+MASK_SUFFIXES: tuple[str, ...] = (".mat", ".npy", ".tif", ".tiff", ".csv")
 
 Mask = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
 
@@ -210,18 +214,43 @@ def load_mask(
 
     For MATLAB files ``key`` names the variable; without it the file must hold exactly one
     2-D numeric array. Never unpickles.
+
+    Raises
+    ------
+    ValueError
+        In one sentence naming the file, for a missing, unknown, damaged or unusable file
+        (the readers' own errors, such as ``OSError`` or ``zlib.error``, included).
     """
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"mask file {str(p)!r} does not exist")
+    try:
+        arr = _read_mask_array(p, key)
+        arr = np.squeeze(np.asarray(arr))
+        if arr.ndim != 2:
+            raise ValueError(f"the mask in {p.name} must be 2-D, got shape {arr.shape}")
+        if arr.dtype.kind not in "biufc":
+            raise ValueError(f"the mask in {p.name} holds {arr.dtype} values, not numbers")
+        return ArrayMask(arr, centre, radius, flip=flip)
+    except ValueError as exc:
+        if p.name in str(exc):
+            raise
+        raise ValueError(f"cannot use the mask file {str(p)!r}: {exc}") from exc
+    except Exception as exc:
+        # A damaged file makes the readers raise almost anything (OSError, zlib.error,
+        # struct.error, MemoryError for a corrupt size field ...): all mean "not readable".
+        raise ValueError(
+            f"the mask file {str(p)!r} is damaged or not a mask ({type(exc).__name__}: {exc})"
+        ) from exc
+
+
+def _read_mask_array(p: Path, key: str | None) -> NDArray:
+    """The array stored in the mask file ``p`` (see :func:`load_mask`)."""
     suffix = p.suffix.lower()
     if suffix == ".mat":
         from scipy.io import loadmat
 
-        try:
-            data = loadmat(p)
-        except (ValueError, OSError, NotImplementedError) as exc:
-            raise ValueError(f"cannot read MATLAB file {str(p)!r}: {exc}") from exc
+        data = loadmat(p)
         arrays = {
             k: v
             for k, v in data.items()
@@ -233,28 +262,22 @@ def load_mask(
                     f"variable {key!r} is not a numeric array in {p.name}; "
                     f"choose one of {sorted(arrays)}"
                 )
-            arr = arrays[key]
-        else:
-            two_d = {k: v for k, v in arrays.items() if v.ndim == 2 and min(v.shape) > 4}
-            if len(two_d) != 1:
-                raise ValueError(
-                    f"{p.name} holds {len(two_d)} 2-D arrays ({sorted(two_d)}); name one with key="
-                )
-            arr = next(iter(two_d.values()))
-    elif suffix == ".npy":
-        arr = np.load(p, allow_pickle=False)
-    elif suffix in (".tif", ".tiff"):
+            return arrays[key]
+        two_d = {k: v for k, v in arrays.items() if v.ndim == 2 and min(v.shape) > 4}
+        if len(two_d) != 1:
+            raise ValueError(
+                f"{p.name} holds {len(two_d)} 2-D arrays ({sorted(two_d)}); name one with key="
+            )
+        return next(iter(two_d.values()))
+    if suffix == ".npy":
+        return np.load(p, allow_pickle=False)
+    if suffix in (".tif", ".tiff"):
         import tifffile
 
-        arr = tifffile.imread(p)
-    elif suffix in (".csv", ".txt"):
-        arr = np.loadtxt(p, delimiter="," if suffix == ".csv" else None)
-    else:
-        raise ValueError(f"unknown mask file type {suffix!r}; use .mat, .npy, .tif or .csv")
-    arr = np.squeeze(np.asarray(arr))
-    if arr.ndim != 2:
-        raise ValueError(f"the mask in {p.name} must be 2-D, got shape {arr.shape}")
-    return ArrayMask(arr, centre, radius, flip=flip)
+        return tifffile.imread(p)
+    if suffix in (".csv", ".txt"):
+        return np.loadtxt(p, delimiter="," if suffix == ".csv" else None)
+    raise ValueError(f"unknown mask file type {suffix!r}; use .mat, .npy, .tif or .csv")
 
 
 def combine(masks: Sequence[Mask]) -> Mask:

@@ -19,6 +19,8 @@ pixel-integrated image cannot be re-binned exactly.
 from __future__ import annotations
 
 import hashlib
+import logging
+import time
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -28,6 +30,8 @@ from ._spline_kernel import spline_images
 from .base import PSFBase, check_pixel_size, energy_radius
 
 __all__ = ["SplinePSF", "bspline_terms", "bspline_weights", "table_coords"]
+
+log = logging.getLogger(__name__)
 
 _TABLE_PLANES = 16  # planes rendered at once by SplinePSF.from_model
 _Z_EXTRA = 3  # planes tabulated beyond a model's z range (see SplinePSF.from_model)
@@ -201,13 +205,17 @@ class SplinePSF(PSFBase):
         z_step: float = 10.0,
         z_range: tuple[float, float] | None = None,
         oversample: int = 2,
+        cache: bool = True,
     ) -> SplinePSF:
         """Tabulate any model (e.g. a pupil model) as a spline: the same images, much faster.
 
         The model is rendered once, at its ROI centre, on planes ``z_step`` apart; the spline
         then interpolates between planes and pixel shifts (errors of ~1 % of the peak at
         100 nm pixels for a double helix). Photon scale is the model's (no per-plane
-        normalisation), so photon counts keep their meaning.
+        normalisation), so photon counts keep their meaning. Rendering a pupil model's table
+        takes about a minute: it is logged, and the table is kept in a disk cache keyed by the
+        model's content hash and the table's parameters (:mod:`sparseloc.psf.cache`), from
+        which later calls read it.
 
         Parameters
         ----------
@@ -225,6 +233,8 @@ class SplinePSF(PSFBase):
         oversample : int
             Lateral samples per pixel (2: errors ~0.3 % of the peak for a double helix at
             160 nm pixels, against ~5 % with 1).
+        cache : bool
+            Read the table from the disk cache, or save it there once rendered.
         """
         px = check_pixel_size(pixel_size)
         lo, hi = model.z_range if z_range is None else z_range
@@ -236,7 +246,9 @@ class SplinePSF(PSFBase):
         zs, render = _table_planes(model, lo, hi, z_step)
         roi = int(roi) | 1
         s = int(oversample)
-        stack = _render_table(render, zs, roi, px, s)
+        stack = _cached_table(model, render, zs, roi, px, s) if cache else None
+        if stack is None:
+            stack = _render_table(render, zs, roi, px, s)
         centre = (float(s * (roi // 2)), float(s * (roi // 2)))
         out = cls(
             stack,
@@ -426,6 +438,34 @@ def _table_planes(model, lo: float, hi: float, z_step: float):
             return model._images(x, y, z, shape, pixel_size, (0.0, 0.0), False)
 
     return zs, render
+
+
+def _cached_table(model, render, zs: NDArray[np.float64], roi: int, px: float, s: int) -> NDArray:
+    """The table's stack from the disk cache, or rendered (logged: a pupil model takes about
+    a minute) and saved there."""
+    from . import cache
+
+    key = cache.table_key(model, px, zs, roi, s)
+    name = str(getattr(model, "name", "psf"))
+    path = cache.table_path(key, name)
+    stack = cache.load_table(path, key, zs, (zs.size, roi * s, roi * s))
+    if stack is not None:
+        log.info("read the spline table of the PSF model %r from the cache: %s", name, path)
+        return stack
+    log.info(
+        "tabulating the PSF model %r as a spline table (%d planes of %dx%d px); this is done "
+        "once (about a minute for a pupil model) and kept in the cache folder %s",
+        name,
+        zs.size,
+        roi,
+        roi,
+        path.parent,
+    )
+    t0 = time.perf_counter()
+    stack = _render_table(render, zs, roi, px, s)
+    if cache.save_table(path, key, zs, stack):
+        log.info("tabulated in %.0f s; saved as %s", time.perf_counter() - t0, path)
+    return stack
 
 
 def _render_table(render, zs: NDArray[np.float64], roi: int, px: float, s: int) -> NDArray:

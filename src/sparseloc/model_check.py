@@ -1,0 +1,160 @@
+"""The model check after a run: do the PSF and the noise model describe the data?
+
+Every fitted window reports its deviance per degree of freedom (the table's ``gof``). Where
+the model and the noise model describe the data, a window's deviance follows approximately a
+chi-square distribution with the window's ``dof`` degrees of freedom (pixels less fitted
+parameters; Wilks' theorem, the large-count limit of the Poisson deviance), so ``gof`` has
+mean 1 and standard deviation ``sqrt(2 / dof)``.
+
+The check compares the median ``gof`` over the windows with one window's chi-square
+quantiles at :data:`ALPHA`. A median beyond the upper quantile means that more than half of
+the windows fail the goodness-of-fit test at level ``ALPHA``, which a correct model does for
+a fraction ``ALPHA`` of them: the model (or the noise model) does not describe the data. A
+median below the lower quantile means less noise than the noise model expects (a gain set
+too low, an EMCCD declared for a camera without EM gain, read noise overstated).
+
+The yardstick is one window's spread, not the median's own sampling spread: that shrinks as
+``1 / sqrt(windows)``, so on a long movie it would reject every model short of exact (a spline
+table of a pupil model is ~1 % off), and the verdict would depend on the movie's length.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+__all__ = ["ALPHA", "LOW_COUNT", "ModelCheck", "check_fit"]
+
+#: Level of the per-window goodness-of-fit test whose quantiles bound the median ``gof``.
+ALPHA = 1e-3
+
+#: Median background (photons per pixel, on the likelihood's scale) below which the lower
+#: limit is not applied: there a correct model's Poisson deviance per pixel falls below 1
+#: (1.01 at 0.5 photons, 0.84 at 0.3, 0.47 at 0.1), so a low ``gof`` is expected.
+LOW_COUNT = 0.5
+
+_CAUSES_HIGH = (
+    "likely causes: the wrong PSF (a calibration or mask of another microscope, or the "
+    "built-in default where another was meant), wrong camera settings (offset, gain in "
+    "e-/ADU), read noise not given for an sCMOS camera, or an EMCCD camera not declared"
+)
+_CAUSES_LOW = (
+    "likely causes: a gain (e-/ADU) set too low, an EMCCD camera declared for one without EM "
+    "gain, or read noise overstated"
+)
+
+
+@dataclass(frozen=True)
+class ModelCheck:
+    """The verdict of :func:`check_fit` and the numbers behind it.
+
+    Attributes
+    ----------
+    verdict : {"ok", "misfit", "too_little_noise", "unchecked"}
+        ``"unchecked"``: no fitted window to judge.
+    median_gof : float
+        Median deviance per degree of freedom over the windows (NaN without windows).
+    fits : int
+        Fitted windows (the frame solver's groups) judged, one ``gof`` each.
+    dof : float
+        Median degrees of freedom of a window.
+    lower, upper : float
+        The chi-square quantiles (``ALPHA`` and ``1 - ALPHA``) of one window's ``gof``.
+    alpha : float
+        The test's level.
+    message : str
+        One sentence for the user: the verdict and, for a failed check, the likely causes.
+    """
+
+    verdict: str
+    median_gof: float
+    fits: int
+    dof: float
+    lower: float
+    upper: float
+    alpha: float
+    message: str
+
+    @property
+    def ok(self) -> bool:
+        """Whether the check found nothing wrong (``"ok"`` or ``"unchecked"``)."""
+        return self.verdict in ("ok", "unchecked")
+
+    def to_dict(self) -> dict:
+        """Plain numbers and text, for a table's JSON metadata."""
+        return {k: (float(v) if isinstance(v, np.floating) else v) for k, v in asdict(self).items()}
+
+    def summary(self) -> str:
+        """One line for a run's summary."""
+        if self.verdict == "unchecked":
+            return "model check: no fits to check"
+        m = f"median goodness of fit {self.median_gof:.2f} over {self.fits} fits"
+        if self.verdict == "ok":
+            return f"model check: ok, {m} (a correct model: {self.lower:.2f}-{self.upper:.2f})"
+        side = f"above {self.upper:.2f}" if self.verdict == "misfit" else f"below {self.lower:.2f}"
+        return f"model check: {self.verdict.replace('_', ' ')}, {m}, {side} (see the warning)"
+
+
+def check_fit(
+    gof: ArrayLike,
+    dof: ArrayLike,
+    background: ArrayLike | None = None,
+    *,
+    alpha: float = ALPHA,
+) -> ModelCheck:
+    """Judge a run by the median goodness of fit of its windows (see the module notes).
+
+    Parameters
+    ----------
+    gof : array_like, shape (W,)
+        Deviance per degree of freedom of each window (one value per window, not per
+        localization). Non-finite values are left out.
+    dof : array_like, shape (W,)
+        Each window's degrees of freedom; the limits use their median.
+    background : array_like, shape (W,), optional
+        Each window's background (photons per pixel, on the likelihood's scale); the lower
+        limit applies only where their median is at least :data:`LOW_COUNT`.
+    alpha : float
+        Level of the per-window test.
+
+    Returns
+    -------
+    ModelCheck
+    """
+    from scipy.stats import chi2
+
+    g = np.asarray(gof, dtype=np.float64).ravel()
+    d = np.asarray(dof, dtype=np.float64).ravel()
+    if g.shape != d.shape:
+        raise ValueError(f"gof has {g.size} values but dof {d.size}")
+    keep = np.isfinite(g) & np.isfinite(d) & (d >= 1)
+    g, d = g[keep], d[keep]
+    if not g.size:
+        nan = float("nan")
+        return ModelCheck("unchecked", nan, 0, nan, nan, nan, alpha, "no fits to check")
+    k = float(np.median(d))
+    lower, upper = float(chi2.ppf(alpha, k) / k), float(chi2.ppf(1.0 - alpha, k) / k)
+    med = float(np.median(g))
+    bg = None if background is None else np.asarray(background, dtype=np.float64).ravel()[keep]
+    counts_ok = bg is None or float(np.nanmedian(bg)) >= LOW_COUNT
+    said = (
+        f"the median goodness of fit (deviance per degree of freedom) of {g.size} fits is {med:.2f}"
+    )
+    if med > upper:
+        verdict = "misfit"
+        message = (
+            f"the model does not describe the data: {said}, above {upper:.2f}, which fewer "
+            f"than {alpha:.1%} of the fits of a correct model exceed; {_CAUSES_HIGH}"
+        )
+    elif med < lower and counts_ok:
+        verdict = "too_little_noise"
+        message = (
+            f"the noise model does not describe the data: {said}, below {lower:.2f}, which "
+            f"fewer than {alpha:.1%} of the fits of a correct model fall under; {_CAUSES_LOW}"
+        )
+    else:
+        verdict = "ok"
+        message = f"the model describes the data: {said} (a correct model: about 1)"
+    return ModelCheck(verdict, med, int(g.size), k, lower, upper, float(alpha), message)

@@ -1,0 +1,474 @@
+"""Issue 27, the camera side: one camera vocabulary on every command, the TOML file and the
+Python API (item 6); ``sparseloc camera`` and the pupil's optics on the command line (item 9);
+damaged calibration and mask files end in one sentence (item 16); calibrations without negative
+voxels (item 17); no unauthenticated local Dask cluster for ``--workers`` (item 21)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import tifffile
+from typer.testing import CliRunner
+
+from sparseloc.cli import app
+
+runner = CliRunner()
+
+CAMERA_FLAGS = ("--camera", "--offset", "--gain", "--em-gain", "--qe", "--read-noise")
+MAP_FLAGS = ("--offset-map", "--variance-map", "--gain-map")
+ASTIG = Path(__file__).resolve().parents[2] / "shared" / "data" / "storm_analysis_sim" / "astig"
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def refused(res, *words: str) -> None:
+    """Exit code 2 and exactly one sentence on stderr, naming ``words``; no traceback."""
+    assert res.exit_code == 2, (res.output, res.exception)
+    assert res.exception is None or isinstance(res.exception, SystemExit), res.exception
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), res.stderr
+    for w in words:
+        assert w in lines[0], lines[0]
+
+
+def held(res) -> None:
+    """Success, or a refusal in one sentence: never a traceback."""
+    if res.exit_code != 0:
+        refused(res)
+
+
+def _help_text(command: str) -> str:
+    res = runner.invoke(app, [command, "--help"], env={"COLUMNS": "200", "TERMINAL_WIDTH": "200"})
+    assert res.exit_code == 0, res.output
+    return re.sub(r"\s+", " ", res.output)
+
+
+@pytest.fixture(scope="module")
+def beads(tmp_path_factory):
+    """A small bead z-scan (ADU) from an EMCCD camera, written as a TIFF, and its camera."""
+    from sparseloc.camera import Camera
+    from sparseloc.io.tiff import write_tiff
+    from sparseloc.psf import make_psf
+    from sparseloc.simulate import bead_scan_truth, simulate
+
+    cam = Camera(kind="emccd", offset=100.0, gain=10.0, em_gain=50.0, qe=0.9, read_noise=40.0)
+    zs = np.arange(-500.0, 501.0, 50.0)
+    pos = np.array([[1400.0, 2400.0], [3400.0, 2400.0], [2400.0, 1200.0]])
+    truth = bead_scan_truth(pos, zs, 20000.0)
+    sim = simulate(
+        make_psf("dh-analytic"), scene=truth, n_frames=zs.size, shape=(48, 48), camera=cam
+    )
+    tif = write_tiff(tmp_path_factory.mktemp("beads") / "beads.tif", sim.movie, pixel_size=100.0)
+    return tif, cam, sim.movie
+
+
+@pytest.fixture(scope="module")
+def movie(tmp_path_factory):
+    """A short simulated movie (ADU, ideal camera, offset 100) for ``localize``."""
+    out = tmp_path_factory.mktemp("movie") / "movie.tif"
+    res = run(
+        "simulate", "-o", out, "--psf", "dh-analytic", "--frames", 8, "--rows", 32, "--cols",
+        32, "--pixel-size", 160, "--density", 0.15, "--photons-min", 3000, "--photons-max",
+        4000, "--z-min", -300, "--z-max", 300, "--seed", 3,
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    return out
+
+
+LOCALIZE = ["--psf", "dh-analytic", "--pixel-size", 160, "--z-min", -300, "--z-max", 300]
+
+
+# -- item 6: one camera vocabulary --------------------------------------------------------------
+
+
+@pytest.mark.parametrize("command", ["calibrate", "localize", "simulate"])
+def test_every_command_takes_the_same_camera_flags(command):
+    text = _help_text(command)
+    for flag in (*CAMERA_FLAGS, *MAP_FLAGS, "--config"):
+        assert flag in text, f"{command} lacks {flag}"
+    assert "photons per ADU" not in text  # the gain is e-/ADU everywhere
+    assert "e-/ADU" in text
+    assert "sCMOS)" not in text  # read noise is not sCMOS only: EMCCDs have it too
+
+
+def test_camera_section_of_the_toml_file(tmp_path):
+    from sparseloc.options import read_config
+
+    cfg = tmp_path / "run.toml"
+    cfg.write_text(
+        '[camera]\nkind = "emccd"\noffset = 90.0\ngain = 12.0\nem_gain = 200.0\nqe = 0.9\n'
+        'read_noise = 60.0\n\n[localize]\npsf = "dh-analytic"\npixel_size = 160.0\n'
+    )
+    opts = read_config(cfg)
+    assert opts["camera"] == "emccd" and opts["em_gain"] == 200.0 and opts["read_noise"] == 60.0
+    assert opts["offset"] == 90.0 and opts["gain"] == 12.0 and opts["qe"] == 0.9
+    assert opts["psf"] == "dh-analytic"
+    # one description: the same Camera from the options as from the Python API
+    from sparseloc.camera import Camera, camera_from_options
+
+    expected = Camera(kind="emccd", offset=90, gain=12, em_gain=200, qe=0.9, read_noise=60)
+    assert camera_from_options(opts) == expected
+    # the camera given twice (in [camera] and in [localize]) is refused in one sentence
+    cfg.write_text("[camera]\ngain = 2.0\n\n[localize]\ngain = 3.0\n")
+    with pytest.raises(ValueError, match="gain"):
+        read_config(cfg)
+    cfg.write_text("[camera]\ngian = 2.0\n")
+    with pytest.raises(ValueError, match="gian"):
+        read_config(cfg)
+
+
+def test_calibrate_converts_adu_to_photons_as_localize_does(beads, tmp_path):
+    from sparseloc.camera import to_photons
+    from sparseloc.io.calibration import read_calibration_info
+
+    tif, cam, adu = beads
+    out = tmp_path / "psf.h5"
+    res = run(
+        "calibrate", tif, "--pixel-size", 100, "--z-step", 50, "--camera", "emccd",
+        "--offset", 100, "--gain", 10, "--em-gain", 50, "--qe", 0.9, "--read-noise", 40,
+        "-o", out,
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    params = read_calibration_info(out)["params"]
+    photons = (adu.astype(float) - params["offset_adu"]) * params["photons_per_adu"]
+    np.testing.assert_allclose(photons, to_photons(adu, cam), rtol=1e-12)
+
+
+def test_calibrate_reads_the_camera_section(beads, tmp_path):
+    from sparseloc.io.calibration import read_calibration_info
+
+    tif, _, _ = beads
+    cfg = tmp_path / "cam.toml"
+    cfg.write_text('[camera]\nkind = "emccd"\noffset = 100.0\ngain = 10.0\nem_gain = 50.0\n')
+    out = tmp_path / "psf.h5"
+    res = run("calibrate", tif, "--pixel-size", 100, "--z-step", 50, "--config", cfg, "-o", out)
+    assert res.exit_code == 0, res.output
+    assert read_calibration_info(out)["params"]["photons_per_adu"] == pytest.approx(10.0 / 50.0)
+
+
+def test_emccd_read_noise_reaches_simulate_and_localize(movie, tmp_path):
+    sim = tmp_path / "em.tif"
+    args = ["--camera", "emccd", "--em-gain", 100, "--gain", 20, "--read-noise", 50]
+    res = run("simulate", "-o", sim, "--psf", "dh-analytic", "--frames", 2, "--rows", 24,
+              "--cols", 24, "--pixel-size", 160, *args)  # fmt: skip
+    assert res.exit_code == 0, res.output
+    cfg = tmp_path / "cam.toml"
+    cfg.write_text('[camera]\nkind = "emccd"\nem_gain = 100.0\ngain = 20.0\nread_noise = 50.0\n')
+    out = tmp_path / "locs.parquet"
+    res = run("localize", sim, "-o", out, *LOCALIZE, "--workers", 1, "--config", cfg)
+    assert res.exit_code == 0, res.output
+    from sparseloc.io.tables import read_parquet
+
+    _, meta = read_parquet(out)
+    assert meta["camera"]["kind"] == "emccd" and meta["camera"]["read_noise"] == 50.0
+
+
+def test_simulate_reads_the_camera_section(tmp_path):
+    cfg = tmp_path / "cam.toml"
+    cfg.write_text("[camera]\noffset = 300.0\ngain = 0.5\n")
+    out = tmp_path / "m.tif"
+    res = run("simulate", "-o", out, "--psf", "dh-analytic", "--frames", 1, "--rows", 16,
+              "--cols", 16, "--config", cfg)  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert np.median(tifffile.imread(out)) >= 300  # the section's offset, not the default
+
+
+def test_calibrate_refuses_camera_maps_in_one_sentence(beads, tmp_path):
+    # The bead stack is converted with the camera's scalar settings; per-pixel maps (for
+    # localize) are refused rather than ignored.
+    tif, _, _ = beads
+    np.save(tmp_path / "off.npy", np.full((48, 48), 100.0))
+    res = run("calibrate", tif, "--pixel-size", 100, "--z-step", 50, "--camera", "scmos",
+              "--offset-map", tmp_path / "off.npy", "-o", tmp_path / "c.h5")  # fmt: skip
+    refused(res, "--offset-map")
+    assert not (tmp_path / "c.h5").exists()
+
+
+# -- item 9: the camera and the optics from the command line -----------------------------------
+
+
+def _scmos_movie(tmp_path, offset=100.0, gain=0.5, read_noise=2.0):
+    """ADU frames of a smooth field from 5 to 400 photons per pixel on an sCMOS camera."""
+    from sparseloc.camera import Camera, apply_noise
+
+    cam = Camera(kind="scmos", offset=offset, gain=gain, read_noise=read_noise)
+    rows, cols = np.mgrid[0:128, 0:128]
+    mu = 5.0 + 395.0 * (0.5 + 0.5 * np.sin(cols / 15.0) * np.cos(rows / 21.0))
+    adu = apply_noise(np.broadcast_to(mu, (20, 128, 128)), cam, np.random.default_rng(1))
+    path = tmp_path / "field.tif"
+    tifffile.imwrite(path, adu)
+    return path, adu
+
+
+def _number(text: str, name: str) -> float:
+    m = re.search(rf"{name}\D*?(-?\d+(?:\.\d+)?)", text)
+    assert m, text
+    return float(m.group(1))
+
+
+def test_camera_command_estimates_gain_and_read_noise(tmp_path):
+    path, _ = _scmos_movie(tmp_path)
+    res = run("camera", path, "--offset", 100)
+    assert res.exit_code == 0, res.output
+    assert _number(res.output, "gain") == pytest.approx(0.5, rel=0.1)
+    assert _number(res.output, "read noise") == pytest.approx(2.0, rel=0.3)
+    res = run("camera", path)  # offset estimated too
+    assert res.exit_code == 0, res.output
+    assert _number(res.output, "offset") == pytest.approx(100.0, abs=10.0)
+    assert _number(res.output, "gain") == pytest.approx(0.5, rel=0.1)
+    refused(run("camera", tmp_path / "none.tif"), "does not exist")
+
+
+def test_photon_transfer_lives_in_the_library_and_the_benchmark_uses_it(tmp_path):
+    from sparseloc.camera import estimate_camera, photon_transfer
+
+    _, adu = _scmos_movie(tmp_path)
+    slope, _ = photon_transfer(adu)
+    assert slope == pytest.approx(2.0, rel=0.1)  # ADU per photon: 1 / 0.5 e-/ADU
+    est = estimate_camera(adu, offset=100.0)
+    assert est.gain == pytest.approx(0.5, rel=0.1) and est.read_noise == pytest.approx(2, rel=0.3)
+    bench = (Path(__file__).resolve().parents[1] / "benchmarks" / "real_data.py").read_text()
+    assert "def photon_transfer" not in bench and "photon_transfer" in bench
+
+
+class _Frames:
+    """The smallest movie that :func:`sparseloc.config.build_job` accepts."""
+
+    pixel_size = None
+
+    def __len__(self) -> int:
+        return 2
+
+    def frames(self, start: int, stop: int) -> np.ndarray:
+        return np.full((stop - start, 16, 16), 200.0)
+
+
+def test_localize_builds_a_mask_model_with_the_optics_given(tmp_path):
+    from sparseloc.config import build_job
+
+    mask = tmp_path / "mask.npy"
+    yy, xx = np.mgrid[-20:21, -20:21] / 20.0
+    np.save(mask, np.where(np.hypot(xx, yy) <= 1, 2.0 * xx * yy + 0.5, 0.0))
+    opts = {"psf": str(mask), "pixel_size": 110.0, "na": 1.3, "wavelength": 600.0}
+    opts |= {"mask_radius": 18.0, "blur": 50.0}
+    model = build_job(opts, _Frames()).model
+    assert (model.na, model.wavelength, model.blur) == (1.3, 600.0, 50.0)
+    assert model.mask.radius == 18.0
+    with pytest.raises(ValueError, match="mask-radius"):
+        build_job({"psf": "dh", "pixel_size": 110.0, "mask_radius": 18.0}, _Frames())
+    text = _help_text("localize")
+    for flag in ("--na", "--wavelength", "--mask-radius", "--blur"):
+        assert flag in text
+
+
+def test_localize_takes_the_optics_flags(movie, tmp_path):
+    res = run("localize", movie, "-o", tmp_path / "x.parquet", *LOCALIZE, "--na", 1.3)
+    refused(res, "--na")  # an analytic model has no pupil: the flag would be ignored
+
+
+# -- item 16: damaged files end in one sentence ------------------------------------------------
+
+
+def _damaged(data: bytes, rng: np.random.Generator, n: int) -> list[bytes]:
+    """``n`` copies of ``data`` with a few random bytes changed, and some cut short."""
+    out = []
+    for i in range(n):
+        b = bytearray(data)
+        if i % 5 == 4:
+            b = b[: int(rng.integers(1, len(b)))]
+        else:
+            for at in rng.integers(0, len(b), size=int(rng.integers(1, 4))):
+                b[at] = int(rng.integers(0, 256))
+        out.append(bytes(b))
+    return out
+
+
+@pytest.fixture(scope="module")
+def calibration_file(beads, tmp_path_factory):
+    tif, _, _ = beads
+    out = tmp_path_factory.mktemp("cal") / "psf.h5"
+    res = run("calibrate", tif, "--pixel-size", 100, "--z-step", 50, "--offset", 100, "-o", out)
+    assert res.exit_code == 0, res.output
+    return out
+
+
+def test_damaged_calibration_files_are_refused_in_one_sentence(calibration_file, tmp_path):
+    from sparseloc.psf import make_psf
+
+    rng = np.random.default_rng(7)
+    # Damage in the metadata and structure, where readers fail: the front and the back.
+    data = calibration_file.read_bytes()
+    head = _damaged(data[:4096], rng, 20)
+    variants = [h + data[4096:] for h in head] + _damaged(data, rng, 20)
+    for i, blob in enumerate(variants):
+        path = tmp_path / f"bad{i}.h5"
+        path.write_bytes(blob)
+        try:
+            make_psf(str(path))
+        except ValueError as exc:
+            assert path.name in str(exc), exc
+    for i in range(0, len(variants), 4):
+        path = tmp_path / f"bad{i}.h5"
+        held(run("simulate", "-o", tmp_path / f"s{i}.tif", "--psf", path, "--frames", 1,
+                 "--rows", 16, "--cols", 16))  # fmt: skip
+
+
+def test_damaged_calibration_in_localize(calibration_file, movie, tmp_path):
+    rng = np.random.default_rng(3)
+    data = calibration_file.read_bytes()
+    for i, blob in enumerate(_damaged(data[:4096], rng, 6)):
+        path = tmp_path / f"bad{i}.h5"
+        path.write_bytes(blob + data[4096:])
+        held(run("localize", movie, "-o", tmp_path / f"l{i}.parquet", "--psf", path,
+                 "--pixel-size", 100, "--workers", 1))  # fmt: skip
+
+
+def _mask_files(tmp_path: Path) -> list[Path]:
+    from scipy.io import savemat
+
+    yy, xx = np.mgrid[-16:17, -16:17] / 16.0
+    phase = np.where(np.hypot(xx, yy) <= 1, 3.0 * xx * yy + 0.2, 0.0)
+    np.save(tmp_path / "m.npy", phase)
+    savemat(tmp_path / "m.mat", {"phase": phase}, do_compression=True)
+    tifffile.imwrite(tmp_path / "m.tif", phase.astype(np.float32), compression="zlib")
+    return [tmp_path / "m.npy", tmp_path / "m.mat", tmp_path / "m.tif"]
+
+
+def test_corrupt_masks_are_refused_in_one_sentence(tmp_path):
+    from sparseloc.psf.masks import load_mask
+
+    rng = np.random.default_rng(11)
+    for good in _mask_files(tmp_path):
+        for i, blob in enumerate(_damaged(good.read_bytes(), rng, 40)):
+            path = tmp_path / f"bad{i}{good.suffix}"
+            path.write_bytes(blob)
+            try:
+                load_mask(path)
+            except ValueError as exc:
+                assert path.name in str(exc), exc
+
+
+def test_corrupt_masks_in_simulate_and_localize(movie, tmp_path):
+    rng = np.random.default_rng(5)
+    for good in _mask_files(tmp_path):
+        for i, blob in enumerate(_damaged(good.read_bytes(), rng, 3)):
+            path = tmp_path / f"bad{i}{good.suffix}"
+            path.write_bytes(blob)
+            held(run("simulate", "-o", tmp_path / "s.tif", "--psf", path, "--frames", 1,
+                     "--rows", 16, "--cols", 16, "--overwrite"))  # fmt: skip
+    # a mask whose compressed data are damaged: zlib.error inside scipy
+    mat = tmp_path / "m.mat"
+    blob = bytearray(mat.read_bytes())
+    blob[len(blob) // 2 :] = bytes(len(blob) - len(blob) // 2)
+    mat.write_bytes(bytes(blob))
+    refused(run("localize", movie, "-o", tmp_path / "x.parquet", "--psf", mat,
+                "--pixel-size", 160), "m.mat")  # fmt: skip
+
+
+# -- item 17: calibrations without negative voxels -----------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def astig_calibration(tmp_path_factory):
+    """storm-analysis's astigmatic bead scan (every third plane, four beads) calibrated."""
+    if not (ASTIG / "beads_zscan.tif").is_file():
+        pytest.skip("storm-analysis's astigmatic beads are not in ../shared/data")
+    from sparseloc.calibrate import calibrate_beads, read_z_file
+    from sparseloc.io.calibration import save_calibration
+
+    stack = tifffile.imread(ASTIG / "beads_zscan.tif")
+    z, valid = read_z_file(ASTIG / "beads_zscan_z.csv")
+    every = slice(0, None, 3)
+    cal = calibrate_beads(stack[every, :100, :100], 100.0, z=z[every], valid=valid[every],
+                          offset=100.0)  # fmt: skip
+    out = tmp_path_factory.mktemp("astig") / "astig.h5"
+    save_calibration(cal, out)
+    return cal, out
+
+
+def test_calibration_of_astigmatic_beads_has_no_negative_voxels(astig_calibration):
+    cal, _ = astig_calibration
+    assert np.mean(cal.psf.stack < 0) == 0.0
+    assert np.all(np.isfinite(cal.psf.stack))
+
+
+def test_simulate_and_localize_with_the_astigmatic_calibration(astig_calibration, tmp_path):
+    _, psf = astig_calibration
+    sim = tmp_path / "m.tif"
+    res = run("simulate", "-o", sim, "--psf", psf, "--frames", 3, "--rows", 64, "--cols", 64,
+              "--pixel-size", 100, "--density", 0.3, "--photons-min", 50000, "--photons-max",
+              50000, "--seed", 2)  # fmt: skip
+    assert res.exit_code == 0, res.output
+    out = tmp_path / "locs.parquet"
+    res = run("localize", sim, "-o", out, "--psf", psf, "--workers", 1)
+    assert res.exit_code == 0, res.output
+    from sparseloc.io.tables import read_parquet
+
+    table, _ = read_parquet(out)
+    ok = table[table["flag"] == "ok"] if "flag" in table else table
+    assert len(ok) > 0 and np.all(np.isfinite(ok["gof"]))
+
+
+def test_rendering_clamps_a_splines_tiny_negative_values():
+    from sparseloc.camera import Camera, apply_noise
+
+    mu = np.full((1, 8, 8), 5.0)
+    mu[0, 0, 0] = -1e-9  # a cubic spline's undershoot beside a clipped voxel
+    adu = apply_noise(mu, Camera(), np.random.default_rng(0))
+    assert adu.shape == mu.shape
+    with pytest.raises(ValueError, match=">= 0"):
+        apply_noise(np.full((1, 8, 8), -5.0), Camera(), np.random.default_rng(0))
+
+
+# -- item 21: local runs without an open Dask cluster ----------------------------------------
+
+
+def test_chunked_local_run_uses_a_process_pool_not_an_open_cluster(movie, tmp_path, monkeypatch):
+    import sparseloc.distributed as dist
+
+    def no_cluster(*args, **kwargs):
+        raise AssertionError("a local run must not start a Dask cluster")
+
+    monkeypatch.setattr(dist, "local_cluster", no_cluster)
+    try:
+        import distributed
+
+        monkeypatch.setattr(distributed, "LocalCluster", no_cluster)
+    except ImportError:
+        pass
+    out = tmp_path / "locs.parquet"
+    res = run("localize", movie, "-o", out, *LOCALIZE, "--chunk-frames", 2, "--workers", 2)
+    assert res.exit_code == 0, (res.output, res.exception)
+    ref = tmp_path / "ref.parquet"
+    res = run("localize", movie, "-o", ref, *LOCALIZE, "--workers", 1)
+    assert res.exit_code == 0, res.output
+    from sparseloc.io.tables import read_parquet
+
+    a, b = read_parquet(out)[0], read_parquet(ref)[0]
+    cols = ["frame", "x_nm", "y_nm", "z_nm", "photons"]
+    pd.testing.assert_frame_equal(a[cols].reset_index(drop=True), b[cols].reset_index(drop=True))
+
+
+def test_localize_chunked_in_processes(tmp_path):
+    from sparseloc.distributed import localize_chunked
+    from sparseloc.pipeline import LocalizeParams, localize
+    from sparseloc.psf import make_psf
+    from sparseloc.simulate import simulate
+
+    model = make_psf("dh-analytic")
+    sim = simulate(model, n_frames=6, shape=(24, 24), pixel_size=100.0, density=0.4, seed=2)
+    frames = sim.movie.astype(float) - sim.camera.offset
+    params = LocalizeParams(pixel_size=100.0, tabulate=False)
+    res = localize_chunked(frames, model, params, tmp_path / "run", chunk_frames=2,
+                           scheduler="processes", workers=2)  # fmt: skip
+    ref = localize(frames, model, params).table
+    cols = ["frame", "x_nm", "y_nm", "z_nm", "photons"]
+    pd.testing.assert_frame_equal(
+        res.table[cols].reset_index(drop=True), ref[cols].reset_index(drop=True)
+    )

@@ -1,0 +1,320 @@
+"""A first day's run (issue 27 items 2, 11 and 12): the model check after every run, the
+PSF used when ``--psf`` is not given, the spline table's disk cache, progress lines in a log
+file, and a clean Ctrl-C."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+from scipy import stats
+from typer.testing import CliRunner
+
+from sparseloc.cli import app
+from sparseloc.pipeline import LocalizeParams, localize
+from sparseloc.psf import make_psf
+
+PX = 160.0
+ZR = (-300.0, 300.0)
+runner = CliRunner()
+
+
+@pytest.fixture(autouse=True)
+def _own_cache(tmp_path, monkeypatch):
+    """Spline tables of these tests go to a folder of their own, not the user's cache."""
+    monkeypatch.setenv("SPARSELOC_CACHE_DIR", str(tmp_path / "cache"))
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def _frames(psf: str, n_frames: int = 2, shape=(32, 32), seed: int = 3) -> np.ndarray:
+    """A small simulated movie in photons (offset removed) of ``psf`` emitters."""
+    from sparseloc.simulate import simulate
+
+    sim = simulate(
+        make_psf(psf),
+        scene="uniform",
+        n_frames=n_frames,
+        shape=shape,
+        pixel_size=PX,
+        density=0.3,
+        photons=(2000.0, 5000.0),
+        background=10.0,
+        seed=seed,
+        z_range=ZR,
+    )
+    return sim.movie.astype(float) - sim.camera.offset
+
+
+# ---------------------------------------------------------------- item 2: the model check
+
+
+def test_the_check_limit_is_a_windows_chi_square_quantile():
+    """The limits are the chi-square quantiles of one window's deviance per degree of freedom,
+    whatever the number of windows: a correct model passes (also with a 3 % model error on
+    many windows), a misfit or too little noise does not."""
+    from sparseloc.model_check import ALPHA, check_fit
+
+    rng = np.random.default_rng(0)
+    dof = 150
+    good = rng.chisquare(dof, 5000) / dof
+    res = check_fit(good, np.full(good.size, dof), background=np.full(good.size, 10.0))
+    assert res.verdict == "ok" and abs(res.median_gof - 1.0) < 0.02
+    assert res.upper == pytest.approx(stats.chi2.ppf(1 - ALPHA, dof) / dof)
+    assert res.lower == pytest.approx(stats.chi2.ppf(ALPHA, dof) / dof)
+    assert check_fit(1.03 * good, np.full(good.size, dof)).verdict == "ok"
+    assert check_fit(1.6 * good[:20], np.full(20, dof)).verdict == "misfit"
+    low = check_fit(0.5 * good, np.full(good.size, dof), background=np.full(good.size, 10.0))
+    assert low.verdict == "too_little_noise"
+    # a correct model at a low count reads below 1: not a verdict there
+    dim = check_fit(0.5 * good, np.full(good.size, dof), background=np.full(good.size, 0.1))
+    assert dim.verdict == "ok"
+    assert check_fit(np.array([]), np.array([])).verdict == "unchecked"
+    d = res.to_dict()
+    assert {"median_gof", "verdict", "upper", "lower", "dof", "fits"} <= set(d)
+
+
+def test_a_run_with_the_right_psf_passes_the_check(caplog):
+    frames = _frames("dh-analytic")
+    with caplog.at_level(logging.WARNING, logger="sparseloc"):
+        res = localize(frames, make_psf("dh-analytic"), LocalizeParams(pixel_size=PX, z_range=ZR))
+    check = res.metadata["model_check"]
+    assert check["verdict"] == "ok", check
+    assert 0.8 < check["median_gof"] < 1.3 and check["fits"] >= 10
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+
+
+def test_a_wrong_psf_or_gain_is_reported(caplog):
+    model = make_psf("dh-analytic")
+    params = LocalizeParams(pixel_size=PX, z_range=ZR)
+    # double-helix frames read with twice the right gain: twice the variance per photon
+    with caplog.at_level(logging.WARNING, logger="sparseloc"):
+        res = localize(2.0 * _frames("dh-analytic"), model, params)
+    check = res.metadata["model_check"]
+    assert check["verdict"] == "misfit" and check["median_gof"] > check["upper"]
+    msg = " ".join(r.getMessage() for r in caplog.records if r.levelno == logging.WARNING)
+    assert "does not describe the data" in msg
+    for cause in ("PSF", "gain", "offset", "read noise", "EMCCD"):
+        assert cause in msg
+    # astigmatic frames localized with the double helix
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="sparseloc"):
+        res = localize(_frames("astig-gauss", n_frames=1), model, params)
+    assert res.metadata["model_check"]["verdict"] == "misfit"
+    assert any("does not describe the data" in r.getMessage() for r in caplog.records)
+
+
+@pytest.fixture
+def movie(tmp_path):
+    """A two-frame double-helix movie (ideal camera, offset 100 ADU, gain 1)."""
+    path = tmp_path / "m.tif"
+    res = run(
+        "simulate",
+        "-o",
+        path,
+        "--psf",
+        "dh-analytic",
+        "--frames",
+        "2",
+        "--rows",
+        "32",
+        "--cols",
+        "32",
+        "--pixel-size",
+        "160",
+        "--density",
+        "0.3",
+        "--photons-min",
+        "2000",
+        "--photons-max",
+        "5000",
+        "--z-min",
+        "-300",
+        "--z-max",
+        "300",
+        "--seed",
+        "3",
+    )
+    assert res.exit_code == 0, res.output
+    return path
+
+
+def _warnings(caplog) -> str:
+    return " ".join(r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING)
+
+
+def test_the_command_line_prints_the_check_and_the_default_psf(
+    tmp_path, movie, monkeypatch, caplog
+):
+    """The run summary holds the check's verdict, the table's metadata the check, and the
+    log its warning (on stderr from the command line; here pytest captures the log)."""
+    from sparseloc.io.tables import read_parquet
+    from sparseloc.options import LOCALIZE_DEFAULTS
+
+    base = ["--pixel-size", "160", "--z-min", "-300", "--z-max", "300", "--workers", "1"]
+    out = tmp_path / "a.parquet"
+    res = run("localize", movie, "-o", out, "--psf", "dh-analytic", *base)
+    assert res.exit_code == 0, res.output
+    assert "model check: ok" in res.output and not _warnings(caplog)
+    assert "--psf was not given" not in res.output
+    assert read_parquet(out)[1]["model_check"]["verdict"] == "ok"
+    # the wrong gain: a warning with its causes, the verdict in the summary and the table
+    out = tmp_path / "b.parquet"
+    res = run("localize", movie, "-o", out, "--psf", "dh-analytic", "--gain", "2", *base)
+    assert res.exit_code == 0, res.output
+    assert "model check: misfit" in res.output
+    assert "does not describe the data" in _warnings(caplog)
+    assert read_parquet(out)[1]["model_check"]["verdict"] == "misfit"
+    # the same check after a chunked run, on the joined table
+    out = tmp_path / "c.parquet"
+    res = run("localize", movie, "-o", out, "--psf", "dh-analytic", "--chunk-frames", "1", *base)
+    assert res.exit_code == 0, res.output
+    assert "model check: ok" in res.output
+    assert read_parquet(out)[1]["model_check"]["verdict"] == "ok"
+    # --psf not given: the summary names the built-in model it used
+    monkeypatch.setitem(LOCALIZE_DEFAULTS, "psf", "dh-analytic")
+    res = run("localize", movie, "-o", tmp_path / "d.parquet", *base)
+    assert res.exit_code == 0, res.output
+    assert "PSF: the built-in 'dh-analytic'" in res.output
+    assert "--psf was not given" in res.output
+    assert "--psf" in run("localize", "--help").output
+
+
+# ------------------------------------------------------ item 12: the spline table's cache
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    folder = tmp_path / "cache"
+    monkeypatch.setenv("SPARSELOC_CACHE_DIR", str(folder))
+    return folder
+
+
+def _table(model, **kw):
+    from sparseloc.psf.spline import SplinePSF
+
+    return SplinePSF.from_model(model, PX, roi=15, z_step=50.0, **kw)
+
+
+def test_the_spline_table_is_cached_on_disk(cache, monkeypatch, caplog):
+    import sparseloc.psf.spline as spline
+
+    model = make_psf("astig-gauss")
+    with caplog.at_level(logging.INFO, logger="sparseloc"):
+        first = _table(model)
+    assert any("tabulating" in r.getMessage() for r in caplog.records)
+    files = sorted(cache.iterdir())
+    assert len(files) == 1 and files[0].suffix == ".npz"
+    with np.load(files[0], allow_pickle=False) as f:  # plain arrays, no pickle
+        assert f["stack"].shape == first.stack.shape
+
+    # a later run loads the table instead of rendering it again
+    def no_render(*args, **kwargs):
+        raise AssertionError("rendered although cached")
+
+    monkeypatch.setattr(spline, "_render_table", no_render)
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="sparseloc"):
+        again = _table(model)
+    assert any("cache" in r.getMessage() for r in caplog.records)
+    np.testing.assert_array_equal(again.stack, first.stack)
+    np.testing.assert_array_equal(again.z, first.z)
+    assert again.z_range == first.z_range and again.oversample == first.oversample
+    assert again.content_hash == first.content_hash and again.source is model
+    monkeypatch.undo()
+    monkeypatch.setenv("SPARSELOC_CACHE_DIR", str(cache))
+    # other table parameters or another model: other files
+    _table(model, oversample=1)
+    _table(make_psf("dh-analytic"))
+    assert len(list(cache.glob("*.npz"))) == 3
+    assert not [p for p in cache.iterdir() if p.suffix != ".npz"]  # no temporary leftovers
+
+
+def test_a_damaged_cache_file_is_rebuilt(cache, caplog):
+    model = make_psf("astig-gauss")
+    first = _table(model)
+    (path,) = cache.glob("*.npz")
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with caplog.at_level(logging.WARNING, logger="sparseloc"):
+        again = _table(model)
+    assert any("damaged" in r.getMessage() for r in caplog.records)
+    np.testing.assert_array_equal(again.stack, first.stack)
+    with np.load(path, allow_pickle=False) as f:  # rewritten whole
+        assert f["stack"].shape == first.stack.shape
+
+
+def test_a_failed_cache_write_leaves_no_file(cache, monkeypatch, caplog):
+    import os
+
+    def fail(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "replace", fail)
+    with caplog.at_level(logging.WARNING, logger="sparseloc"):
+        table = _table(make_psf("astig-gauss"))
+    assert table.stack.size and any("disk full" in r.getMessage() for r in caplog.records)
+    assert not cache.exists() or not list(cache.iterdir())
+
+
+def test_the_cache_folder_follows_the_environment(tmp_path, monkeypatch):
+    from sparseloc.psf.cache import cache_dir
+
+    monkeypatch.setenv("SPARSELOC_CACHE_DIR", str(tmp_path / "here"))
+    assert cache_dir() == tmp_path / "here"
+    monkeypatch.delenv("SPARSELOC_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cache_dir() == tmp_path / "xdg" / "sparseloc"
+
+
+def test_progress_lines_when_stderr_is_not_a_terminal(tmp_path, movie, monkeypatch):
+    import sparseloc.progress as progress
+
+    monkeypatch.setattr(progress, "PROGRESS_SECONDS", 0.0)
+    args = ["--psf", "dh-analytic", "--pixel-size", "160", "--z-min", "-300", "--z-max", "300"]
+    res = run("localize", movie, "-o", tmp_path / "p.parquet", *args, "--workers", "1")
+    assert res.exit_code == 0, res.output
+    assert "localize: 1/2 frames" in res.output and "localize: 2/2 frames" in res.output
+
+
+def test_the_command_line_says_when_it_tabulates(tmp_path, movie, cache, caplog):
+    """Every model but a spline is tabulated on first use (a pupil model takes about a
+    minute): the command line shows it (an INFO message shown without --verbose; pytest
+    captures the log here), and a later run reads the table from the cache."""
+    args = ["--psf", "dh-analytic", "--pixel-size", "160", "--z-min", "-300", "--z-max", "300"]
+
+    def said() -> str:
+        text = " ".join(r.getMessage() for r in caplog.records if r.levelno >= logging.INFO)
+        caplog.clear()
+        return text
+
+    res = run("localize", movie, "-o", tmp_path / "t.parquet", *args, "--workers", "1")
+    assert res.exit_code == 0, res.output
+    assert "tabulating" in said() and list(cache.glob("*.npz"))
+    res = run("localize", movie, "-o", tmp_path / "u.parquet", *args, "--workers", "1")
+    assert res.exit_code == 0, res.output
+    text = said()
+    assert "tabulating" not in text and "from the cache" in text
+
+
+# ------------------------------------------------------------------------ item 11: Ctrl-C
+
+
+def test_ctrl_c_says_what_happened_and_writes_nothing(tmp_path, movie, monkeypatch):
+    import sparseloc.pipeline as pipeline
+
+    def interrupted(*args, progress=None, **kwargs):
+        progress(1)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "localize", interrupted)
+    out = tmp_path / "locs.parquet"
+    args = ["--psf", "dh-analytic", "--pixel-size", "160", "--z-min", "-300", "--z-max", "300"]
+    res = run("localize", movie, "-o", out, *args, "--workers", "1")
+    assert res.exit_code == 130, res.output
+    assert "interrupted" in res.output and "no output was written" in res.output
+    assert "1 of 2 frames" in res.output
+    assert "Traceback" not in res.output and not out.exists()
