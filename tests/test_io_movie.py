@@ -383,9 +383,7 @@ def test_several_frame_axes(tmp_path):
 def test_float_data(tmp_path, data):
     path = tmp_path / "f.tif"
     tifffile.imwrite(path, data.astype(np.float32))
-    with pytest.raises(
-        ValueError, match=r"f\.tif' holds floating-point data \(float32\).*allow_float"
-    ):
+    with pytest.raises(ValueError, match=r"f\.tif' holds floating-point data \(float32\)"):
         Movie.open(path)
     with Movie.open(path, allow_float=True) as m:
         assert m.dtype == np.float32

@@ -16,10 +16,90 @@ from typing import Annotated, Any
 
 import numpy as np
 import typer
+from rich.markup import escape
+from typer.core import TyperArgument, TyperCommand, TyperGroup
 
 from .options import LOCALIZE_DEFAULTS as _D
 
+#: ``sparseloc --help`` lists the commands in the order of a day's work, not of definition.
+WORKFLOW_ORDER = (
+    "demo",
+    "simulate",
+    "calibrate",
+    "camera",
+    "localize",
+    "evaluate",
+    "filter",
+    "drift",
+    "render",
+    "overlay",
+    "report",
+)
+
+
+def _one_line(text: str) -> str:
+    """The first paragraph of a docstring on one line (rich keeps single line breaks)."""
+    return " ".join(text.strip().split("\n\n")[0].split())
+
+
+def _plain(param: Any) -> Any:
+    """``param`` with a plain help entry: an argument named in capitals (``LOCS``) whose type
+    reads ``<path>...`` for several files (not ``<list[Path]>``), no type beside a flag (no
+    ``<bool>``), and square brackets in the help (TOML tables such as ``[camera]``) kept as
+    text rather than read as rich markup. Done once per parameter."""
+    if getattr(param, "_sparseloc_plain", False):
+        return param
+    param._sparseloc_plain = True
+    if param.help:
+        param.help = escape(param.help)
+    if isinstance(param, TyperArgument):
+        param.metavar = param.metavar or param.name.upper()
+        label = "<path>..." if param.nargs != 1 else param.display_type(None)
+        param.display_type_rich = lambda ctx, label=label: label
+    elif getattr(param, "is_flag", False):
+        param.metavar = ""  # a flag takes no value
+    return param
+
+
+class _Command(TyperCommand):
+    """A command whose help shows plain placeholders (see :func:`_plain`) and the usage
+    ``[OPTIONS] LOCS TRUTH`` rather than ``[OPTIONS] {locs} {truth}``."""
+
+    def get_params(self, ctx: Any) -> list[Any]:
+        if self.help and not getattr(self, "_sparseloc_plain", False):
+            self._sparseloc_plain = True
+            self.help = escape(self.help)
+        return [_plain(p) for p in super().get_params(ctx)]
+
+    def collect_usage_pieces(self, ctx: Any) -> list[str]:
+        pieces = [self.options_metavar] if self.options_metavar else []
+        for p in self.get_params(ctx):
+            if isinstance(p, TyperArgument):
+                pieces.append(p.metavar + ("..." if p.nargs != 1 else ""))
+        return pieces
+
+
+class _Group(TyperGroup):
+    """The top-level command: subcommands in :data:`WORKFLOW_ORDER`, each described by its
+    docstring's whole first paragraph on one line."""
+
+    def list_commands(self, ctx: Any) -> list[str]:
+        names = super().list_commands(ctx)
+        rank = {n: i for i, n in enumerate(WORKFLOW_ORDER)}
+        return sorted(names, key=lambda n: rank.get(n, len(rank)))
+
+    def get_params(self, ctx: Any) -> list[Any]:
+        return [_plain(p) for p in super().get_params(ctx)]
+
+    def get_command(self, ctx: Any, cmd_name: str) -> Any:
+        cmd = super().get_command(ctx, cmd_name)
+        if cmd is not None and cmd.short_help is None and cmd.help:
+            cmd.short_help = _one_line(cmd.help)
+        return cmd
+
+
 app = typer.Typer(
+    cls=_Group,
     add_completion=False,
     no_args_is_help=True,
     help="sparseloc: 3D localization of overlapping single molecules by sparse recovery.",
@@ -172,7 +252,7 @@ def _main(
     )
 
 
-@app.command()
+@app.command(cls=_Command)
 def demo(
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the demo's outputs.")] = Path(
         "sparseloc_demo"
@@ -204,7 +284,7 @@ def demo(
         typer.echo(f"  {f}")
 
 
-@app.command()
+@app.command(cls=_Command)
 def simulate(
     output: Annotated[Path, typer.Option("--output", "-o", help="Output movie (.tif).")],
     psf: Annotated[
@@ -274,6 +354,15 @@ def simulate(
         },
     )
     cam = _run(camera_from_options, cam_opts)
+    # The movie is uint16: an offset beyond it would saturate every pixel.
+    omap = getattr(cam, "offset_map", None)
+    top = float(cam.offset if omap is None else np.max(omap))
+    if top > np.iinfo(np.uint16).max:
+        flag = "--offset" if omap is None else "--offset-map"
+        _fail(
+            f"{flag} {top:g} ADU is beyond what a 16-bit movie holds (0-65535 ADU); "
+            "give the camera's offset in ADU"
+        )
     z_range = None
     if z_min is not None or z_max is not None:
         lo, hi = model.z_range
@@ -324,7 +413,7 @@ def _load_config(path: Path | None) -> dict:
     return {} if path is None else _run(read_config, path)
 
 
-@app.command()
+@app.command(cls=_Command)
 def localize(
     movie: Annotated[list[Path], typer.Argument(help="Movie: TIFF/OME-TIFF file(s) in order.")],
     output: Annotated[Path, typer.Option("--output", "-o", help="LOCS.parquet | .csv | .hdf5")],
@@ -660,7 +749,7 @@ def _write_localized(res, out: Path, opts: dict, mov, job) -> None:
     )
 
 
-@app.command()
+@app.command(cls=_Command)
 def calibrate(
     stack: Annotated[
         Path, typer.Argument(metavar="BEADS.tif", help="Bead z-scan: a multi-frame TIFF.")
@@ -834,7 +923,7 @@ def calibrate(
     typer.echo(f"wrote {out} and {fig_path}")
 
 
-@app.command(name="camera")
+@app.command(name="camera", cls=_Command)
 def camera_cmd(
     movie: Annotated[
         list[Path], typer.Argument(help="Movie of raw camera counts (ADU): TIFF/OME-TIFF file(s).")
@@ -889,7 +978,7 @@ def camera_cmd(
     typer.echo(f"localize with: {flags}")
 
 
-@app.command()
+@app.command(cls=_Command)
 def evaluate(
     locs: Annotated[
         Path,
@@ -924,6 +1013,8 @@ def evaluate(
     if json_out is not None:
         _new_output(json_out, overwrite=overwrite, inputs=[locs, truth])
     loc_df, meta = _run(read_table_and_metadata, locs)
+    if pixel_size is not None and not (np.isfinite(pixel_size) and pixel_size > 0):
+        _fail(f"--pixel-size must be a positive number of nm, got {pixel_size:g}")
     truth_df = _run(read_truth_csv, truth, pixel_size=pixel_size)
     frames = meta.get("frames") if isinstance(meta, dict) else None
     if frames is not None:
@@ -1008,7 +1099,7 @@ def _write_locs(table, out: Path, meta: dict) -> None:
     _run(write_table, table, out, **kwargs)
 
 
-@app.command()
+@app.command(cls=_Command)
 def render(
     locs: Annotated[Path, typer.Argument(help="Localization table (any supported format).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Image (.png).")],
@@ -1074,18 +1165,29 @@ def render(
             if np.isfinite(res.resolution_nm)
             else f"FRC resolution: not determined ({res.warning})"
         )
-    _run(plot_projections, table, out, px_nm=px, z_range=zr, title=locs.name)
+    # Every file is written under a temporary name and renamed only when all are written,
+    # so a failure (e.g. of the volume) leaves none of them behind.
+    from contextlib import ExitStack
+
+    from .io.atomic import atomic_path
+
+    with ExitStack() as stack:
+        wanted = (out, frc_plot if res is not None else None, volume)
+        tmp = {p: _run(stack.enter_context, atomic_path(p)) for p in wanted if p is not None}
+        _run(plot_projections, table, tmp[out], px_nm=px, z_range=zr, title=locs.name)
+        if frc_plot is not None and res is not None:
+            _run(plot_frc, res, tmp[frc_plot])
+        if volume is not None:
+            _run(write_volume_tiff, tmp[volume], vol, voxel[0], voxel[1], vmeta["z0_nm"])
     typer.echo(f"wrote {out}")
     typer.echo(frc_msg)
     if frc_plot is not None and res is not None:
-        _run(plot_frc, res, frc_plot)
         typer.echo(f"wrote {frc_plot}")
     if volume is not None:
-        _run(write_volume_tiff, volume, vol, voxel[0], voxel[1], vmeta["z0_nm"])
         typer.echo(f"wrote {volume} ({vol.shape[0]} planes of {vol.shape[1]}x{vol.shape[2]})")
 
 
-@app.command()
+@app.command(cls=_Command)
 def drift(
     locs: Annotated[Path, typer.Argument(help="Localization table (any supported format).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Corrected table.")],
@@ -1145,7 +1247,7 @@ def drift(
     typer.echo(f"wrote {out}")
 
 
-@app.command(name="filter")
+@app.command(name="filter", cls=_Command)
 def filter_cmd(
     locs: Annotated[Path, typer.Argument(help="Localization table (any supported format).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Filtered table.")],
@@ -1207,7 +1309,7 @@ def filter_cmd(
     typer.echo(f"wrote {out}")
 
 
-@app.command()
+@app.command(cls=_Command)
 def report(
     locs: Annotated[Path, typer.Argument(help="Localization table (any supported format).")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Report (.html).")] = Path(
@@ -1259,7 +1361,7 @@ def report(
     typer.echo(f"wrote {out}")
 
 
-@app.command()
+@app.command(cls=_Command)
 def overlay(
     movie: Annotated[Path, typer.Argument(help="Camera movie (TIFF / OME-TIFF).")],
     locs: Annotated[Path, typer.Argument(help="Localization table (any supported format).")],

@@ -397,14 +397,14 @@ def _choose_segments(
     else:
         raise ValueError(
             f"too few localizations for drift correction: {n} usable in frames "
-            f"{f0}..{f0 + n_frames - 1}; RCC needs at least 2 time segments of "
-            f"min_locs_per_segment={min_locs} (the emptiest of {segments} segments held "
+            f"{f0}..{f0 + n_frames - 1}; RCC needs at least 2 time segments of {min_locs} "
+            f"localizations each (the emptiest of {segments} segments held "
             f"{int(first_counts.min())})"
         )
     if n_seg < segments:
         warnings.append(
             f"reduced segments from {segments} to {n_seg}: with {segments} the emptiest segment "
-            f"held {int(first_counts.min())} localizations (< min_locs_per_segment={min_locs})"
+            f"held {int(first_counts.min())} localizations (fewer than the {min_locs} needed)"
         )
     return seg, n_seg
 
@@ -431,8 +431,9 @@ def _pair_shifts_xy(
     shape = (sfft.next_fast_len(ny + pad, real=True), sfft.next_fast_len(nx + pad, real=True))
     if shape[0] * shape[1] > MAX_IMAGE_PIXELS:
         raise ValueError(
-            f"the field ({nx * bin_nm:.0f} x {ny * bin_nm:.0f} nm) at bin_nm={bin_nm:g} needs "
-            f"{shape[1]} x {shape[0]} bin images, above {MAX_IMAGE_PIXELS} pixels: raise bin_nm"
+            f"the field ({nx * bin_nm:.0f} x {ny * bin_nm:.0f} nm) in {bin_nm:g} nm bins needs "
+            f"{shape[1]} x {shape[0]} bin images, above {MAX_IMAGE_PIXELS} pixels: use a "
+            "larger bin (drift --bin-nm)"
         )
     # Gaussian blur of each image as a transfer function (sigma in bins, frequencies in cycles
     # per bin); applied to both images it blurs the correlation by sigma * sqrt(2).
@@ -690,8 +691,8 @@ def _check(
     if span > max_shift_nm - floor:
         warnings.append(
             f"{axis}: the segment shifts span {span:.0f} nm, reaching the searched "
-            f"+-max_shift_nm={max_shift_nm:g} nm: pairs further apart cannot be measured; "
-            "raise max_shift_nm"
+            f"+-{max_shift_nm:g} nm: pairs further apart cannot be measured (the Python API's "
+            "rcc_drift can raise max_shift_nm)"
         )
         ok = False
     return ok

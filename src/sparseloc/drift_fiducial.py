@@ -172,8 +172,8 @@ class _Search:
                 spot_n.append(n_present)
         if not spot_xy:
             raise ValueError(
-                f"no fiducial found: no group of localizations within radius_nm="
-                f"{self.radius_nm:g} is present in {0.75 * self.min_fraction:.0%} of the frames "
+                f"no fiducial found: no group of localizations within {self.radius_nm:g} nm "
+                f"is present in {0.75 * self.min_fraction:.0%} of the frames "
                 f"of any {win_len}-frame window ({xy.shape[0]} localizations in {n_frames} frames)"
             )
         return np.asarray(spot_xy), np.asarray(spot_win), np.asarray(spot_n)
@@ -232,8 +232,8 @@ class _Search:
         )
         return ValueError(
             f"no fiducial found: a fiducial must be present in >= {self.need_frames} of the "
-            f"{self.n_frames} frames (min_fraction={self.min_fraction:g}) with a scatter below "
-            f"{max_scatter:.0f} nm (radius_nm / 5); the best candidates: {listed}"
+            f"{self.n_frames} frames ({self.min_fraction:.0%}) with a scatter below "
+            f"{max_scatter:.0f} nm (a fifth of the search radius); the best candidates: {listed}"
         )
 
 

@@ -49,8 +49,34 @@ def available_cores() -> int:
 _WORK: Any = None  # this worker process's solver (see _init_worker)
 
 
-def _init_worker(make_work: Callable[..., Any], args: tuple, engine: str) -> None:
+#: Seconds between a worker's checks that its parent still lives.
+PARENT_CHECK_SECONDS = 0.5
+
+
+def _watch_parent(parent: int) -> None:
+    """End this worker process as soon as its parent is gone (killed with SIGKILL, the pool
+    never shut down): an orphaned worker would otherwise finish its items and then wait for
+    work forever, holding its memory. Runs in a daemon thread of the worker."""
+    import time
+
+    while os.getppid() == parent:
+        time.sleep(PARENT_CHECK_SECONDS)
+    os._exit(1)
+
+
+def _init_worker(
+    make_work: Callable[..., Any], args: tuple, engine: str, parent: int | None = None
+) -> None:
     global _WORK
+    import threading
+
+    # ``parent``: the pool's process id, given so that a parent dead before this line is seen
+    threading.Thread(
+        target=_watch_parent,
+        args=(os.getppid() if parent is None else parent,),
+        name="sparseloc-parent-watch",
+        daemon=True,
+    ).start()
     # One BLAS thread per process: the processes already share out the cores.
     from threadpoolctl import threadpool_limits
 
@@ -81,7 +107,7 @@ def in_processes(
     # elsewhere (scripts then need the usual ``if __name__ == "__main__":`` guard).
     ctx = multiprocessing.get_context()
     with ProcessPoolExecutor(
-        workers, mp_context=ctx, initializer=_init_worker, initargs=init
+        workers, mp_context=ctx, initializer=_init_worker, initargs=(*init, os.getpid())
     ) as pool:
         pending: deque = deque()
         for item in items:

@@ -219,6 +219,26 @@ def _load(p: Path, model: str | None):
         ) from exc
 
 
+#: How far a stored plane's sum may stray from one photon (float rounding and the clipping
+#: of negative voxels stay far below it; a rescaled or foreign stack does not).
+PLANE_SUM_TOLERANCE = 0.01
+
+
+def _check_plane_sums(p: Path, stack: np.ndarray, oversample: int = 1) -> None:
+    """Refuse a spline stack whose planes do not each hold one photon (``oversample``^2 for
+    a table sampled that much finer than the camera): its photon counts would be wrong by
+    that factor, silently."""
+    sums = np.asarray(stack, dtype=np.float64).reshape(len(stack), -1).sum(axis=1)
+    sums = sums / max(oversample, 1) ** 2
+    bad = ~(np.abs(sums - 1.0) <= PLANE_SUM_TOLERANCE)
+    if np.any(bad):
+        raise ValueError(
+            f"{p.name} is not a usable calibration file: its model's planes must each sum to "
+            f"one photon, but {int(bad.sum())} of {len(sums)} sum to "
+            f"{np.nanmin(sums):.4g}-{np.nanmax(sums):.4g}"
+        )
+
+
 def _read_model(p: Path, model: str | None):
     from ..psf.base import ShiftedPSF
     from ..psf.masks import ArrayMask
@@ -236,8 +256,10 @@ def _read_model(p: Path, model: str | None):
         px = float(f.attrs["pixel_size_nm"])
         if kind == "spline":
             g = f["spline"]
+            stack = g["stack"][()]
+            _check_plane_sums(p, stack, int(g.attrs.get("oversample", 1)))
             out = SplinePSF(
-                g["stack"][()],
+                stack,
                 px,
                 g["z"][()],
                 centre=(float(g.attrs["centre_row"]), float(g.attrs["centre_col"])),

@@ -324,7 +324,7 @@ def _camera_dtype(path: Path, series: Any, allow_float: bool) -> np.dtype[Any]:
         if not allow_float:
             raise ValueError(
                 f"{_q(path)} holds floating-point data ({dtype}) where integer camera counts "
-                "(ADU) are expected; pass allow_float=True to read it anyway"
+                "(ADU) are expected; convert it to the camera's integer counts"
             )
     elif dtype.kind not in "iu":
         raise ValueError(f"{_q(path)} holds {dtype} data; expected integer camera counts (ADU)")
