@@ -502,15 +502,15 @@ def _held(profile: LightProfile | None, half: int) -> list[float] | None:
 def _neighbour_pairs(
     centres: NDArray[np.float64], reason: list[str], roi: int
 ) -> dict[int, list[int]]:
-    """For each usable bead, the other beads (not at the edge) whose light can reach its ROI
-    (centres closer than an ROI diagonal)."""
+    """For each usable bead, the other beads (not at the edge) whose ROI overlaps its ROI: the
+    ROI holds all but a percent of a bead's light, so farther beads do not reach it."""
     out: dict[int, list[int]] = {}
     ok = [j for j in range(len(centres)) if reason[j] != "edge"]
     for i in range(len(centres)):
         if reason[i]:
             continue
-        d = np.hypot(*(centres[ok] - centres[i]).T)
-        near = [j for j, dj in zip(ok, d, strict=True) if j != i and dj < roi * np.sqrt(2)]
+        gap = np.abs(centres[ok] - centres[i]).max(axis=1)
+        near = [j for j, g in zip(ok, gap, strict=True) if j != i and g < roi]
         if near:
             out[i] = near
     return out
@@ -551,7 +551,8 @@ def _without_neighbours(
             scan.zplanes,
         )
         stacks.rois[i] = _roi(scan.data, ri, ci, half) - light
-    return stacks.register(used, scan.zplanes, iterations, name)
+    # the shifts are already close: one round against the current average refines them
+    return stacks.register(used, scan.zplanes, 1, name, reference=avg)
 
 
 def _recentre(
@@ -639,19 +640,27 @@ class _BeadStacks:
         return acc / len(ids)
 
     def register(
-        self, ids: list[int], zplanes: NDArray[np.float64], iterations: int, name: str
+        self,
+        ids: list[int],
+        zplanes: NDArray[np.float64],
+        iterations: int,
+        name: str,
+        reference: NDArray[np.float64] | None = None,
     ) -> NDArray[np.float64]:
         """Fit every bead's shift to the spline of the current average, ``iterations`` times,
-        and return the registered average."""
+        and return the registered average; start from ``reference`` (an average registered
+        before) when given."""
         from scipy.ndimage import gaussian_filter
 
-        # First reference: one bead alone, of median brightness (the brightest may be two
-        # beads seen as one). An average of unregistered beads is blurred in z, and
-        # registering to a blurred reference shrinks the shifts (slow convergence).
-        ranked = sorted(ids, key=lambda i: self.photons[i])
-        first = ranked[len(ranked) // 2]
-        self.shifts[first] = self.init_shift[first].copy()
-        avg = self.aligned(first)
+        avg = reference
+        if avg is None:
+            # First reference: one bead alone, of median brightness (the brightest may be two
+            # beads seen as one). An average of unregistered beads is blurred in z, and
+            # registering to a blurred reference shrinks the shifts (slow convergence).
+            ranked = sorted(ids, key=lambda i: self.photons[i])
+            first = ranked[len(ranked) // 2]
+            self.shifts[first] = self.init_shift[first].copy()
+            avg = self.aligned(first)
         for _ in range(max(1, iterations)):
             # A noisy reference has noisy derivatives, and a least-squares fit against it
             # shrinks the shifts (regression dilution); a light symmetric smoothing removes

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from .calibrate_error import plane_fits
 from .psf.spline import SplinePSF
 
 __all__ = ["ROI_ENERGY", "LightProfile", "light_profile", "neighbour_light", "plane_photons"]
@@ -140,26 +141,9 @@ def plane_photons(
     shift: NDArray[np.float64],
     zplanes: NDArray[np.float64],
 ) -> NDArray[np.float64]:
-    """A bead's photons per plane: the least-squares scale of the model (with an offset) at
-    its fitted ``shift`` (x, y, z nm from the ROI's centre) on each plane of ``roi``."""
-    nz, h, w = roi.shape
-    p = model.pixel_size
-    z = zplanes + shift[2]
-    lo, hi = model.z_range
-    ok = (z >= lo) & (z <= hi)
-    out = np.zeros(nz)
-    if not ok.any():
-        return out
-    idx = np.flatnonzero(ok)
-    imgs = model.images(
-        np.full(idx.size, w * p / 2 + shift[0]),
-        np.full(idx.size, h * p / 2 + shift[1]),
-        z[idx],
-        (h, w),
-        p,
-    )
-    for k, m in zip(idx, imgs, strict=True):
-        design = np.stack([m.ravel(), np.ones(m.size)], axis=1)
-        (a, _), *_ = np.linalg.lstsq(design, roi[k].ravel(), rcond=None)
-        out[k] = max(float(a), 0.0)
+    """A bead's photons per plane: the model's least-squares scale on each plane of ``roi``
+    (:func:`~sparseloc.calibrate_error.plane_fits`; 0 where the model does not reach)."""
+    out = np.zeros(roi.shape[0])
+    idx, _, scale, _ = plane_fits(model, roi, shift, zplanes)
+    out[idx] = np.maximum(scale, 0.0)
     return out

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from .psf.spline import SplinePSF
 
-__all__ = ["MAX_MODEL_ERROR", "ModelError", "bead_model_error"]
+__all__ = ["MAX_MODEL_ERROR", "ModelError", "bead_model_error", "plane_fits"]
 
 #: A calibration whose model error exceeds this fraction of the signal is refused: its model
 #: would leave more than a quarter of a bead's signal power unexplained.
@@ -85,6 +85,45 @@ def bead_model_error(
     return ModelError(overall, per_plane[inside])
 
 
+def plane_fits(
+    psf: SplinePSF,
+    roi: NDArray[np.float64],
+    shift: NDArray[np.float64],
+    zplanes: NDArray[np.float64],
+) -> tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """A bead against the model, plane by plane: the model at the bead's ``shift`` (x, y, z nm
+    from the ROI's centre) with a least-squares scale and offset per plane.
+
+    Returns
+    -------
+    idx : ndarray of int
+        The planes of ``roi`` (Nz, R, R) whose shifted z lies in the model's range.
+    images : ndarray, shape (len(idx), R, R)
+        The model's unit-photon images on those planes.
+    scale, offset : ndarray, shape (len(idx),)
+        Photons and background (photons/pixel) of each plane's fit.
+    """
+    _, h, w = roi.shape
+    p = psf.pixel_size
+    z = zplanes + shift[2]
+    lo, hi = psf.z_range
+    idx = np.flatnonzero((z >= lo) & (z <= hi))
+    if idx.size == 0:
+        return idx, np.zeros((0, h, w)), np.zeros(0), np.zeros(0)
+    imgs = psf.images(
+        np.full(idx.size, w * p / 2 + shift[0]),
+        np.full(idx.size, h * p / 2 + shift[1]),
+        z[idx],
+        (h, w),
+        p,
+    )
+    scale, offset = np.zeros(idx.size), np.zeros(idx.size)
+    for j, (k, m) in enumerate(zip(idx, imgs, strict=True)):
+        design = np.stack([m.ravel(), np.ones(m.size)], axis=1)
+        (scale[j], offset[j]), *_ = np.linalg.lstsq(design, roi[k].ravel(), rcond=None)
+    return idx, imgs, scale, offset
+
+
 def _bead_residual(
     psf: SplinePSF,
     roi: NDArray[np.float64],
@@ -93,30 +132,15 @@ def _bead_residual(
     background: NDArray[np.float64],
 ) -> tuple[NDArray, NDArray, NDArray, NDArray[np.bool_]]:
     """Per plane: the residual power, the expected noise power and the signal power of one
-    bead against the model (scale and offset fitted per plane), and which planes count."""
-    nz, h, w = roi.shape
-    p = psf.pixel_size
-    z = zplanes + shift[2]
-    lo, hi = psf.z_range
-    ok = (z >= lo) & (z <= hi)
+    bead against the model (:func:`plane_fits`), and which planes count."""
+    nz = roi.shape[0]
     res2, noise, sig2 = np.zeros(nz), np.zeros(nz), np.zeros(nz)
-    if not ok.any():
-        return res2, noise, sig2, ok
-    idx = np.flatnonzero(ok)
-    imgs = psf.images(
-        np.full(idx.size, w * p / 2 + shift[0]),
-        np.full(idx.size, h * p / 2 + shift[1]),
-        z[idx],
-        (h, w),
-        p,
-    )
-    for k, m in zip(idx, imgs, strict=True):
-        d = roi[k].ravel()
-        mm = m.ravel()
-        design = np.stack([mm, np.ones_like(mm)], axis=1)
-        (a, b), *_ = np.linalg.lstsq(design, d, rcond=None)
-        fit = a * mm + b
-        res2[k] = float(np.sum((d - fit) ** 2))
+    idx, imgs, scale, offset = plane_fits(psf, roi, shift, zplanes)
+    for k, m, a, b in zip(idx, imgs, scale, offset, strict=True):
+        fit = a * m + b
+        res2[k] = float(np.sum((roi[k] - fit) ** 2))
         noise[k] = float(np.sum(np.maximum(fit + background[k], 0.0)))
-        sig2[k] = float(np.sum((a * mm) ** 2))
+        sig2[k] = float(np.sum((a * m) ** 2))
+    ok = np.zeros(nz, bool)
+    ok[idx] = True
     return res2, noise, sig2, ok

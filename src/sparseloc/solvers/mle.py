@@ -117,6 +117,9 @@ class FitResult:
     converged: bool
     n_iter: int
     history: list[str] = field(default_factory=list)
+    #: The Cramer-Rao standard errors (K, 4) before :func:`fit_flags` blanks a flagged row's:
+    #: the count selection's Wald statistic needs them for every emitter.
+    crlb: NDArray[np.float64] | None = None
 
     @property
     def n_params(self) -> int:
@@ -555,4 +558,5 @@ def _result(prob: LikelihoodProblem, theta, mu, f, fisher, converged, n_iter) ->
         flags=flags,
         converged=converged,
         n_iter=n_iter,
+        crlb=sd[: 4 * k].reshape(k, 4),
     )

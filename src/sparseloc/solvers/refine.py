@@ -264,7 +264,8 @@ def fit_with_count_selection(
             # sigma comes from the weighted Fisher matrix: (N / sigma)^2 is on the scale of
             # the (weighted) likelihood ratio below; the model error raises the bar of both
             bar = lr_threshold + _error_allowance(best, model, fit_kwargs)
-            wald = (arr[weakest, 3] / best.sigma[weakest, 3]) ** 2
+            crlb = best.sigma if best.crlb is None else best.crlb
+            wald = (arr[weakest, 3] / crlb[weakest, 3]) ** 2
         # An emitter whose Wald statistic (the quadratic approximation of the removal's
         # likelihood ratio) is at or above REMOVE_SKIP_FACTOR times the lr_threshold would not be
         # removed: skip that refit.
