@@ -539,21 +539,21 @@ class _ChunkSolver:
     """A worker process's solver of chunks (:func:`sparseloc.pool.in_processes`): the frame
     source, model and parameters arrive once per process, each task is only its frames.
 
-    The source arrives pickled: a forked worker would otherwise share the parent's open
-    movie file, and its reads would move the others' file position. Unpickled, a
-    :class:`~sparseloc.io.movie.Movie` opens its files anew in each process.
+    Each worker copies the source: a forked worker would otherwise share the parent's open
+    movie file, and its reads would move the others' file position; a copied
+    :class:`~sparseloc.io.movie.Movie` opens its files anew in the worker.
     """
 
     def __init__(
         self,
-        source: bytes,
+        source: Any,
         work_model: PSFModel,
         params: LocalizeParams,
         read_variance: NDArray | None,
     ) -> None:
-        import pickle
+        import copy
 
-        self.args = (pickle.loads(source), work_model, params)
+        self.args = (copy.deepcopy(source), work_model, params)
         self.read_variance = read_variance
 
     def __call__(self, start: int, stop: int) -> tuple[pd.DataFrame | None, int | str]:
@@ -565,12 +565,11 @@ class _ChunkSolver:
 
 def _run_in_processes(source, args, todo, read_variance, writer, workers: int) -> None:
     """Solve the chunks ``todo`` in a pool of ``workers`` local processes."""
-    import pickle
     from concurrent.futures.process import BrokenProcessPool
 
     from .pool import in_processes
 
-    init = (_ChunkSolver, (pickle.dumps(source), *args, read_variance), args[1].engine)
+    init = (_ChunkSolver, (source, *args, read_variance), args[1].engine)
     done: set[tuple[int, int]] = set()
     try:
         for chunk, (table, nw) in zip(todo, in_processes(todo, int(workers), init), strict=False):
