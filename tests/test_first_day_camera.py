@@ -472,3 +472,19 @@ def test_localize_chunked_in_processes(tmp_path):
     pd.testing.assert_frame_equal(
         res.table[cols].reset_index(drop=True), ref[cols].reset_index(drop=True)
     )
+
+
+def test_camera_command_never_suggests_a_negative_offset(tmp_path, monkeypatch):
+    # With read noise dominating, the line's offset bound can fall below zero: the command
+    # says the offset is not placed and leaves it out of the suggested flags.
+    import sparseloc.camera as camera_module
+
+    path = tmp_path / "m.tif"
+    rng = np.random.default_rng(0)
+    tifffile.imwrite(path, rng.poisson(200.0, (6, 32, 32)).astype(np.uint16))
+    fake = camera_module.CameraEstimate(-25.0, 0.6, 0.0, False, 1.7, 42.0)
+    monkeypatch.setattr(camera_module, "estimate_camera", lambda *a, **k: fake)
+    res = run("camera", path)
+    assert res.exit_code == 0, res.output
+    assert "offset not placed" in res.output
+    assert "--offset -25" not in res.output and "--gain 0.6" in res.output

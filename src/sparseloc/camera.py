@@ -670,7 +670,7 @@ def estimate_camera(
 
     The line's slope gives the gain. Its intercept, ``read variance - slope * offset``, gives
     the read noise where the offset is known, or the offset where the read noise is (0 by
-    default: then the offset is slightly high, by ``read variance / slope`` ADU).
+    default: then the estimate is a lower bound, low by ``read variance / slope`` ADU).
 
     Parameters
     ----------

@@ -957,11 +957,21 @@ def camera_cmd(
         kind=kind,
         em_gain=1.0 if em_gain is None else em_gain,
     )
-    how = "given" if est.offset_given else (
-        f"estimated, taking the read noise as {est.read_noise:g} e-; a read noise above that "
-        "puts the true offset lower: give --offset to measure the read noise"
-    )  # fmt: skip
-    typer.echo(f"offset {est.offset:.1f} ADU ({how})")
+    # Without the offset the line gives only a lower bound of it (read noise taken as given);
+    # a bound below zero places nothing, and no offset is suggested.
+    placed = est.offset_given or est.offset >= 0
+    if est.offset_given:
+        typer.echo(f"offset {est.offset:.1f} ADU (given)")
+    elif placed:
+        typer.echo(
+            f"offset at least {est.offset:.1f} ADU (with a read noise of {est.read_noise:g} e-; "
+            "more read noise puts it higher): give --offset to measure the read noise"
+        )
+    else:
+        typer.echo(
+            f"offset not placed: the line's bound ({est.offset:.1f} ADU) is below zero, as the "
+            "read noise dominates; give --offset (the median of a dark frame)"
+        )
     typer.echo(f"gain {est.gain:.4g} e-/ADU")
     if est.offset_given:
         below = "" if est.read_noise > 0 else " (below what the line resolves)"
@@ -970,7 +980,8 @@ def camera_cmd(
         f"  from the line variance = {est.slope:.4g} x mean {est.intercept:+.4g} (ADU^2) over "
         f"{adu.shape[0]} frame(s)"
     )
-    flags = f"--camera {kind} --offset {est.offset:.1f} --gain {est.gain:.4g}"
+    flags = f"--camera {kind}" + (f" --offset {est.offset:.1f}" if placed else "")
+    flags += f" --gain {est.gain:.4g}"
     if kind == "emccd" and em_gain is not None:
         flags += f" --em-gain {em_gain:g}"
     if est.read_noise > 0 and kind != "ideal":
