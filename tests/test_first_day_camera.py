@@ -12,29 +12,13 @@ import numpy as np
 import pandas as pd
 import pytest
 import tifffile
-from typer.testing import CliRunner
 
+from cli_checks import refused, run, runner
 from sparseloc.cli import app
-
-runner = CliRunner()
 
 CAMERA_FLAGS = ("--camera", "--offset", "--gain", "--em-gain", "--qe", "--read-noise")
 MAP_FLAGS = ("--offset-map", "--variance-map", "--gain-map")
 ASTIG = Path(__file__).resolve().parents[2] / "shared" / "data" / "storm_analysis_sim" / "astig"
-
-
-def run(*args):
-    return runner.invoke(app, [str(a) for a in args])
-
-
-def refused(res, *words: str) -> None:
-    """Exit code 2 and exactly one sentence on stderr, naming ``words``; no traceback."""
-    assert res.exit_code == 2, (res.output, res.exception)
-    assert res.exception is None or isinstance(res.exception, SystemExit), res.exception
-    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), res.stderr
-    for w in words:
-        assert w in lines[0], lines[0]
 
 
 def held(res) -> None:

@@ -14,29 +14,11 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-from typer.testing import CliRunner
 
-from sparseloc.cli import app
+from cli_checks import refused, run
 from sparseloc.io.tables import complete_locs, write_table
 
-runner = CliRunner()
-
 CONFIG = '[localize]\npsf = "dh-analytic"\npixel_size = 160.0\nz_min = -300.0\nz_max = 300.0\n'
-
-
-def run(*args):
-    return runner.invoke(app, [str(a) for a in args])
-
-
-def refused(res, *words: str) -> None:
-    """Exit code 2 and exactly one sentence on stderr, naming ``words``; no traceback."""
-    assert res.exit_code == 2, res.output
-    assert res.exception is None or isinstance(res.exception, SystemExit), res.exception
-    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), res.stderr
-    assert "Traceback" not in res.output
-    for w in words:
-        assert w in lines[0], lines[0]
 
 
 @pytest.fixture(scope="module")

@@ -17,12 +17,10 @@ import h5py
 import numpy as np
 import pandas as pd
 import pytest
-from typer.testing import CliRunner
 
+from cli_checks import refused, run, runner
 from sparseloc.cli import app
 from sparseloc.io.tables import complete_locs, write_table
-
-runner = CliRunner()
 
 COMMANDS = (
     "demo",
@@ -37,20 +35,6 @@ COMMANDS = (
     "overlay",
     "report",
 )
-
-
-def run(*args):
-    return runner.invoke(app, [str(a) for a in args])
-
-
-def refused(res, *words: str) -> None:
-    """Exit code 2 and exactly one sentence on stderr, naming ``words``; no traceback."""
-    assert res.exit_code == 2, (res.output, res.exception)
-    assert res.exception is None or isinstance(res.exception, SystemExit), res.exception
-    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), res.stderr
-    for w in words:
-        assert w in lines[0], lines[0]
 
 
 def _help(*args: str) -> str:

@@ -9,25 +9,19 @@ import logging
 import numpy as np
 import pytest
 from scipy import stats
-from typer.testing import CliRunner
 
-from sparseloc.cli import app
+from cli_checks import run
 from sparseloc.pipeline import LocalizeParams, localize
 from sparseloc.psf import make_psf
 
 PX = 160.0
 ZR = (-300.0, 300.0)
-runner = CliRunner()
 
 
 @pytest.fixture(autouse=True)
 def _own_cache(tmp_path, monkeypatch):
     """Spline tables of these tests go to a folder of their own, not the user's cache."""
     monkeypatch.setenv("SPARSELOC_CACHE_DIR", str(tmp_path / "cache"))
-
-
-def run(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 def _frames(psf: str, n_frames: int = 2, shape=(32, 32), seed: int = 3) -> np.ndarray:
