@@ -478,6 +478,13 @@ def localize(
     refine: Annotated[
         bool | None, typer.Option("--refine/--no-refine", help="Maximum-likelihood stage.")
     ] = None,
+    frame_schedule: Annotated[
+        str | None,
+        typer.Option(
+            help="How the frame solver spends its work: whole-frame (default) or two-tier "
+            "(experimental: emitters alone fitted singly, the full solver only on crowds).",
+        ),
+    ] = None,
     relocate: Annotated[
         int | None,
         typer.Option(
@@ -571,6 +578,7 @@ def localize(
         "min_snr": min_snr,
         "refine": refine,
         "relocate": relocate,
+        "frame_schedule": frame_schedule,
         "background": background,
         "frames": frames,
         "format": fmt,

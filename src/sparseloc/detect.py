@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import fft as sfft
 from scipy import ndimage as ndi
 from scipy.signal import fftconvolve
 from scipy.special import ndtri
@@ -139,7 +140,9 @@ def detect_candidates(
     min_distance: int | None = None,
     noise_factor: float = 1.0,
     read_variance: float | NDArray = 0.0,
-) -> NDArray[np.float64]:
+    return_plane: bool = False,
+    cache: dict | None = None,
+) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.intp]]:
     """Candidate emitter positions (row, col in pixels) in one frame.
 
     The signal-to-noise map is ``corr / sqrt(var)`` with ``corr`` the correlation of
@@ -147,26 +150,62 @@ def detect_candidates(
     ``sum(template^2 (noise_factor * background + read_variance))`` over the template's
     pixels (``noise_factor``: shot-noise variance per expected photon, 2 for EMCCD data;
     ``read_variance``: sCMOS read noise in photons^2, a scalar or a map of the frame's
-    shape). Local maxima above ``threshold`` are returned, strongest first. Maxima closer
-    than ``min_distance`` pixels to a stronger one are dropped (default: the radius of the
-    template's part above half its maximum, so a double helix's lobes give one candidate).
+    shape). A stack of templates (one per z plane, say) gives the largest signal-to-noise
+    over them at each pixel. Local maxima above ``threshold`` are returned, strongest first.
+    Maxima closer than ``min_distance`` pixels to a stronger one are dropped (default: the
+    radius of the (mean) template's part above half its maximum, so a double helix's lobes
+    give one candidate). With ``return_plane`` the index of each candidate's best template
+    comes too. ``cache``: a dict kept between calls with the same templates, which holds
+    their spectra per frame shape.
     """
     f = np.asarray(frame, dtype=np.float64)
     bg = np.broadcast_to(np.asarray(background, dtype=np.float64), f.shape)
-    t = np.asarray(template, dtype=np.float64)
-    t = t / t.sum()
+    stack = np.asarray(template, dtype=np.float64)
+    stack = stack[None] if stack.ndim == 2 else stack
+    stack = stack / stack.sum(axis=(1, 2), keepdims=True)
     if min_distance is None:
+        t = stack.mean(axis=0)
         min_distance = max(2, int(np.ceil(np.sqrt(np.count_nonzero(t > 0.5 * t.max()) / np.pi))))
-    kernel = t[::-1, ::-1]
-    corr = fftconvolve(f - bg, kernel, mode="same")
     rv = np.broadcast_to(np.asarray(read_variance, dtype=np.float64), f.shape)
     noise = float(noise_factor) * np.maximum(bg, 1e-3) + rv
-    var = fftconvolve(noise, kernel**2, mode="same")
-    snr = corr / np.sqrt(np.maximum(var, 1e-12))
+    corr = _correlations(f - bg, stack, cache)
+    # The variance of each plane's correlation, sum(t^2 noise) over its pixels, from one
+    # convolution with the planes' mean t^2 scaled by each plane's sum(t^2): exact for one
+    # template or a uniform noise, and the noise of a frame varies slowly across a PSF.
+    sq = (stack**2).mean(axis=0)
+    var = fftconvolve(noise, sq[::-1, ::-1], mode="same")
+    scale = (stack**2).sum(axis=(1, 2)) / sq.sum()
+    snrs = corr / np.sqrt(np.maximum(var[None] * scale[:, None, None], 1e-12))
+    plane = np.argmax(snrs, axis=0)
+    snr = np.take_along_axis(snrs, plane[None], axis=0)[0]
     peaks = (ndi.maximum_filter(snr, size=2 * min_distance + 1) == snr) & (snr > threshold)
     rc = np.argwhere(peaks)
     order = np.argsort(-snr[peaks])
-    return rc[order].astype(np.float64)
+    rc = rc[order]
+    if return_plane:
+        return rc.astype(np.float64), plane[rc[:, 0], rc[:, 1]]
+    return rc.astype(np.float64)
+
+
+def _correlations(d: NDArray, stack: NDArray, cache: dict | None) -> NDArray[np.float64]:
+    """Correlations (P, rows, cols) of ``d`` with each template of ``stack`` (P, T, T),
+    centred as ``fftconvolve(..., mode="same")`` with the flipped template; the templates'
+    spectra are kept in ``cache`` per frame shape."""
+    rows, cols = d.shape
+    t = stack.shape[-1]
+    shape = (
+        sfft.next_fast_len(rows + t - 1, real=True),
+        sfft.next_fast_len(cols + t - 1, real=True),
+    )
+    key = d.shape
+    spectra = None if cache is None else cache.get(key)
+    if spectra is None:
+        spectra = sfft.rfft2(stack[:, ::-1, ::-1], shape)
+        if cache is not None:
+            cache[key] = spectra
+    full = sfft.irfft2(sfft.rfft2(d, shape)[None] * spectra, shape)
+    h = (t - 1) // 2
+    return full[:, h : h + rows, h : h + cols]
 
 
 @dataclass(frozen=True)

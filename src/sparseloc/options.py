@@ -68,6 +68,7 @@ LOCALIZE_DEFAULTS: dict[str, Any] = {
     "scheduler": None,
     "overwrite": False,
     "relocate": None,  # LocalizeParams's default
+    "frame_schedule": None,  # LocalizeParams's default
 }
 
 _NUMBERS = ("pixel_size", "offset", "gain", "em_gain", "qe", "z_min", "z_max", "min_snr")
@@ -75,6 +76,7 @@ _NUMBERS += ("n_sample", "focal_depth", "read_noise", "na", "wavelength", "mask_
 _WHOLE = ("window", "margin", "workers", "chunk_frames", "relocate")
 _FLAGS = ("refine", "overwrite")
 _TEXT = ("psf", "camera", "method", "background", "frames", "format", "engine", "scheduler")
+_TEXT += ("frame_schedule",)
 _PATHS = ("offset_map", "variance_map", "gain_map", "run_dir")
 #: Whole-number options with a lower bound that no later check enforces (``workers = 0``
 #: would otherwise fall back to the default silently).

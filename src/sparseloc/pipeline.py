@@ -45,6 +45,7 @@ from .psf.spline import SplinePSF
 from .solvers import WindowSolution, convex_solve, hybrid_solve, matching_pursuit
 from .solvers.frame import FrameFit, frame_fit, frame_templates, tiled_pursuit
 from .solvers.refine import refine_solution
+from .solvers.two_tier import solve_two_tier
 
 log = logging.getLogger(__name__)
 
@@ -177,17 +178,20 @@ class _FrameSolver:
         self.group_distance = r50 * params.pixel_size
         self.pad = int(np.ceil(min(self.templates.radius90, PAD_CAP)))
         self.reach = 0.5 * self.templates.images.shape[-1] * params.pixel_size
+        self.detection_cache: dict = {}
 
-    def start(self, frame: NDArray, background: NDArray):
-        """The pursuit's emitters of one frame (the fits' starting point)."""
+    def start(self, frame: NDArray, background: NDArray, read_variance: Any = None):
+        """The pursuit's emitters of one frame or crop (the fits' starting point); the read
+        variance is the run's unless given (the crop's)."""
         p = self.p
+        rv = self.noise_kw.get("read_variance", 0.0) if read_variance is None else read_variance
         return tiled_pursuit(
             frame,
             background,
             self.templates,
             min_snr=p.min_snr,
             noise_factor=_variance_factor(p),
-            read_variance=self.noise_kw.get("read_variance", 0.0),
+            read_variance=rv,
             correlators=self.correlators,
         )
 
@@ -207,6 +211,19 @@ class _FrameSolver:
         )
 
     def __call__(self, frame: NDArray, background: NDArray) -> FrameFit:
+        if self.p.frame_schedule == "two-tier":
+            return solve_two_tier(
+                frame,
+                background,
+                self.model,
+                self.templates,
+                pursuit=self.start,
+                fit_options=self.fit_kwargs(),
+                min_snr=self.p.min_snr,
+                noise_factor=_variance_factor(self.p),
+                read_variance=self.noise_kw.get("read_variance", 0.0),
+                cache=self.detection_cache,
+            )
         start = self.start(frame, background)
         return frame_fit(frame, self.model, start, background=background, **self.fit_kwargs())
 

@@ -270,6 +270,7 @@ def frame_fit(
     skip_tolerance: float = 0.1,
     shift_tolerance: float = SHIFT_TOLERANCE,
     relocate: int = RELOCATE,
+    fixed_light: NDArray | None = None,
     **fit_kwargs,
 ) -> FrameFit:
     """Maximum-likelihood fit of a frame's emitters, group by group.
@@ -322,6 +323,9 @@ def frame_fit(
         PSF position of what the others leave unexplained, kept if the likelihood rises),
         each after the sweeps settle or after :data:`RELOCATE_AFTER` of them, and followed
         by sweeps again; the last pass is the first that keeps none. 0 disables.
+    fixed_light : ndarray, shape (rows, cols), optional
+        Known light (photons/pixel) of emitters fitted elsewhere (the two-tier solver's
+        singles), added to every window's offset and not fitted.
     **fit_kwargs
         ``noise``, ``read_variance`` (a map is cropped to each window), ``plane``, ``qe``.
 
@@ -333,6 +337,7 @@ def frame_fit(
     f = np.asarray(frame, dtype=np.float64)
     px = float(pixel_size)
     rv = fit_kwargs.pop("read_variance", None)
+    fixed = None if fixed_light is None else np.broadcast_to(fixed_light, f.shape)
     sweep = _Sweep(
         f,
         model,
@@ -353,6 +358,7 @@ def frame_fit(
             shift_tolerance=shift_tolerance,
         ),
         fit_kwargs,
+        fixed,
     )
     em = emitters.as_array().reshape(-1, 4)
     info: list[tuple] = [(np.full(4, np.nan), np.nan, np.nan, "ok", -1)] * len(em)
@@ -380,6 +386,7 @@ def frame_fit(
                 min_photons=min_photons,
                 max_group=max_group,
                 failed=failed_moves,
+                fixed_light=fixed,
                 read_variance=rv,
                 **fit_kwargs,
             )
@@ -397,8 +404,9 @@ class _Sweep:
     """One frame's Gauss-Seidel sweeps over its groups: the data, the options, the neighbours'
     light, the memo of groups left in place, and the z flips that lost."""
 
-    def __init__(self, f, model, px, bg, rv, opts: dict, fit_kwargs: dict) -> None:
+    def __init__(self, f, model, px, bg, rv, opts: dict, fit_kwargs: dict, fixed=None) -> None:
         self.f, self.model, self.px, self.bg, self.rv = f, model, px, bg, rv
+        self.fixed = fixed  # light of emitters not fitted here (photons/pixel), or None
         self.o = opts
         self.fit_kwargs = fit_kwargs
         # A group whose emitters are exactly the output of its last fit, and whose neighbours'
@@ -449,6 +457,8 @@ class _Sweep:
             near = near_window(o, box, self.px, self.o["reach"])
             if near.any():
                 offset = self.light.window(o[near], box)
+        if self.fixed is not None:
+            offset = offset + self.fixed[r0:r1, c0:c1]
         return offset
 
     def _fit(self, start_em, gi: int, box, offset):

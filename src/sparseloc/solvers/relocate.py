@@ -166,6 +166,7 @@ def relocation_pass(
     min_photons: float,
     max_group: int = 8,
     failed: list | None = None,
+    fixed_light: NDArray | None = None,
     **fit_kwargs,
 ) -> tuple[NDArray[np.float64], int]:
     """One relocation pass over a frame's emitters: each in turn is removed and the best PSF
@@ -203,6 +204,8 @@ def relocation_pass(
         and extended: an emitter near one of them (:data:`FLIP_MEMORY_NM`) is not tried
         again; a kept relocation forgets those less than ``group_distance`` (per axis) from
         its window.
+    fixed_light : ndarray, shape (rows, cols), optional
+        Known light (photons/pixel) of emitters not in ``em``, part of every offset.
     **fit_kwargs
         ``noise``, ``read_variance`` (a map is cropped to each window), ``plane``, ``qe``.
 
@@ -223,6 +226,8 @@ def relocation_pass(
     full = (0, f.shape[0], 0, f.shape[1])
     pieces = light_pieces(model, em, f.shape, px, (0.0, 0.0), reach)
     light = sum_pieces(pieces, full)
+    if fixed_light is not None:
+        light = light + fixed_light
     for i in range(len(em)):
         if lost_flip_near(failed, em[i]):
             continue

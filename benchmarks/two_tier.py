@@ -1,0 +1,103 @@
+"""The frame solver's two schedules side by side: whole-frame against two-tier.
+
+Simulates 128 x 128 px movies (100 nm pixels, 1000-5000 photons, background 10; the
+project's pupil models tabulated as the pipeline does) for each case, localizes each with
+both schedules in one process, back to back, and prints localizations per second, their
+ratio, Jaccard and RMSE; writes ``benchmarks/results/two_tier.json``::
+
+    python benchmarks/two_tier.py            # the four cases below
+    python benchmarks/two_tier.py --quick    # fewer frames
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from sparseloc.config import LocalizeParams
+from sparseloc.evaluate import evaluate
+from sparseloc.pipeline import localize, work_model_for
+from sparseloc.psf import make_psf
+from sparseloc.simulate import simulate
+
+CASES = [("astig", 0.05, 100), ("dh", 0.05, 100), ("astig", 0.5, 20), ("dh", 1.0, 8)]
+
+
+def run_case(psf: str, density: float, n: int, seed: int = 3) -> list[dict]:
+    model = make_psf(psf)
+    p0 = LocalizeParams(pixel_size=100.0)
+    work = work_model_for(model, p0)
+    sim = simulate(
+        model,
+        scene="uniform",
+        n_frames=n,
+        shape=(128, 128),
+        pixel_size=100.0,
+        density=density,
+        photons=(1000.0, 5000.0),
+        background=10.0,
+        seed=seed,
+    )
+    frames = sim.movie.astype(np.float64) - sim.camera.offset
+    rows = []
+    for schedule in ("whole-frame", "two-tier"):
+        p = replace(p0, frame_schedule=schedule)
+        localize(frames[:1], work, p)  # kernels compiled, templates built
+        t = time.perf_counter()
+        r = localize(frames, work, p)
+        dt = time.perf_counter() - t
+        ev = evaluate(r.table, sim.truth)
+        rows.append(
+            dict(
+                psf=psf,
+                density=density,
+                frames=n,
+                schedule=schedule,
+                locs=len(r.table),
+                seconds=dt,
+                locs_per_s=len(r.table) / dt,
+                jaccard=ev.jaccard,
+                rmse_lateral=ev.rmse_lateral,
+                rmse_axial=ev.rmse_axial,
+            )
+        )
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="a quarter of the frames")
+    args = ap.parse_args()
+    head = (
+        f"{'PSF':6s} {'/um^2':>6s} {'frames':>6s} {'schedule':12s} {'locs':>6s} "
+        f"{'s':>7s} {'locs/s':>7s} {'ratio':>6s} {'Jaccard':>8s} {'RMSE lat':>9s} {'ax':>6s}"
+    )
+    print("one process, back to back; ratio = two-tier / whole-frame localizations per second")
+    print(head)
+    print("-" * len(head))
+    out = []
+    for psf, density, n in CASES:
+        rows = run_case(psf, density, max(4, n // 4) if args.quick else n)
+        base = rows[0]["locs_per_s"]
+        for r in rows:
+            r["ratio"] = r["locs_per_s"] / base
+            print(
+                f"{r['psf']:6s} {r['density']:6.2f} {r['frames']:6d} {r['schedule']:12s} "
+                f"{r['locs']:6d} {r['seconds']:7.1f} {r['locs_per_s']:7.1f} {r['ratio']:6.2f} "
+                f"{r['jaccard']:8.1f} {r['rmse_lateral']:9.1f} {r['rmse_axial']:6.1f}",
+                flush=True,
+            )
+        out += rows
+    path = Path(__file__).parent / "results" / "two_tier.json"
+    path.parent.mkdir(exist_ok=True)
+    path.write_text(json.dumps(out, indent=1))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

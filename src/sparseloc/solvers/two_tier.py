@@ -1,0 +1,512 @@
+"""Two tiers of the frame solver: single fits where emitters are alone, the frame solver where
+they crowd.
+
+Most of a movie's emitters have no neighbour whose image overlaps theirs; the frame solver's
+pursuit, count-selection trials and relocations buy nothing there. A frame is solved in
+tiers:
+
+1. **Detection**: the frame is correlated with the PSF's images at a few z planes
+   (:func:`detection_planes`); local maxima above ``min_snr`` times the camera model's noise
+   are candidates (:func:`~sparseloc.detect.detect_candidates`).
+2. **Units**: candidates closer than :func:`crowd_distance` (two core radii) form clusters; a
+   cluster of one or two (two peaks of one elongated image, or two emitters) is fitted as one
+   emitter in its window, started at the z plane whose image explains most of its light
+   (:func:`z_starts`), with the frame solver's z flips. Units whose windows see another
+   unit's light are refitted once, in turn, with that light known.
+3. **Promotion**: a unit goes to the crowds when its fit is flagged, when its window's
+   chi-square lies :data:`PROMOTE_MISFIT` standard deviations above expectation
+   (:func:`misfit`, with the variance rule of :mod:`~sparseloc.solvers.variance`), or when
+   the frame less the units' light holds a significant peak near it (the detection test
+   again, its variance with the units' shot noise and the model's error).
+4. **Crowds**: clusters of three or more, promoted units and peaks left unexplained go to the
+   frame solver (pursuit, fits with count selection, relocations) on crops around them
+   (:func:`crowd_boxes`), with the units' light known; then units that see the crowds' light
+   are refitted once with it.
+
+The fits, the z flips and the crowds' count selection are the frame solver's own
+(:func:`~sparseloc.solvers.mle.fit_emitters`, :func:`~sparseloc.solvers.frame.frame_fit`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from ..detect import detect_candidates
+from ..psf.base import PSFModel
+from .emitters import Emitters
+from .frame import FrameFit, _try_z_flips, frame_fit
+from .frame_mp import FrameTemplates
+from .frame_windows import NeighbourLight, window_box, window_data, window_kwargs
+from .mle import fit_emitters
+from .variance import model_error_of, pixel_variance
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "PROMOTE_MISFIT",
+    "TierCounts",
+    "crowd_boxes",
+    "crowd_distance",
+    "detection_planes",
+    "misfit",
+    "solve_two_tier",
+    "z_starts",
+]
+
+
+#: A single is promoted to the crowds when its window's chi-square lies more than this many
+#: standard deviations above its expectation. A false promotion costs only time (the crowd
+#: solver then fits it), a missed one costs an emitter: the bar is low (about 2 % of exact
+#: single fits pass it).
+PROMOTE_MISFIT = 2.0
+
+
+@dataclass
+class TierCounts:
+    """How many candidates each tier handled (summed over frames by the caller)."""
+
+    singles: int = 0
+    promoted: int = 0
+    crowded: int = 0
+    frames_with_crowds: int = 0
+
+
+def crowd_distance(templates: FrameTemplates) -> float:
+    """Candidates closer than this (pixels) are a crowd: twice the radius holding half the
+    light of the broadest plane, the pursuit's exclusion distance."""
+    return max(2.0, 2.0 * templates.core_radius)
+
+
+def _centred(templates: FrameTemplates) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The templates of the phase nearest the pixel centre: images (Z, T, T) and z (Z,)."""
+    j = int(np.argmin(np.hypot(templates.dx, templates.dy)))
+    sel = np.flatnonzero((templates.dx == templates.dx[j]) & (templates.dy == templates.dy[j]))
+    return templates.images[sel], templates.z[sel]
+
+
+#: Detection planes are kept so that every plane's image correlates at least this well with a
+#: kept one: the signal-to-noise lost to a z between the planes is then a few per cent.
+PLANE_CORRELATION = 0.9
+
+
+def detection_planes(templates: FrameTemplates) -> NDArray[np.float64]:
+    """The centred templates (P, T, T) the detection correlates with: from the first z plane
+    on, each next one whose normalised correlation with the last kept falls below
+    :data:`PLANE_CORRELATION` (a fast-changing PSF, such as a double helix, keeps more)."""
+    imgs, _ = _centred(templates)
+    unit = imgs / np.linalg.norm(imgs.reshape(len(imgs), -1), axis=1)[:, None, None]
+    keep = [0]
+    for j in range(1, len(unit)):
+        if float(np.sum(unit[j] * unit[keep[-1]])) < PLANE_CORRELATION:
+            keep.append(j - 1 if j - 1 > keep[-1] else j)
+    if keep[-1] != len(unit) - 1:
+        keep.append(len(unit) - 1)
+    return imgs[sorted(set(keep))]
+
+
+def z_starts(
+    frame: NDArray, background: NDArray, rc: NDArray, templates: FrameTemplates
+) -> NDArray[np.float64]:
+    """Starting x, y, z (nm) and photons (K, 4) of candidates at pixels ``rc`` (K, 2).
+
+    x and y are the candidate pixel's centre; z is the plane whose centred template explains
+    most of the light around the candidate (largest ``<d, t>^2 / <t, t>``, ``d`` the frame
+    less the background), and the photons are that plane's least-squares amplitude.
+    """
+    imgs, zs = _centred(templates)
+    t = imgs.shape[-1]
+    h = t // 2
+    d = np.pad(np.asarray(frame, float) - background, h)
+    r = rc[:, 0].astype(int)
+    c = rc[:, 1].astype(int)
+    rows = r[:, None] + np.arange(t)[None, :]
+    cols = c[:, None] + np.arange(t)[None, :]
+    patches = d[rows[:, :, None], cols[:, None, :]].reshape(len(rc), -1)
+    tt = imgs.reshape(len(zs), -1)
+    proj = patches @ tt.T  # (K, Z)
+    norm = np.einsum("zp,zp->z", tt, tt)
+    best = np.argmax(np.where(proj > 0, proj**2 / norm, -np.inf), axis=1)
+    px = templates.pixel_size
+    photons = np.maximum(proj[np.arange(len(rc)), best] / norm[best], 1.0)
+    return np.column_stack([(c + 0.5) * px, (r + 0.5) * px, zs[best], photons])
+
+
+def _clusters(rc: NDArray, distance: float) -> list[list[int]]:
+    """Candidates (K, 2 pixels) linked by distances below ``distance``, each list in the
+    candidates' order (strongest first)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(rc)
+    if n == 0:
+        return []
+    pairs = cKDTree(rc).query_pairs(distance, output_type="ndarray")
+    adj = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(adj, directed=False)
+    out: dict[int, list[int]] = {}
+    for i, lab in enumerate(labels):
+        out.setdefault(int(lab), []).append(i)
+    return sorted(out.values(), key=lambda c: c[0])
+
+
+class _Unit:
+    """One tier-1 fit: its window, emitters (K, 4) and the numbers the table needs."""
+
+    __slots__ = ("background", "box", "flags", "gof", "misfit", "rows", "sigma")
+
+    def __init__(self, box, rows, sigma, background, gof, flags, misfit):
+        self.box, self.rows, self.sigma = box, rows, sigma
+        self.background, self.gof, self.flags = background, gof, flags
+        self.misfit = misfit  # the window's chi-square excess, in its standard deviations
+
+    def doubtful(self) -> bool:
+        """Whether one of its fits is flagged or the window's misfit is significant."""
+        bad = any(fl not in ("ok", "not_converged") for fl in self.flags)
+        return bad or self.misfit > PROMOTE_MISFIT
+
+
+def misfit(y: NDArray, mu: NDArray, signal: NDArray, noise_factor: float, e: float, rv) -> float:
+    """How far a window's Pearson chi-square ``X = sum((y - mu)^2 / V)`` lies above its
+    expectation, in standard deviations: ``(X - n) / sqrt(sum(2 + 1 / mu))`` for ``n`` pixels
+    (the Poisson spread of ``X``), with ``V`` the variance rule (camera noise, read noise and
+    the model's error on ``signal``, :func:`~sparseloc.solvers.variance.pixel_variance`)."""
+    var = pixel_variance(mu, noise_factor, signal, e) + rv
+    x = float(np.sum((y - mu) ** 2 / var))
+    spread = float(np.sum(2.0 + 1.0 / np.maximum(mu, 1.0)))
+    return (x - y.size) / np.sqrt(spread)
+
+
+class _Tier1:
+    """The frame, its noise and the fitting options of one frame's tier-1 fits."""
+
+    def __init__(self, f, bg, model, opts, noise_factor, rv, z_flip):
+        self.f, self.bg, self.model, self.opts = f, bg, model, opts
+        self.light = NeighbourLight(model, f.shape, opts["pixel_size"])
+        self.px, self.pad = opts["pixel_size"], int(opts["pad"])
+        kw = {k: opts[k] for k in ("noise", "read_variance", "qe", "plane") if k in opts}
+        if kw.get("read_variance") is None:
+            kw.pop("read_variance", None)
+        self.fit_kwargs = kw
+        self.noise = (noise_factor, model_error_of(model), rv)
+        self.z_flip = z_flip
+
+    def box(self, rows: NDArray) -> tuple[int, int, int, int]:
+        return window_box(rows, *self.f.shape, self.px, self.pad)
+
+    def fit(self, start: NDArray, others=()) -> _Unit:
+        """Fit emitters ``start`` (K, 4) in their window with the light of emitters ``others``
+        (arrays (M, 4)) known, and the frame solver's z flips near the ends of the z range."""
+        box = self.box(start)
+        offset = _light(self.light, list(others), box)
+        r0, r1, c0, c1 = box
+        f, model = self.f, self.model
+        y = window_data(f, box, self.fit_kwargs)
+        background = float(max(np.median(self.bg[r0:r1, c0:c1]), 1e-3))
+        kw = window_kwargs(f, box, self.px, offset, background, self.fit_kwargs)
+        fit = fit_emitters(y, model, Emitters.from_array(start), **kw)
+        if self.z_flip:
+            fit = _try_z_flips(y, model, fit, kw, self.z_flip, None)
+        nf, e, rv = self.noise
+        rv = rv[r0:r1, c0:c1] if np.ndim(rv) else rv
+        bad = misfit(y, fit.model_image, fit.model_image - fit.background[0], nf, e, rv)
+        rows = fit.emitters.as_array().reshape(-1, 4)
+        return _Unit(
+            box, rows, fit.sigma, float(fit.background[0]), fit.deviance_per_dof, fit.flags, bad
+        )
+
+
+def _light(light: NeighbourLight, rows: list[NDArray], box) -> NDArray[np.float64]:
+    r0, r1, c0, c1 = box
+    rows = [r for r in rows if len(r)]
+    if not rows:
+        return np.zeros((r1 - r0, c1 - c0))
+    return light.window(np.vstack(rows), box)
+
+
+def solve_two_tier(
+    frame: NDArray,
+    background: NDArray,
+    model: PSFModel,
+    templates: FrameTemplates,
+    *,
+    pursuit,
+    fit_options: dict,
+    min_snr: float,
+    noise_factor: float,
+    read_variance: float | NDArray = 0.0,
+    z_flip: float = 0.15,
+    counts: TierCounts | None = None,
+    cache: dict | None = None,
+) -> FrameFit:
+    """Solve one frame in two tiers (see the module notes).
+
+    Parameters
+    ----------
+    frame, background : ndarray, shape (rows, cols)
+        The frame and its background (photons).
+    model : PSFModel
+        The continuous PSF model.
+    templates : FrameTemplates
+        The pursuit's templates (their centred phase gives the detection's planes, see
+        :func:`detection_planes`, and the z starts).
+    pursuit : callable
+        ``pursuit(image, background, read_variance) -> Emitters``: the frame solver's start
+        on a crop of the frame (read variance a scalar or the crop's map).
+    fit_options : dict
+        Keywords of :func:`frame_fit` but the frame's own (``pixel_size``, ``pad``, ``reach``,
+        ``group_distance``, noise keywords, ...).
+    min_snr : float
+        Detection threshold (standard deviations), also of the promotion test.
+    noise_factor : float
+        The camera's variance per expected photon.
+    read_variance : float or ndarray
+        Read-noise variance (photons^2) per pixel.
+    z_flip : float
+        As in :func:`frame_fit`.
+    counts : TierCounts, optional
+        Incremented with this frame's counts.
+    cache : dict, optional
+        Kept between frames: the detection's planes and their spectra.
+
+    Returns
+    -------
+    FrameFit
+    """
+    f = np.asarray(frame, dtype=np.float64)
+    bg = np.broadcast_to(np.asarray(background, dtype=np.float64), f.shape)
+    opts = dict(fit_options)
+    px, reach = opts["pixel_size"], float(opts["reach"])
+    rv = np.broadcast_to(np.asarray(read_variance, dtype=np.float64), f.shape)
+    det = dict(noise_factor=noise_factor, threshold=min_snr)
+    tier = _Tier1(f, bg, model, opts, noise_factor, rv, z_flip)
+    light = tier.light
+    crowd = crowd_distance(templates)
+    if cache is None:
+        cache = {}
+    if cache.get("templates") is not templates:
+        cache.update(templates=templates, planes=detection_planes(templates), spectra={})
+    planes, spectra = cache["planes"], cache["spectra"]
+
+    # 1. candidates; a cluster of two (one emitter's two peaks, or two emitters) starts as one
+    cand = detect_candidates(f, bg, planes, read_variance=rv, cache=spectra, **det)
+    clusters = _clusters(cand, crowd)
+    small = [c for c in clusters if len(c) <= 2]
+    crowded_pts = cand[[i for c in clusters if len(c) > 2 for i in c]].reshape(-1, 2)
+    starts = z_starts(f, bg, cand, templates) if len(cand) else np.zeros((0, 4))
+
+    # 2. units: one emitter each, then once more with their neighbours' light (Gauss-Seidel)
+    units = [tier.fit(starts[c[0]][None]) for c in small]
+    rows_of = lambda skip=None: [u.rows for k, u in enumerate(units) if k != skip]  # noqa: E731
+    for k in _neighbours_in_reach(units, px, reach):
+        units[k] = tier.fit(units[k].rows, rows_of(k))
+
+    # 3. promotion: a unit whose window one emitter does not explain, or near significant
+    # light that the units leave unexplained, is fitted with the count selection from its
+    # candidates; what that does not explain either goes to the crowds
+    s_light = _light(light, rows_of(), (0, f.shape[0], 0, f.shape[1]))
+    e = tier.noise[1]
+    var_extra = rv + (e * s_light) ** 2 if e > 0 else rv
+    resid = detect_candidates(
+        f - s_light, bg + s_light, planes, read_variance=var_extra, cache=spectra, **det
+    )
+    resid = _outside(resid, crowded_pts, crowd)
+    near_resid = _near(units, resid, px, crowd)
+    promoted = [k for k, u in enumerate(units) if u.doubtful() or near_resid[k]]
+    crowd_pts = np.vstack([crowded_pts, resid, *(cand[small[k]] for k in promoted)])
+    kept = [k for k in range(len(units)) if k not in set(promoted)]
+    if counts is not None:
+        counts.singles += sum(len(units[k].rows) for k in kept)
+        counts.promoted += len(promoted)
+        counts.crowded += len(crowd_pts)
+        counts.frames_with_crowds += int(len(crowd_pts) > 0)
+
+    # 4. crowds: the frame solver with the units' light known; then units that see the
+    # crowds' light once more with it
+    crowd_fit = None
+    if len(crowd_pts):
+        known = [units[k].rows for k in kept]
+        crowd_fit, crowd_em = _solve_crowds(
+            f, bg, model, crowd_pts, known, light, pursuit, opts, crowd, rv
+        )
+        if len(crowd_em) and kept:
+            tree = cKDTree(crowd_em[:, :2])
+            for k in kept:
+                if any(tree.query_ball_point(r[:2], reach + tier.pad * px) for r in units[k].rows):
+                    units[k] = tier.fit(units[k].rows, [*rows_of(k), crowd_em])
+    return _merge([units[k] for k in kept], crowd_fit, f.shape, px)
+
+
+def _unit_points(units: list[_Unit], px: float) -> NDArray:
+    """Pixel (row, col) of every unit's emitters, (K, 2)."""
+    rows = [u.rows for u in units if len(u.rows)]
+    if not rows:
+        return np.zeros((0, 2))
+    r = np.vstack(rows)
+    return np.column_stack([r[:, 1] / px - 0.5, r[:, 0] / px - 0.5])
+
+
+def _near(units: list[_Unit], pts: NDArray, px: float, distance: float) -> list[bool]:
+    """Whether each unit has an emitter within ``distance`` (pixels) of one of ``pts``."""
+    if len(pts) == 0:
+        return [False] * len(units)
+    tree = cKDTree(pts)
+    return [
+        bool(len(u.rows)) and bool(np.any(tree.query(_unit_points([u], px))[0] < distance))
+        for u in units
+    ]
+
+
+def _outside(pts: NDArray, away: NDArray, distance: float) -> NDArray:
+    """The points (K, 2) farther than ``distance`` from every point of ``away``."""
+    if len(pts) == 0 or len(away) == 0:
+        return pts.reshape(-1, 2)
+    d, _ = cKDTree(away).query(pts)
+    return pts[d >= distance]
+
+
+def _others(rows: list[NDArray], i: int) -> list[NDArray]:
+    return [r for k, r in enumerate(rows) if k != i]
+
+
+def _neighbours_in_reach(units: list[_Unit], px: float, reach: float) -> list[int]:
+    """Units whose window holds pixels within ``reach`` (nm) of another unit's emitter."""
+    if len(units) < 2:
+        return []
+    xy = np.vstack([u.rows[:, :2] for u in units])
+    owner = np.concatenate([np.full(len(u.rows), k) for k, u in enumerate(units)])
+    tree = cKDTree(xy)
+    out = []
+    for k, u in enumerate(units):
+        r0, r1, c0, c1 = u.box
+        centre = ((c0 + c1) / 2 * px, (r0 + r1) / 2 * px)
+        half = 0.5 * max(r1 - r0, c1 - c0) * px
+        if np.any(owner[tree.query_ball_point(centre, reach + half)] != k):
+            out.append(k)
+    return out
+
+
+#: Crops of the crowds are whole multiples of this many pixels a side (few shapes, so the
+#: pursuit's correlators are built once per shape and reused).
+CROP_STEP = 32
+
+
+def crowd_boxes(pts: NDArray, margin: int, shape: tuple[int, int]) -> list[tuple]:
+    """Boxes (r0, r1, c0, c1) around groups of crowd points (K, 2 pixels): each point with
+    ``margin`` pixels around it, overlapping boxes merged, each grown to a multiple of
+    :data:`CROP_STEP` pixels a side inside the frame."""
+    rows, cols = shape
+    boxes = [
+        [int(r) - margin, int(r) + margin + 1, int(c) - margin, int(c) + margin + 1] for r, c in pts
+    ]
+    merged = True
+    while merged:
+        merged = False
+        out: list[list[int]] = []
+        for b in boxes:
+            for o in out:
+                if b[0] < o[1] and o[0] < b[1] and b[2] < o[3] and o[2] < b[3]:
+                    o[:] = [min(o[0], b[0]), max(o[1], b[1]), min(o[2], b[2]), max(o[3], b[3])]
+                    merged = True
+                    break
+            else:
+                out.append(list(b))
+        boxes = out
+    return [_snapped(b, rows, cols) for b in boxes]
+
+
+def _snapped(b, rows: int, cols: int) -> tuple[int, int, int, int]:
+    """Box ``b`` grown to a multiple of :data:`CROP_STEP` a side, shifted inside the frame."""
+    out = []
+    for lo, hi, n in ((b[0], b[1], rows), (b[2], b[3], cols)):
+        size = min(int(np.ceil((hi - lo) / CROP_STEP)) * CROP_STEP, n)
+        start = int(np.clip((lo + hi) // 2 - size // 2, 0, n - size))
+        out += [start, start + size]
+    return tuple(out)
+
+
+def _solve_crowds(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv):
+    """The frame solver on crops around the crowds (candidates ``pts``, pixels) with the
+    units' light known; returns the FrameFit (frame coordinates) and its emitters (K, 4).
+
+    Each crop holds its crowd with a crowd distance, a window's pad and half a template's
+    width around it, so the pursuit and the fits see every image whole; the pursuit's
+    emitters farther than a crowd distance and a pad from the crowd's points are left out
+    (the units explain them)."""
+    px, pad = opts["pixel_size"], int(opts["pad"])
+    margin = int(np.ceil(crowd)) + pad + int(np.ceil(opts["reach"] / px))
+    fits = []
+    for r0, r1, c0, c1 in crowd_boxes(pts, margin, f.shape):
+        win = (slice(r0, r1), slice(c0, c1))
+        fixed = _light(light, known_rows, (r0, r1, c0, c1))
+        sub_rv = rv[win] if np.ndim(rv) else rv
+        start = pursuit(f[win], bg[win] + fixed, sub_rv).as_array().reshape(-1, 4)
+        if len(start):
+            at = np.column_stack([start[:, 1] / px - 0.5 + r0, start[:, 0] / px - 0.5 + c0])
+            d, _ = cKDTree(pts).query(at)
+            start = start[d < crowd + pad]
+        if len(start) == 0:
+            continue
+        sub_opts = dict(opts)
+        if np.ndim(sub_opts.get("read_variance")):
+            sub_opts["read_variance"] = np.broadcast_to(sub_opts["read_variance"], f.shape)[win]
+        fit = frame_fit(
+            f[win], model, Emitters.from_array(start), background=bg[win], fixed_light=fixed,
+            **sub_opts,
+        )  # fmt: skip
+        em = fit.emitters.as_array().reshape(-1, 4)
+        em[:, 0] += c0 * px
+        em[:, 1] += r0 * px
+        fits.append(replace(fit, emitters=Emitters.from_array(em)))
+    if not fits:
+        return None, np.zeros((0, 4))
+    groups = np.cumsum([0] + [int(ft.group.max()) + 1 if len(ft.group) else 0 for ft in fits])
+    fit = FrameFit(
+        emitters=Emitters.from_array(
+            np.vstack([ft.emitters.as_array().reshape(-1, 4) for ft in fits])
+        ),
+        sigma=np.vstack([ft.sigma for ft in fits]),
+        background=np.concatenate([ft.background for ft in fits]),
+        gof=np.concatenate([ft.gof for ft in fits]),
+        flags=np.concatenate([ft.flags for ft in fits]),
+        group=np.concatenate([ft.group + g for ft, g in zip(fits, groups, strict=False)]),
+    )
+    return fit, fit.emitters.as_array().reshape(-1, 4)
+
+
+def _merge(units: list[_Unit], crowd_fit: FrameFit | None, shape, px) -> FrameFit:
+    """One FrameFit of the units (one group each) and the crowds' fit, inside the frame."""
+    rows, cols = shape
+    em = np.vstack([u.rows for u in units]) if units else np.zeros((0, 4))
+    parts = FrameFit(
+        emitters=Emitters.from_array(em),
+        sigma=np.vstack([u.sigma for u in units]) if units else np.zeros((0, 4)),
+        background=np.concatenate([np.full(len(u.rows), u.background) for u in units] or [[]]),
+        gof=np.concatenate([np.full(len(u.rows), u.gof) for u in units] or [[]]),
+        flags=np.concatenate([u.flags for u in units] or [[]]).astype("<U16"),
+        group=np.concatenate([np.full(len(u.rows), k) for k, u in enumerate(units)] or [[]]),
+    )
+    if crowd_fit is not None and len(crowd_fit.emitters):
+        n = len(units)
+        parts = FrameFit(
+            emitters=Emitters.from_array(np.vstack([em, crowd_fit.emitters.as_array()])),
+            sigma=np.vstack([parts.sigma, crowd_fit.sigma]),
+            background=np.concatenate([parts.background, crowd_fit.background]),
+            gof=np.concatenate([parts.gof, crowd_fit.gof]),
+            flags=np.concatenate([parts.flags, crowd_fit.flags]),
+            group=np.concatenate([parts.group, crowd_fit.group + n]),
+        )
+    e = parts.emitters.as_array().reshape(-1, 4)
+    inside = (e[:, 0] >= 0) & (e[:, 0] < cols * px) & (e[:, 1] >= 0) & (e[:, 1] < rows * px)
+    return FrameFit(
+        emitters=Emitters.from_array(e[inside]),
+        sigma=parts.sigma[inside],
+        background=parts.background[inside].astype(np.float64),
+        gof=parts.gof[inside].astype(np.float64),
+        flags=parts.flags[inside],
+        group=parts.group[inside].astype(np.int64),
+    )

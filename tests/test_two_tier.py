@@ -1,0 +1,160 @@
+"""The two-tier schedule of the frame solver: detection planes, units, promotion, crowds."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from tests.cli_checks import refused, run
+
+from sparseloc.config import LocalizeParams
+from sparseloc.detect import detect_candidates
+from sparseloc.pipeline import _FrameSolver, localize, work_model_for
+from sparseloc.psf import make_psf
+from sparseloc.solvers.two_tier import (
+    CROP_STEP,
+    TierCounts,
+    crowd_boxes,
+    detection_planes,
+    misfit,
+    solve_two_tier,
+)
+
+PX = 100.0
+SHAPE = (64, 64)
+
+
+@pytest.fixture(scope="module")
+def astig():
+    """The astigmatic pupil model tabulated as the pipeline does, and its frame solver."""
+    p = LocalizeParams(pixel_size=PX, frame_schedule="two-tier")
+    work = work_model_for(make_psf("astig"), p)
+    return work, p, _FrameSolver(work, p, SHAPE)
+
+
+def _frame(model, truth, seed=0, background=10.0):
+    t = np.asarray(truth, float).reshape(-1, 4)
+    mu = model.render(t[:, 0], t[:, 1], t[:, 2], t[:, 3], SHAPE, PX) + background
+    return np.random.default_rng(seed).poisson(mu).astype(float)
+
+
+def _solve(solver, frame, counts=None):
+    return solve_two_tier(
+        frame,
+        np.full(SHAPE, 10.0),
+        solver.model,
+        solver.templates,
+        pursuit=solver.start,
+        fit_options=solver.fit_kwargs(),
+        min_snr=5.0,
+        noise_factor=1.0,
+        counts=counts,
+    )
+
+
+def test_detection_with_one_plane_is_the_single_template_test():
+    """A stack of one template gives what one template gives; the plane index comes along."""
+    rng = np.random.default_rng(1)
+    t = np.exp(-((np.arange(9) - 4)[:, None] ** 2 + (np.arange(9) - 4)[None, :] ** 2) / 4.0)
+    img = rng.poisson(10.0, (40, 44)).astype(float)
+    img[20, 20] += 400.0
+    a = detect_candidates(img, 10.0, t)
+    b, plane = detect_candidates(img, 10.0, t[None], return_plane=True)
+    assert np.array_equal(a, b) and len(a) >= 1 and np.all(plane == 0)
+    wide = np.exp(-((np.arange(9) - 4)[:, None] ** 2 + (np.arange(9) - 4)[None, :] ** 2) / 20.0)
+    _, plane = detect_candidates(img, 10.0, np.stack([wide, t]), return_plane=True)
+    assert plane[0] == 1  # the sharp spot correlates best with the sharp template
+
+
+def test_detection_planes_span_the_z_range(astig):
+    _, _, solver = astig
+    planes = detection_planes(solver.templates)
+    n_z = len(np.unique(solver.templates.z))
+    assert 2 <= len(planes) < n_z
+    unit = planes.reshape(len(planes), -1)
+    unit = unit / np.linalg.norm(unit, axis=1)[:, None]
+    # neighbouring kept planes are distinct images, not repeats
+    assert np.all(np.sum(unit[1:] * unit[:-1], axis=1) < 0.999)
+
+
+def test_crowd_boxes_merge_and_snap_inside_the_frame():
+    boxes = crowd_boxes(np.array([[10.0, 10.0], [14.0, 12.0], [50.0, 90.0]]), 5, (64, 100))
+    assert len(boxes) == 2
+    for r0, r1, c0, c1 in boxes:
+        assert 0 <= r0 < r1 <= 64 and 0 <= c0 < c1 <= 100
+        assert (r1 - r0) % CROP_STEP == 0 and (c1 - c0) % CROP_STEP == 0
+    # a box holds its points with the margin (inside the frame)
+    r0, r1, c0, c1 = boxes[0]
+    assert r0 <= 5 and r1 >= 20 and c0 <= 5 and c1 >= 18
+
+
+def test_misfit_is_near_zero_for_the_true_model_and_large_for_a_missing_emitter():
+    rng = np.random.default_rng(3)
+    mu = np.full((25, 25), 10.0)
+    mu[10:14, 10:14] += 50.0
+    scores = [
+        misfit(rng.poisson(mu).astype(float), mu, mu - 10.0, 1.0, 0.0, 0.0) for _ in range(200)
+    ]
+    assert abs(np.mean(scores)) < 0.3 and 0.7 < np.std(scores) < 1.4
+    y = rng.poisson(mu).astype(float)
+    y[2:5, 2:5] += 40.0  # light the model does not have
+    assert misfit(y, mu, mu - 10.0, 1.0, 0.0, 0.0) > 5.0
+
+
+def test_isolated_emitters_are_fitted_alone(astig):
+    work, _, solver = astig
+    truth = [[1500.0, 1600.0, -200.0, 3000.0], [4800.0, 4500.0, 250.0, 2500.0]]
+    counts = TierCounts()
+    fit = _solve(solver, _frame(work, truth), counts)
+    em = fit.emitters.as_array().reshape(-1, 4)
+    assert len(em) == 2 and counts.singles == 2 and counts.frames_with_crowds == 0
+    for t in truth:
+        d = np.hypot(em[:, 0] - t[0], em[:, 1] - t[1])
+        k = int(np.argmin(d))
+        assert d[k] < 30.0 and abs(em[k, 2] - t[2]) < 60.0
+
+
+def test_a_close_pair_is_promoted_and_both_are_found(astig):
+    work, _, solver = astig
+    truth = [[3000.0, 3000.0, 0.0, 3000.0], [3350.0, 3050.0, 200.0, 3000.0]]
+    counts = TierCounts()
+    fit = _solve(solver, _frame(work, truth, seed=2), counts)
+    em = fit.emitters.as_array().reshape(-1, 4)
+    assert counts.frames_with_crowds == 1
+    assert len(em) == 2
+    for t in truth:
+        assert np.min(np.hypot(em[:, 0] - t[0], em[:, 1] - t[1])) < 60.0
+
+
+def test_two_tier_matches_the_whole_frame_schedule_on_a_sparse_movie(astig):
+    """Same emitters, to a few nm, where the images do not overlap."""
+    work, p, _ = astig
+    rng = np.random.default_rng(5)
+    frames = []
+    for i in range(3):
+        xy = np.array([[1200.0, 1300.0], [4900.0, 1500.0], [1700.0, 5000.0], [5000.0, 5100.0]])
+        xy += rng.uniform(-200, 200, xy.shape)
+        z = rng.uniform(-400, 400, 4)
+        truth = np.column_stack([xy, z, rng.uniform(1500, 4000, 4)])
+        frames.append(_frame(work, truth, seed=i))
+    frames = np.array(frames)
+    whole = localize(frames, work, replace(p, frame_schedule="whole-frame", background="spatial"))
+    tiers = localize(frames, work, replace(p, background="spatial"))
+    assert len(tiers.table) == len(whole.table) == 12
+    a = whole.table.sort_values(["frame", "x_nm"])[["x_nm", "y_nm", "z_nm"]].to_numpy()
+    b = tiers.table.sort_values(["frame", "x_nm"])[["x_nm", "y_nm", "z_nm"]].to_numpy()
+    assert np.max(np.abs(a[:, :2] - b[:, :2])) < 3.0 and np.max(np.abs(a[:, 2] - b[:, 2])) < 8.0
+
+
+def test_an_unknown_schedule_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="frame_schedule"):
+        LocalizeParams(pixel_size=PX, frame_schedule="fast")
+    movie = tmp_path / "m.tif"
+    import tifffile
+
+    tifffile.imwrite(movie, np.full((2, 40, 40), 110, np.uint16))
+    res = run("localize", movie, "-o", tmp_path / "l.csv", "--pixel-size", 100,
+              "--frame-schedule", "fast")  # fmt: skip
+    refused(res, "frame_schedule")
+    assert not (tmp_path / "l.csv").exists()
