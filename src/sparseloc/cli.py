@@ -482,7 +482,8 @@ def localize(
         str | None,
         typer.Option(
             help="How the frame solver spends its work: whole-frame (default) or two-tier "
-            "(experimental: emitters alone fitted singly, the full solver only on crowds).",
+            "(experimental: emitters alone fitted singly, the full solver only on crowds; "
+            "about 1.2x faster on sparse movies).",
         ),
     ] = None,
     relocate: Annotated[

@@ -169,12 +169,8 @@ def detect_candidates(
     rv = np.broadcast_to(np.asarray(read_variance, dtype=np.float64), f.shape)
     noise = float(noise_factor) * np.maximum(bg, 1e-3) + rv
     corr = _correlations(f - bg, stack, cache)
-    # The variance of each plane's correlation, sum(t^2 noise) over its pixels, from one
-    # convolution with the planes' mean t^2 scaled by each plane's sum(t^2): exact for one
-    # template or a uniform noise, and the noise of a frame varies slowly across a PSF.
-    sq = (stack**2).mean(axis=0)
+    sq, scale = _variance_weights(stack)
     var = fftconvolve(noise, sq[::-1, ::-1], mode="same")
-    scale = (stack**2).sum(axis=(1, 2)) / sq.sum()
     snrs = corr / np.sqrt(np.maximum(var[None] * scale[:, None, None], 1e-12))
     plane = np.argmax(snrs, axis=0)
     snr = np.take_along_axis(snrs, plane[None], axis=0)[0]
@@ -187,10 +183,44 @@ def detect_candidates(
     return rc.astype(np.float64)
 
 
+def _variance_weights(stack: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The variance of each plane's correlation, ``sum(t^2 noise)`` over its pixels, as one
+    convolution of the noise with the planes' mean ``t^2`` (returned first) scaled by each
+    plane's ``sum(t^2)`` over that mean's (returned second): exact for one template or a
+    uniform noise, and a frame's noise varies slowly across a PSF."""
+    sq = (stack**2).mean(axis=0)
+    return sq, (stack**2).sum(axis=(1, 2)) / sq.sum()
+
+
+def snr_at(d: NDArray, noise: NDArray, template: NDArray, rc: NDArray) -> NDArray[np.float64]:
+    """The signal-to-noise of :func:`detect_candidates` at pixels ``rc`` (K, 2 integers) only:
+    ``d`` is the frame less its known light (rows, cols), ``noise`` the variance per pixel
+    (``noise_factor * background + read_variance``), ``template`` one image or a stack
+    (largest over the stack). Direct sums over each template's pixels, for a few pixels
+    where the map's FFTs would cost more."""
+    stack = np.asarray(template, dtype=np.float64)
+    stack = stack[None] if stack.ndim == 2 else stack
+    stack = stack / stack.sum(axis=(1, 2), keepdims=True)
+    sq, scale = _variance_weights(stack)
+    t = stack.shape[-1]
+    h = (t - 1) // 2
+    dp = np.pad(np.asarray(d, dtype=np.float64), h)
+    npad = np.pad(np.asarray(noise, dtype=np.float64), h)
+    r = np.asarray(rc, dtype=int).reshape(-1, 2)
+    rows = r[:, 0, None] + np.arange(t)[None, :]
+    cols = r[:, 1, None] + np.arange(t)[None, :]
+    pd_ = dp[rows[:, :, None], cols[:, None, :]].reshape(len(r), -1)
+    pn = npad[rows[:, :, None], cols[:, None, :]].reshape(len(r), -1)
+    corr = pd_ @ stack.reshape(len(stack), -1).T  # (K, P)
+    var = (pn @ sq.ravel())[:, None] * scale[None, :]
+    return np.max(corr / np.sqrt(np.maximum(var, 1e-12)), axis=1)
+
+
 def _correlations(d: NDArray, stack: NDArray, cache: dict | None) -> NDArray[np.float64]:
     """Correlations (P, rows, cols) of ``d`` with each template of ``stack`` (P, T, T),
     centred as ``fftconvolve(..., mode="same")`` with the flipped template; the templates'
-    spectra are kept in ``cache`` per frame shape."""
+    spectra are kept in ``cache`` per frame shape. In single precision: a signal-to-noise
+    needs a few digits, and the transforms take half the time."""
     rows, cols = d.shape
     t = stack.shape[-1]
     shape = (
@@ -200,10 +230,10 @@ def _correlations(d: NDArray, stack: NDArray, cache: dict | None) -> NDArray[np.
     key = d.shape
     spectra = None if cache is None else cache.get(key)
     if spectra is None:
-        spectra = sfft.rfft2(stack[:, ::-1, ::-1], shape)
+        spectra = sfft.rfft2(stack[:, ::-1, ::-1].astype(np.float32), shape)
         if cache is not None:
             cache[key] = spectra
-    full = sfft.irfft2(sfft.rfft2(d, shape)[None] * spectra, shape)
+    full = sfft.irfft2(sfft.rfft2(d.astype(np.float32), shape)[None] * spectra, shape)
     h = (t - 1) // 2
     return full[:, h : h + rows, h : h + cols]
 

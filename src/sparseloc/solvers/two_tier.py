@@ -8,7 +8,7 @@ tiers:
 1. **Detection**: the frame is correlated with the PSF's images at a few z planes
    (:func:`detection_planes`); local maxima above ``min_snr`` times the camera model's noise
    are candidates (:func:`~sparseloc.detect.detect_candidates`).
-2. **Units**: candidates closer than :func:`crowd_distance` (two core radii) form clusters; a
+2. **Units**: candidates closer than :func:`crowd_distance` (a core radius) form clusters; a
    cluster of one or two (two peaks of one elongated image, or two emitters) is fitted as one
    emitter in its window, started at the z plane whose image explains most of its light
    (:func:`z_starts`), with the frame solver's z flips. Units whose windows see another
@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from ..detect import detect_candidates
+from ..detect import detect_candidates, snr_at
 from ..psf.base import PSFModel
 from .emitters import Emitters
 from .frame import FrameFit, _try_z_flips, frame_fit
@@ -61,9 +61,20 @@ __all__ = [
 
 #: A single is promoted to the crowds when its window's chi-square lies more than this many
 #: standard deviations above its expectation. A false promotion costs only time (the crowd
-#: solver then fits it), a missed one costs an emitter: the bar is low (about 2 % of exact
-#: single fits pass it).
+#: solver then fits it), a missed one costs an emitter: the bar is low (1-3 % of single fits
+#: of isolated simulated emitters pass it, see docs/benchmarks/two_tier.txt).
 PROMOTE_MISFIT = 2.0
+
+
+#: Most sweeps over the units that see other units' light, each refitting them in turn with
+#: their neighbours' latest light; fewer when a sweep leaves every unit in place.
+REFIT_SWEEPS = 2
+
+
+def _settled(before: NDArray, after: NDArray, xy_tol: float = 2.0, z_tol: float = 5.0) -> bool:
+    """Whether a refit left a unit's emitter in place (nm tolerances, as the frame solver's)."""
+    d = np.abs(np.asarray(after) - np.asarray(before))
+    return bool(np.all(d[:, :2] < xy_tol) and np.all(d[:, 2] < z_tol))
 
 
 @dataclass
@@ -77,9 +88,10 @@ class TierCounts:
 
 
 def crowd_distance(templates: FrameTemplates) -> float:
-    """Candidates closer than this (pixels) are a crowd: twice the radius holding half the
-    light of the broadest plane, the pursuit's exclusion distance."""
-    return max(2.0, 2.0 * templates.core_radius)
+    """Candidates closer than this (pixels) form a cluster: the radius holding half the light
+    of the broadest plane, the distance within which the frame solver fits emitters
+    together (their images overlap enough to trade light)."""
+    return max(2.0, templates.core_radius)
 
 
 def _centred(templates: FrameTemplates) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -119,6 +131,8 @@ def z_starts(
     less the background), and the photons are that plane's least-squares amplitude.
     """
     imgs, zs = _centred(templates)
+    if len(rc) == 0:
+        return np.zeros((0, 4))
     t = imgs.shape[-1]
     h = t // 2
     d = np.pad(np.asarray(frame, float) - background, h)
@@ -292,32 +306,42 @@ def solve_two_tier(
         cache.update(templates=templates, planes=detection_planes(templates), spectra={})
     planes, spectra = cache["planes"], cache["spectra"]
 
-    # 1. candidates; a cluster of two (one emitter's two peaks, or two emitters) starts as one
+    # 1. candidates, strongest first
     cand = detect_candidates(f, bg, planes, read_variance=rv, cache=spectra, **det)
-    clusters = _clusters(cand, crowd)
-    small = [c for c in clusters if len(c) <= 2]
-    crowded_pts = cand[[i for c in clusters if len(c) > 2 for i in c]].reshape(-1, 2)
     starts = z_starts(f, bg, cand, templates) if len(cand) else np.zeros((0, 4))
 
-    # 2. units: one emitter each, then once more with their neighbours' light (Gauss-Seidel)
-    units = [tier.fit(starts[c[0]][None]) for c in small]
+    # 2. units: each candidate that the units before it leave significant is fitted as one
+    # emitter with their light known (the others are parts of their images), then each unit
+    # once more with all the others' light
+    units: list[_Unit] = []
     rows_of = lambda skip=None: [u.rows for k, u in enumerate(units) if k != skip]  # noqa: E731
-    for k in _neighbours_in_reach(units, px, reach):
-        units[k] = tier.fit(units[k].rows, rows_of(k))
-
-    # 3. promotion: a unit whose window one emitter does not explain, or near significant
-    # light that the units leave unexplained, is fitted with the count selection from its
-    # candidates; what that does not explain either goes to the crowds
-    s_light = _light(light, rows_of(), (0, f.shape[0], 0, f.shape[1]))
     e = tier.noise[1]
+    for i in range(len(cand)):
+        if units and not _significant(tier, planes, cand[i], rows_of(), e, min_snr):
+            continue
+        units.append(tier.fit(starts[i][None], rows_of()))
+    near = _neighbours_in_reach(units, px, reach)
+    for _ in range(REFIT_SWEEPS):
+        moved = 0
+        for k in near:
+            before = units[k].rows
+            units[k] = tier.fit(before, rows_of(k))
+            moved += not _settled(before, units[k].rows)
+        if not moved:
+            break
+
+    # 3. promotion: units that one emitter does not explain, units closer than a crowd
+    # distance to another (the frame solver fits those together), and significant light
+    # that the units leave unexplained go to the crowds
+    s_light = _light(light, rows_of(), (0, f.shape[0], 0, f.shape[1]))
     var_extra = rv + (e * s_light) ** 2 if e > 0 else rv
     resid = detect_candidates(
         f - s_light, bg + s_light, planes, read_variance=var_extra, cache=spectra, **det
     )
-    resid = _outside(resid, crowded_pts, crowd)
+    close = _close_units(units, px, crowd)
     near_resid = _near(units, resid, px, crowd)
-    promoted = [k for k, u in enumerate(units) if u.doubtful() or near_resid[k]]
-    crowd_pts = np.vstack([crowded_pts, resid, *(cand[small[k]] for k in promoted)])
+    promoted = [k for k, u in enumerate(units) if u.doubtful() or near_resid[k] or close[k]]
+    crowd_pts = np.vstack([resid, *(_unit_points([units[k]], px) for k in promoted)])
     kept = [k for k in range(len(units)) if k not in set(promoted)]
     if counts is not None:
         counts.singles += sum(len(units[k].rows) for k in kept)
@@ -330,8 +354,9 @@ def solve_two_tier(
     crowd_fit = None
     if len(crowd_pts):
         known = [units[k].rows for k in kept]
+        start = np.vstack([*(units[k].rows for k in promoted), z_starts(f, bg, resid, templates)])
         crowd_fit, crowd_em = _solve_crowds(
-            f, bg, model, crowd_pts, known, light, pursuit, opts, crowd, rv
+            f, bg, model, start, known, light, pursuit, opts, crowd, rv
         )
         if len(crowd_em) and kept:
             tree = cKDTree(crowd_em[:, :2])
@@ -339,6 +364,32 @@ def solve_two_tier(
                 if any(tree.query_ball_point(r[:2], reach + tier.pad * px) for r in units[k].rows):
                     units[k] = tier.fit(units[k].rows, [*rows_of(k), crowd_em])
     return _merge([units[k] for k in kept], crowd_fit, f.shape, px)
+
+
+def _significant(tier: _Tier1, planes, rc, known: list, e: float, min_snr: float) -> bool:
+    """Whether the frame less the light of emitters ``known`` still holds a detection at
+    pixel ``rc`` (the detection test, its variance with their shot noise and model error)."""
+    f, bg = tier.f, tier.bg
+    h = planes.shape[-1] // 2 + 1
+    r, c = int(rc[0]), int(rc[1])
+    box = (max(r - h, 0), min(r + h + 1, f.shape[0]), max(c - h, 0), min(c + h + 1, f.shape[1]))
+    r0, r1, c0, c1 = box
+    lit = _light(tier.light, known, box)
+    nf, _, rv = tier.noise
+    rvw = rv[r0:r1, c0:c1] if np.ndim(rv) else rv
+    noise = nf * np.maximum(bg[r0:r1, c0:c1] + lit, 1e-3) + rvw + (e * lit) ** 2
+    d = f[r0:r1, c0:c1] - bg[r0:r1, c0:c1] - lit
+    return bool(snr_at(d, noise, planes, np.array([[r - r0, c - c0]]))[0] > min_snr)
+
+
+def _close_units(units: list[_Unit], px: float, distance: float) -> list[bool]:
+    """Whether each unit's emitter lies closer than ``distance`` (pixels) to another's."""
+    out = [False] * len(units)
+    if len(units) > 1:
+        pts = _unit_points(units, px)
+        for i, j in cKDTree(pts).query_pairs(distance):
+            out[i] = out[j] = True
+    return out
 
 
 def _unit_points(units: list[_Unit], px: float) -> NDArray:
@@ -359,14 +410,6 @@ def _near(units: list[_Unit], pts: NDArray, px: float, distance: float) -> list[
         bool(len(u.rows)) and bool(np.any(tree.query(_unit_points([u], px))[0] < distance))
         for u in units
     ]
-
-
-def _outside(pts: NDArray, away: NDArray, distance: float) -> NDArray:
-    """The points (K, 2) farther than ``distance`` from every point of ``away``."""
-    if len(pts) == 0 or len(away) == 0:
-        return pts.reshape(-1, 2)
-    d, _ = cKDTree(away).query(pts)
-    return pts[d >= distance]
 
 
 def _others(rows: list[NDArray], i: int) -> list[NDArray]:
@@ -395,9 +438,12 @@ def _neighbours_in_reach(units: list[_Unit], px: float, reach: float) -> list[in
 CROP_STEP = 32
 
 
-def crowd_boxes(pts: NDArray, margin: int, shape: tuple[int, int]) -> list[tuple]:
+def crowd_boxes(
+    pts: NDArray, margin: int, shape: tuple[int, int], join: int = 0
+) -> list[tuple[int, int, int, int]]:
     """Boxes (r0, r1, c0, c1) around groups of crowd points (K, 2 pixels): each point with
-    ``margin`` pixels around it, overlapping boxes merged, each grown to a multiple of
+    ``margin`` pixels around it; boxes closer than ``join`` pixels are merged (so a crop sees
+    the light of the crowd next to it), and each is grown to a multiple of
     :data:`CROP_STEP` pixels a side inside the frame."""
     rows, cols = shape
     boxes = [
@@ -409,7 +455,12 @@ def crowd_boxes(pts: NDArray, margin: int, shape: tuple[int, int]) -> list[tuple
         out: list[list[int]] = []
         for b in boxes:
             for o in out:
-                if b[0] < o[1] and o[0] < b[1] and b[2] < o[3] and o[2] < b[3]:
+                if (
+                    b[0] < o[1] + join
+                    and o[0] < b[1] + join
+                    and b[2] < o[3] + join
+                    and o[2] < b[3] + join
+                ):
                     o[:] = [min(o[0], b[0]), max(o[1], b[1]), min(o[2], b[2]), max(o[3], b[3])]
                     merged = True
                     break
@@ -429,18 +480,65 @@ def _snapped(b, rows: int, cols: int) -> tuple[int, int, int, int]:
     return tuple(out)
 
 
-def _solve_crowds(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv):
-    """The frame solver on crops around the crowds (candidates ``pts``, pixels) with the
-    units' light known; returns the FrameFit (frame coordinates) and its emitters (K, 4).
+#: A crowd of at most this many starts (promoted units and unexplained peaks closer than half
+#: a template's width) is fitted from them; a larger one from the pursuit on a crop.
+SMALL_CROWD = 2
 
-    Each crop holds its crowd with a crowd distance, a window's pad and half a template's
-    width around it, so the pursuit and the fits see every image whole; the pursuit's
-    emitters farther than a crowd distance and a pad from the crowd's points are left out
-    (the units explain them)."""
-    px, pad = opts["pixel_size"], int(opts["pad"])
-    margin = int(np.ceil(crowd)) + pad + int(np.ceil(opts["reach"] / px))
+
+def _solve_crowds(f, bg, model, start, known_rows, light, pursuit, opts, crowd, rv):
+    """The frame solver on the crowds, with the units' light known: a small crowd
+    (:data:`SMALL_CROWD`) from its starts ``start`` (K, 4), a larger one from the pursuit on
+    a crop around it (:func:`_pursuit_crop`). Returns the FrameFit (frame coordinates) and
+    its emitters (K, 4)."""
+    px = opts["pixel_size"]
+    h = int(np.ceil(opts["reach"] / px))  # half a template's width
+    pts = np.column_stack([start[:, 1] / px - 0.5, start[:, 0] / px - 0.5])
+    groups = _clusters(pts, h)
+    big = [i for g in groups if len(g) > SMALL_CROWD for i in g]
+    small = [i for g in groups if len(g) <= SMALL_CROWD for i in g]
     fits = []
-    for r0, r1, c0, c1 in crowd_boxes(pts, margin, f.shape):
+    if big and pursuit is not None:
+        fits += _pursuit_crop(f, bg, model, pts[big], known_rows, light, pursuit, opts, crowd, rv)
+    else:
+        small += big
+    if small:
+        done = [ft.emitters.as_array().reshape(-1, 4) for ft in fits]
+        fixed = _light(light, [*known_rows, *done], (0, f.shape[0], 0, f.shape[1]))
+        em = Emitters.from_array(start[sorted(small)])
+        fits.append(frame_fit(f, model, em, background=bg, fixed_light=fixed, **opts))
+    if not fits:
+        return None, np.zeros((0, 4))
+    fit = _concat(fits)
+    return fit, fit.emitters.as_array().reshape(-1, 4)
+
+
+def _concat(fits: list[FrameFit]) -> FrameFit:
+    """The FrameFits one after the other, their groups numbered on."""
+    groups = np.cumsum([0] + [int(ft.group.max()) + 1 if len(ft.group) else 0 for ft in fits])
+    return FrameFit(
+        emitters=Emitters.from_array(
+            np.vstack([ft.emitters.as_array().reshape(-1, 4) for ft in fits])
+        ),
+        sigma=np.vstack([ft.sigma for ft in fits]),
+        background=np.concatenate([ft.background for ft in fits]),
+        gof=np.concatenate([ft.gof for ft in fits]),
+        flags=np.concatenate([ft.flags for ft in fits]),
+        group=np.concatenate([ft.group + g for ft, g in zip(fits, groups, strict=False)]),
+    )
+
+
+def _pursuit_crop(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv):
+    """The frame solver from the pursuit on crops around crowds (points ``pts``, pixels) with
+    the units' light known; FrameFits in frame coordinates.
+
+    Each crop holds its crowd with half a template's width around it, so the pursuit sees
+    every image whole, and crowds whose images could reach each other share a crop; the
+    pursuit's emitters farther than a crowd distance and a pad from the crowd's points are
+    left out (the units explain them)."""
+    px, pad = opts["pixel_size"], int(opts["pad"])
+    h = int(np.ceil(opts["reach"] / px))
+    fits = []
+    for r0, r1, c0, c1 in crowd_boxes(pts, h + 1, f.shape, join=2 * h):
         win = (slice(r0, r1), slice(c0, c1))
         fixed = _light(light, known_rows, (r0, r1, c0, c1))
         sub_rv = rv[win] if np.ndim(rv) else rv
@@ -462,20 +560,7 @@ def _solve_crowds(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv
         em[:, 0] += c0 * px
         em[:, 1] += r0 * px
         fits.append(replace(fit, emitters=Emitters.from_array(em)))
-    if not fits:
-        return None, np.zeros((0, 4))
-    groups = np.cumsum([0] + [int(ft.group.max()) + 1 if len(ft.group) else 0 for ft in fits])
-    fit = FrameFit(
-        emitters=Emitters.from_array(
-            np.vstack([ft.emitters.as_array().reshape(-1, 4) for ft in fits])
-        ),
-        sigma=np.vstack([ft.sigma for ft in fits]),
-        background=np.concatenate([ft.background for ft in fits]),
-        gof=np.concatenate([ft.gof for ft in fits]),
-        flags=np.concatenate([ft.flags for ft in fits]),
-        group=np.concatenate([ft.group + g for ft, g in zip(fits, groups, strict=False)]),
-    )
-    return fit, fit.emitters.as_array().reshape(-1, 4)
+    return fits
 
 
 def _merge(units: list[_Unit], crowd_fit: FrameFit | None, shape, px) -> FrameFit:
