@@ -298,3 +298,18 @@ def test_template_selection_is_bit_identical_on_both_engines():
         assert np.array_equal(a, b)
     assert not np.any(fast[1] == 4)  # the duplicate never wins over its first copy
     assert np.any(fast[1] == 1)
+
+
+@pytest.mark.parametrize(
+    "centres", [np.arange(0, 30), np.array([0, 1, 5, 6, 25, 29]), np.array([3])]
+)
+def test_sliding_percentile_matches_a_percentile_per_window(centres):
+    """The temporal background of each frame, numba's sliding window against NumPy's
+    percentile of each window (edges, gaps that restart the window, ties in integer counts)."""
+    from sparseloc.detect import temporal_background, temporal_backgrounds
+
+    chunk = np.random.default_rng(4).poisson(6.0, (30, 9, 11)).astype(float)
+    numba_bg, numpy_bg = _both(None, lambda: temporal_backgrounds(chunk, centres, 5))
+    assert np.array_equal(numba_bg, numpy_bg)
+    for k, c in enumerate(centres):
+        assert np.array_equal(numpy_bg[k], temporal_background(chunk[max(c - 5, 0) : c + 6]))

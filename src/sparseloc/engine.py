@@ -6,8 +6,8 @@ engine:
 
 - ``"numpy"``: the plain NumPy reference, for any :class:`~sparseloc.psf.base.PSFModel`;
 - ``"numba"``: compiled kernels for spline tables (their images and derivatives, the fit's
-  model, likelihood and Fisher matrix, the frame pursuit's template selection); other models
-  still use NumPy.
+  model, likelihood and Fisher matrix, the frame pursuit's template selection) and the
+  temporal background's sliding percentile; other models still use NumPy.
 
 The setting is ``"auto"`` (numba where it imports and its kernels compile, else NumPy with a
 logged warning), ``"numpy"`` or ``"numba"``; it comes from ``LocalizeParams.engine`` /
@@ -49,11 +49,13 @@ ENV_VAR = "SPARSELOC_ENGINE"
 @dataclass(frozen=True)
 class Kernels:
     """The compiled functions of the numba engine (see :mod:`sparseloc.solvers._fit_numba`,
-    :mod:`sparseloc.psf._spline_numba`, :mod:`sparseloc.solvers._pursuit_numba`)."""
+    :mod:`sparseloc.psf._spline_numba`, :mod:`sparseloc.solvers._pursuit_numba`,
+    :mod:`sparseloc._percentile_numba`)."""
 
     spline: Any
     fit: Any
     select_best: Any
+    percentiles: Any
 
 
 _setting: str | None = None  # set by use_engine; None: the default
@@ -84,6 +86,7 @@ def _compile() -> Kernels | None:
     numba's cache), so that a failure means NumPy rather than an error in the middle of a fit."""
     if not _compiled:
         try:
+            from ._percentile_numba import sliding_percentiles
             from .psf._spline_numba import spline_kernel
             from .solvers._fit_numba import warm_up
             from .solvers._pursuit_numba import select_best
@@ -96,7 +99,8 @@ def _compile() -> Kernels | None:
             grid = np.zeros((1, 1, 1), np.float32)
             best = np.zeros((1, 1), np.float32)
             select_best(grid, 0, grid, 0, best, np.zeros((1, 1), np.int32), best.copy())
-            _compiled.append(Kernels(spline_kernel, fit, select_best))
+            sliding_percentiles(np.zeros((2, 1, 1)), np.zeros(1, np.int64), 1, 30.0, out)
+            _compiled.append(Kernels(spline_kernel, fit, select_best, sliding_percentiles))
         except Exception as exc:  # any failure of numba (import, compilation) means NumPy
             log.warning("numba kernels unavailable (%s): using the NumPy engine", exc)
             _compiled.append(None)

@@ -30,7 +30,7 @@ from .detect import (
     Tile,
     detect_candidates,
     spatial_background,
-    temporal_background,
+    temporal_backgrounds,
     tiles,
     z_averaged_psf,
 )
@@ -576,13 +576,12 @@ def _frames_and_backgrounds(get, n: int, start: int, stop: int, block: int, p: L
         chunk = np.asarray(get(lo, hi), dtype=np.float64)
         if not np.all(np.isfinite(chunk)):
             raise ValueError(f"frames {lo}-{hi - 1} contain NaN or inf values")
+        if temporal:
+            centres = np.arange(b0, b1) - lo
+            bgs = temporal_backgrounds(chunk, centres, half, percentile=p.background_percentile)
         for f in range(b0, b1):
             i = f - lo
-            j0, j1 = max(i - half, 0), min(i + half + 1, chunk.shape[0])
-            if temporal:
-                bg = temporal_background(chunk[j0:j1], percentile=p.background_percentile)
-            else:
-                bg = spatial_background(chunk[i])
+            bg = bgs[f - b0] if temporal else spatial_background(chunk[i])
             yield f, chunk[i], bg
 
 
