@@ -163,6 +163,9 @@ def _try_z_flips(y, model, fit, kw, fraction, failed: list | None = None):
     return fit
 
 
+#: Default ``skip_tolerance`` of :func:`frame_fit`: a fit is kept, not redone, while the known
+#: light in its window changes by at most this many background standard deviations per pixel.
+SKIP_TOLERANCE = 0.1
 #: Largest change of the neighbours' light (background standard deviations per pixel) for
 #: which the linear response decides whether a group must be refitted (see ``frame_fit``).
 SHIFT_CAP = 1.0
@@ -267,7 +270,7 @@ def frame_fit(
     max_emitters: int = 10,
     z_flip: float = 0.15,
     max_group: int = 8,
-    skip_tolerance: float = 0.1,
+    skip_tolerance: float = SKIP_TOLERANCE,
     shift_tolerance: float = SHIFT_TOLERANCE,
     relocate: int = RELOCATE,
     fixed_light: NDArray | None = None,

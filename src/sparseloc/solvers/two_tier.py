@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree
 from ..detect import detect_candidates, snr_at
 from ..psf.base import PSFModel
 from .emitters import Emitters
-from .frame import FrameFit, _try_z_flips, frame_fit
+from .frame import SKIP_TOLERANCE, FrameFit, _try_z_flips, frame_fit
 from .frame_mp import FrameTemplates
 from .frame_windows import NeighbourLight, window_box, window_data, window_kwargs
 from .mle import fit_emitters
@@ -171,12 +171,13 @@ def _clusters(rc: NDArray, distance: float) -> list[list[int]]:
 class _Unit:
     """One tier-1 fit: its window, emitters (K, 4) and the numbers the table needs."""
 
-    __slots__ = ("background", "box", "flags", "gof", "misfit", "rows", "sigma")
+    __slots__ = ("background", "box", "flags", "gof", "misfit", "offset", "rows", "sigma")
 
-    def __init__(self, box, rows, sigma, background, gof, flags, misfit):
+    def __init__(self, box, rows, sigma, background, gof, flags, misfit, offset):
         self.box, self.rows, self.sigma = box, rows, sigma
         self.background, self.gof, self.flags = background, gof, flags
         self.misfit = misfit  # the window's chi-square excess, in its standard deviations
+        self.offset = offset  # the known light it was fitted with (photons/pixel)
 
     def doubtful(self) -> bool:
         """Whether one of its fits is flagged or the window's misfit is significant."""
@@ -212,11 +213,26 @@ class _Tier1:
     def box(self, rows: NDArray) -> tuple[int, int, int, int]:
         return window_box(rows, *self.f.shape, self.px, self.pad)
 
-    def fit(self, start: NDArray, others=()) -> _Unit:
-        """Fit emitters ``start`` (K, 4) in their window with the light of emitters ``others``
-        (arrays (M, 4)) known, and the frame solver's z flips near the ends of the z range."""
-        box = self.box(start)
+    def refit(self, unit: _Unit, others) -> _Unit:
+        """``unit`` fitted again with the light of emitters ``others`` known; the unit as it
+        is while that light differs from its own by at most the frame solver's
+        :data:`~sparseloc.solvers.frame.SKIP_TOLERANCE` (background standard deviations)."""
+        box = self.box(unit.rows)
         offset = _light(self.light, list(others), box)
+        if box == unit.box:
+            r0, r1, c0, c1 = box
+            sd = np.sqrt(max(float(np.median(self.bg[r0:r1, c0:c1])), 1.0))
+            if np.max(np.abs(offset - unit.offset)) <= SKIP_TOLERANCE * sd:
+                return unit
+        return self.fit(unit.rows, offset=offset)
+
+    def fit(self, start: NDArray, others=(), offset: NDArray | None = None) -> _Unit:
+        """Fit emitters ``start`` (K, 4) in their window with the light of emitters ``others``
+        (arrays (M, 4)) known, or ``offset`` (photons/pixel over the window), and the frame
+        solver's z flips near the ends of the z range."""
+        box = self.box(start)
+        if offset is None:
+            offset = _light(self.light, list(others), box)
         r0, r1, c0, c1 = box
         f, model = self.f, self.model
         y = window_data(f, box, self.fit_kwargs)
@@ -229,9 +245,8 @@ class _Tier1:
         rv = rv[r0:r1, c0:c1] if np.ndim(rv) else rv
         bad = misfit(y, fit.model_image, fit.model_image - fit.background[0], nf, e, rv)
         rows = fit.emitters.as_array().reshape(-1, 4)
-        return _Unit(
-            box, rows, fit.sigma, float(fit.background[0]), fit.deviance_per_dof, fit.flags, bad
-        )
+        bg = float(fit.background[0])
+        return _Unit(box, rows, fit.sigma, bg, fit.deviance_per_dof, fit.flags, bad, offset)
 
 
 def _light(light: NeighbourLight, rows: list[NDArray], box) -> NDArray[np.float64]:
@@ -325,7 +340,7 @@ def solve_two_tier(
         moved = 0
         for k in near:
             before = units[k].rows
-            units[k] = tier.fit(before, rows_of(k))
+            units[k] = tier.refit(units[k], rows_of(k))
             moved += not _settled(before, units[k].rows)
         if not moved:
             break
@@ -362,7 +377,7 @@ def solve_two_tier(
             tree = cKDTree(crowd_em[:, :2])
             for k in kept:
                 if any(tree.query_ball_point(r[:2], reach + tier.pad * px) for r in units[k].rows):
-                    units[k] = tier.fit(units[k].rows, [*rows_of(k), crowd_em])
+                    units[k] = tier.refit(units[k], [*rows_of(k), crowd_em])
     return _merge([units[k] for k in kept], crowd_fit, f.shape, px)
 
 
