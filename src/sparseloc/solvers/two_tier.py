@@ -7,24 +7,30 @@ tiers:
 
 1. **Detection**: the frame is correlated with the PSF's images at a few z planes
    (:func:`detection_planes`); local maxima above ``min_snr`` times the camera model's noise
-   are candidates (:func:`~sparseloc.detect.detect_candidates`).
-2. **Units**: candidates closer than :func:`crowd_distance` (a core radius) form clusters; a
-   cluster of one or two (two peaks of one elongated image, or two emitters) is fitted as one
-   emitter in its window, started at the z plane whose image explains most of its light
-   (:func:`z_starts`), with the frame solver's z flips. Units whose windows see another
-   unit's light are refitted once, in turn, with that light known.
+   are candidates (:func:`~sparseloc.detect.detect_candidates`), strongest first.
+2. **Units**: each candidate where the frame, less the light of the units fitted before it,
+   still holds a detection (:func:`~sparseloc.detect.snr_at`; the others are parts of
+   images already explained) is fitted as one emitter in its window with that light known,
+   started at the z plane whose image explains most of its light (:func:`z_starts`), with
+   the frame solver's z flips. Units whose windows see another unit's light are then
+   refitted in turn with their neighbours' latest light (at most :data:`REFIT_SWEEPS`
+   sweeps, skipped where that light changed by less than the frame solver's skip
+   tolerance).
 3. **Promotion**: a unit goes to the crowds when its fit is flagged, when its window's
    chi-square lies :data:`PROMOTE_MISFIT` standard deviations above expectation
-   (:func:`misfit`, with the variance rule of :mod:`~sparseloc.solvers.variance`), or when
-   the frame less the units' light holds a significant peak near it (the detection test
-   again, its variance with the units' shot noise and the model's error).
-4. **Crowds**: clusters of three or more, promoted units and peaks left unexplained go to the
-   frame solver (pursuit, fits with count selection, relocations) on crops around them
-   (:func:`crowd_boxes`), with the units' light known; then units that see the crowds' light
-   are refitted once with it.
+   (:func:`misfit`, with the variance rule of :mod:`~sparseloc.solvers.variance`), when it
+   lies within a core radius of another unit (:func:`crowd_distance`: the frame solver fits
+   those together), or when the frame less the units' light holds a significant peak near
+   it (the detection test again, its variance with the units' shot noise and the model's
+   error). Such peaks far from any unit are crowds too.
+4. **Crowds**: the frame solver (fits with count selection, z flips, relocations) with the
+   kept units' light known: a pair starts from its own starts, a larger crowd from the
+   frame solver's pursuit on a crop around it (:func:`crowd_boxes`). Units that see the
+   crowds' light are refitted with it.
 
 The fits, the z flips and the crowds' count selection are the frame solver's own
 (:func:`~sparseloc.solvers.mle.fit_emitters`, :func:`~sparseloc.solvers.frame.frame_fit`).
+Measurements: ``docs/benchmarks/two_tier.txt``.
 """
 
 from __future__ import annotations
@@ -329,7 +335,11 @@ def solve_two_tier(
     # emitter with their light known (the others are parts of their images), then each unit
     # once more with all the others' light
     units: list[_Unit] = []
-    rows_of = lambda skip=None: [u.rows for k, u in enumerate(units) if k != skip]  # noqa: E731
+
+    def rows_of(skip: int | None = None) -> list[NDArray]:
+        """The emitters of every unit but ``skip``."""
+        return [u.rows for k, u in enumerate(units) if k != skip]
+
     e = tier.noise[1]
     for i in range(len(cand)):
         if units and not _significant(tier, planes, cand[i], rows_of(), e, min_snr):
