@@ -23,12 +23,12 @@ from sparseloc.psf import make_psf
 from sparseloc.simulate import simulate
 
 
-def benchmark_frames(n: int, density: float, seed: int = 3):
-    """``n`` simulated 128 x 128 double-helix frames (photons; pupil model tabulated as the
-    pipeline does, 100 nm pixels, 1000-5000 photons, background 10) at ``density`` emitters
-    per um^2: ``(frames, work model, params, simulation)``, the kernels already compiled or
-    loaded by one localized frame (also used by ``phases.py``)."""
-    model = make_psf("dh")
+def benchmark_frames(n: int, density: float, seed: int = 3, psf: str = "dh"):
+    """``n`` simulated 128 x 128 frames of the built-in pupil model ``psf`` (photons; tabulated
+    as the pipeline does, 100 nm pixels, 1000-5000 photons, background 10) at ``density``
+    emitters per um^2: ``(frames, work model, params, simulation)``, the kernels already
+    compiled or loaded by one localized frame (also used by ``phases.py``, ``two_tier.py``)."""
+    model = make_psf(psf)
     p = LocalizeParams(pixel_size=100.0)
     work = work_model_for(model, p)
     sim = simulate(

@@ -17,33 +17,15 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
-from sparseloc.config import LocalizeParams
 from sparseloc.evaluate import evaluate
-from sparseloc.pipeline import localize, work_model_for
-from sparseloc.psf import make_psf
-from sparseloc.simulate import simulate
+from sparseloc.pipeline import localize
+from speed_before_after import benchmark_frames  # this folder is on the path
 
 CASES = [("astig", 0.05, 100), ("dh", 0.05, 100), ("astig", 0.5, 20), ("dh", 1.0, 8)]
 
 
 def run_case(psf: str, density: float, n: int, seed: int = 3) -> list[dict]:
-    model = make_psf(psf)
-    p0 = LocalizeParams(pixel_size=100.0)
-    work = work_model_for(model, p0)
-    sim = simulate(
-        model,
-        scene="uniform",
-        n_frames=n,
-        shape=(128, 128),
-        pixel_size=100.0,
-        density=density,
-        photons=(1000.0, 5000.0),
-        background=10.0,
-        seed=seed,
-    )
-    frames = sim.movie.astype(np.float64) - sim.camera.offset
+    frames, work, p0, sim = benchmark_frames(n, density, seed, psf)
     rows = []
     for schedule in ("whole-frame", "two-tier"):
         p = replace(p0, frame_schedule=schedule)
