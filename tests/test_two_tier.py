@@ -158,3 +158,22 @@ def test_an_unknown_schedule_is_refused(tmp_path):
               "--frame-schedule", "fast")  # fmt: skip
     refused(res, "frame_schedule")
     assert not (tmp_path / "l.csv").exists()
+
+
+def test_a_unit_too_weak_for_the_count_selection_is_dropped(astig):
+    """The units obey the frame solver's removal test: an emitter of 150 photons (below the
+    count selection's minimum) that the detection still finds is not reported."""
+    work, _, solver = astig
+    frame = _frame(work, [[3200.0, 3200.0, 0.0, 150.0]], seed=1, background=0.2)
+    assert len(detect_candidates(frame, 0.2, solver.templates.images[:1], threshold=5.0))
+    fit = solve_two_tier(
+        frame,
+        np.full(SHAPE, 0.2),
+        solver.model,
+        solver.templates,
+        pursuit=solver.start,
+        fit_options=solver.fit_kwargs(),
+        min_snr=5.0,
+        noise_factor=1.0,
+    )
+    assert len(fit.emitters) == 0

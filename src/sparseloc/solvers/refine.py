@@ -214,6 +214,45 @@ def _error_allowance(null: FitResult, model: PSFModel, kw: dict) -> float:
     return error_allowance(noise_var, signal, e)
 
 
+def weakest_removed(
+    y: NDArray,
+    model: PSFModel,
+    best: FitResult,
+    kw: dict,
+    lr_threshold: float,
+    min_photons: float = MIN_PHOTONS,
+) -> FitResult | None:
+    """The count selection's removal test: the fit without the weakest emitter of ``best``
+    when that emitter has fewer than ``min_photons`` or its likelihood ratio is below the
+    threshold plus the model error's allowance; None when it stays (or ``best`` is empty).
+
+    ``kw``: the keywords of :func:`fit_emitters` that ``best`` was fitted with. An emitter
+    whose Wald statistic ``(N / sigma_N)^2`` (the quadratic approximation of the ratio) is at
+    or above :data:`REMOVE_SKIP_FACTOR` times the bar is kept without the refit.
+    """
+    k = len(best.emitters)
+    if k == 0:
+        return None
+    arr = best.emitters.as_array()
+    weakest = int(np.argmin(arr[:, 3]))
+    # sigma comes from the weighted Fisher matrix: (N / sigma)^2 is on the scale of the
+    # (weighted) likelihood ratio; the model error raises the bar of both
+    fit_kwargs = {key: v for key, v in kw.items() if key not in ("pixel_size", "origin")}
+    bar = lr_threshold + _error_allowance(best, model, fit_kwargs)
+    crlb = best.sigma if best.crlb is None else best.crlb
+    wald = (arr[weakest, 3] / crlb[weakest, 3]) ** 2
+    dim = arr[weakest, 3] < min_photons
+    if np.isfinite(wald) and wald >= REMOVE_SKIP_FACTOR * bar and not dim:
+        return None
+    start = Emitters.from_array(np.delete(arr, weakest, axis=0))
+    fewer = fit_emitters(y, model, start, **{**kw, "background": float(best.background[0])})
+    ratio = 2.0 * (best.log_likelihood - fewer.log_likelihood)
+    if ratio < bar or dim:
+        fewer.history.append(f"removed one: K={k - 1}, LR={ratio:.1f}")
+        return fewer
+    return None
+
+
 def fit_with_count_selection(
     window: ArrayLike,
     model: PSFModel,
@@ -258,34 +297,11 @@ def fit_with_count_selection(
         changed = False
         k = len(best.emitters)
         bg = float(best.background[0])
-        if k >= 1:
-            arr = best.emitters.as_array()
-            weakest = int(np.argmin(arr[:, 3]))
-            # sigma comes from the weighted Fisher matrix: (N / sigma)^2 is on the scale of
-            # the (weighted) likelihood ratio below; the model error raises the bar of both
-            bar = lr_threshold + _error_allowance(best, model, fit_kwargs)
-            crlb = best.sigma if best.crlb is None else best.crlb
-            wald = (arr[weakest, 3] / crlb[weakest, 3]) ** 2
-        # An emitter whose Wald statistic (the quadratic approximation of the removal's
-        # likelihood ratio) is at or above REMOVE_SKIP_FACTOR times the lr_threshold would not be
-        # removed: skip that refit.
-        if k >= 1 and (
-            not np.isfinite(wald)
-            or wald < REMOVE_SKIP_FACTOR * bar
-            or arr[weakest, 3] < min_photons
-        ):
-            fewer = fit_emitters(
-                y,
-                model,
-                Emitters.from_array(np.delete(arr, weakest, axis=0)),
-                **{**kw, "background": bg},
-            )
-            ratio = 2.0 * (best.log_likelihood - fewer.log_likelihood)
-            if ratio < bar or arr[weakest, 3] < min_photons:
-                best = fewer
-                best.history.append(f"removed one: K={k - 1}, LR={ratio:.1f}")
-                changes += 1
-                continue
+        fewer = weakest_removed(y, model, best, kw, lr_threshold, min_photons)
+        if fewer is not None:
+            best = fewer
+            changes += 1
+            continue
         cands, stat = (
             residual_candidates(y, best.model_image, model, pixel_size, origin)
             if k < max_emitters

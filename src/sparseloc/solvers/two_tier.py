@@ -45,10 +45,12 @@ from scipy.spatial import cKDTree
 from ..detect import detect_candidates, snr_at
 from ..psf.base import PSFModel
 from .emitters import Emitters
-from .frame import SKIP_TOLERANCE, FrameFit, _try_z_flips, frame_fit
+from .frame import SKIP_TOLERANCE, FrameFit, _try_z_flips, add_threshold, frame_fit
 from .frame_mp import FrameTemplates
 from .frame_windows import NeighbourLight, window_box, window_data, window_kwargs
 from .mle import fit_emitters
+from .mp import MIN_PHOTONS
+from .refine import weakest_removed
 from .variance import model_error_of, pixel_variance
 
 log = logging.getLogger(__name__)
@@ -79,6 +81,8 @@ REFIT_SWEEPS = 2
 
 def _settled(before: NDArray, after: NDArray, xy_tol: float = 2.0, z_tol: float = 5.0) -> bool:
     """Whether a refit left a unit's emitter in place (nm tolerances, as the frame solver's)."""
+    if np.shape(after) != np.shape(before):
+        return False
     d = np.abs(np.asarray(after) - np.asarray(before))
     return bool(np.all(d[:, :2] < xy_tol) and np.all(d[:, 2] < z_tol))
 
@@ -215,6 +219,7 @@ class _Tier1:
         self.fit_kwargs = kw
         self.noise = (noise_factor, model_error_of(model), rv)
         self.z_flip = z_flip
+        self.lr = add_threshold(opts.get("lr_threshold"), kw.get("qe", 1.0))
 
     def box(self, rows: NDArray) -> tuple[int, int, int, int]:
         return window_box(rows, *self.f.shape, self.px, self.pad)
@@ -247,6 +252,10 @@ class _Tier1:
         fit = fit_emitters(y, model, Emitters.from_array(start), **kw)
         if self.z_flip:
             fit = _try_z_flips(y, model, fit, kw, self.z_flip, None)
+        # the frame solver's count selection would remove an emitter this weak
+        fewer = weakest_removed(y, model, fit, kw, self.lr, MIN_PHOTONS)
+        if fewer is not None:
+            fit = fewer
         nf, e, rv = self.noise
         rv = rv[r0:r1, c0:c1] if np.ndim(rv) else rv
         bad = misfit(y, fit.model_image, fit.model_image - fit.background[0], nf, e, rv)
@@ -344,16 +353,20 @@ def solve_two_tier(
     for i in range(len(cand)):
         if units and not _significant(tier, planes, cand[i], rows_of(), e, min_snr):
             continue
-        units.append(tier.fit(starts[i][None], rows_of()))
+        unit = tier.fit(starts[i][None], rows_of())
+        if len(unit.rows):  # else the count selection's removal test dropped it
+            units.append(unit)
     near = _neighbours_in_reach(units, px, reach)
     for _ in range(REFIT_SWEEPS):
         moved = 0
         for k in near:
             before = units[k].rows
-            units[k] = tier.refit(units[k], rows_of(k))
-            moved += not _settled(before, units[k].rows)
+            if len(before):
+                units[k] = tier.refit(units[k], rows_of(k))
+                moved += not _settled(before, units[k].rows)
         if not moved:
             break
+    units = [u for u in units if len(u.rows)]
 
     # 3. promotion: units that one emitter does not explain, units closer than a crowd
     # distance to another (the frame solver fits those together), and significant light
