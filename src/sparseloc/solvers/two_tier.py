@@ -6,13 +6,17 @@ pursuit, count-selection trials and relocations buy nothing there. A frame is so
 tiers:
 
 1. **Detection**: the frame is correlated with the PSF's images at a few z planes
-   (:func:`detection_planes`); local maxima above ``min_snr`` times the camera model's noise
-   are candidates (:func:`~sparseloc.detect.detect_candidates`), strongest first.
+   (:func:`detection_planes`); local maxima above ``min_snr`` times the camera model's noise,
+   times the planes' worst match to the pursuit's templates (:func:`detection_match`, so the
+   detection misses nothing the pursuit would find), are candidates
+   (:func:`~sparseloc.detect.detect_candidates`), strongest first.
 2. **Units**: each candidate where the frame, less the light of the units fitted before it,
    still holds a detection (:func:`~sparseloc.detect.snr_at`; the others are parts of
    images already explained) is fitted as one emitter in its window with that light known,
    started at the z plane whose image explains most of its light (:func:`z_starts`), with
-   the frame solver's z flips. Units whose windows see another unit's light are then
+   the frame solver's z flips; the frame solver's removal test
+   (:func:`~sparseloc.solvers.refine.weakest_removed`) drops a unit too weak to keep. Units
+   whose windows see another unit's light are then
    refitted in turn with their neighbours' latest light (at most :data:`REFIT_SWEEPS`
    sweeps, skipped where that light changed by less than the frame solver's skip
    tolerance).
@@ -60,6 +64,7 @@ __all__ = [
     "TierCounts",
     "crowd_boxes",
     "crowd_distance",
+    "detection_match",
     "detection_planes",
     "misfit",
     "solve_two_tier",
@@ -129,6 +134,26 @@ def detection_planes(templates: FrameTemplates) -> NDArray[np.float64]:
     if keep[-1] != len(unit) - 1:
         keep.append(len(unit) - 1)
     return imgs[sorted(set(keep))]
+
+
+def detection_match(templates: FrameTemplates, planes: NDArray) -> float:
+    """The worst match of the detection planes to the pursuit's templates: the smallest, over
+    the templates (every phase and plane), of the best normalised correlation with a
+    detection plane at a whole-pixel shift of up to one pixel. A detection threshold of
+    ``min_snr`` times this finds every emitter the pursuit's ``min_snr`` would (the
+    detection's correlation falls by at most this factor)."""
+    d = planes.reshape(len(planes), -1)
+    d = d / np.linalg.norm(d, axis=1)[:, None]
+    t = (
+        templates.images
+        / np.linalg.norm(templates.images.reshape(len(templates.images), -1), axis=1)[:, None, None]
+    )
+    best = np.zeros(len(t))
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            shifted = np.roll(t, (dy, dx), axis=(1, 2)).reshape(len(t), -1)
+            best = np.maximum(best, (shifted @ d.T).max(axis=1))
+    return float(np.clip(best.min(), 0.0, 1.0))
 
 
 def z_starts(
@@ -333,8 +358,12 @@ def solve_two_tier(
     if cache is None:
         cache = {}
     if cache.get("templates") is not templates:
-        cache.update(templates=templates, planes=detection_planes(templates), spectra={})
+        planes = detection_planes(templates)
+        match = detection_match(templates, planes)
+        cache.update(templates=templates, planes=planes, match=match, spectra={})
     planes, spectra = cache["planes"], cache["spectra"]
+    # candidates as sensitive as the pursuit's; the count selection's removal test decides
+    det["threshold"] = min_snr * cache["match"]
 
     # 1. candidates, strongest first
     cand = detect_candidates(f, bg, planes, read_variance=rv, cache=spectra, **det)
@@ -351,7 +380,7 @@ def solve_two_tier(
 
     e = tier.noise[1]
     for i in range(len(cand)):
-        if units and not _significant(tier, planes, cand[i], rows_of(), e, min_snr):
+        if units and not _significant(tier, planes, cand[i], rows_of(), e, det["threshold"]):
             continue
         unit = tier.fit(starts[i][None], rows_of())
         if len(unit.rows):  # else the count selection's removal test dropped it
