@@ -403,7 +403,7 @@ def solve_two_tier(
     s_light = _light(light, rows_of(), (0, f.shape[0], 0, f.shape[1]))
     var_extra = rv + (e * s_light) ** 2 if e > 0 else rv
     resid = detect_candidates(
-        f - s_light, bg + s_light, planes, read_variance=var_extra, cache=spectra, **det
+        f, bg + s_light, planes, read_variance=var_extra, cache=spectra, **det
     )
     close = _close_units(units, px, crowd)
     near_resid = _near(units, resid, px, crowd)
