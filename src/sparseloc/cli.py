@@ -483,7 +483,7 @@ def localize(
         typer.Option(
             help="How the frame solver spends its work: whole-frame (default) or two-tier "
             "(experimental: emitters alone fitted singly, the full solver only on crowds; "
-            "1.5-1.9x faster on sparse movies, slower on dense ones).",
+            "1.3-2x faster on sparse movies).",
         ),
     ] = None,
     relocate: Annotated[

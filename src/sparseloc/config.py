@@ -116,9 +116,9 @@ class LocalizeParams:
         the fits over every emitter of the frame. ``two-tier`` (experimental): emitters whose
         images overlap no other's are fitted alone, and the pursuit and the fits with count
         selection run only where the light crowds or one emitter does not explain it
-        (:mod:`sparseloc.solvers.two_tier`): 1.5-1.9x faster at 0.05 emitters/um^2 and
-        within 0.5 points of Jaccard there, 0.75x on dense frames
-        (``docs/benchmarks/two_tier.txt``).
+        (:mod:`sparseloc.solvers.two_tier`): 1.3-2x faster at 0.05 emitters/um^2 with the
+        same Jaccard on simulations; on storm-analysis's 1 /um^2 double-helix frame 1.8
+        points lower (``docs/benchmarks/two_tier.txt``).
     """
 
     pixel_size: float
