@@ -39,10 +39,10 @@ def _frame(model, truth, seed=0, background=10.0):
     return np.random.default_rng(seed).poisson(mu).astype(float)
 
 
-def _solve(solver, frame, counts=None):
+def _solve(solver, frame, counts=None, background=10.0):
     return solve_two_tier(
         frame,
-        np.full(SHAPE, 10.0),
+        np.full(SHAPE, background),
         solver.model,
         solver.templates,
         pursuit=solver.start,
@@ -166,14 +166,5 @@ def test_a_unit_too_weak_for_the_count_selection_is_dropped(astig):
     work, _, solver = astig
     frame = _frame(work, [[3200.0, 3200.0, 0.0, 150.0]], seed=1, background=0.2)
     assert len(detect_candidates(frame, 0.2, solver.templates.images[:1], threshold=5.0))
-    fit = solve_two_tier(
-        frame,
-        np.full(SHAPE, 0.2),
-        solver.model,
-        solver.templates,
-        pursuit=solver.start,
-        fit_options=solver.fit_kwargs(),
-        min_snr=5.0,
-        noise_factor=1.0,
-    )
+    fit = _solve(solver, frame, background=0.2)
     assert len(fit.emitters) == 0
