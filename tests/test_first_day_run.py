@@ -71,6 +71,25 @@ def test_the_check_limit_is_a_windows_chi_square_quantile():
     assert {"median_gof", "verdict", "upper", "lower", "dof", "fits"} <= set(d)
 
 
+def test_a_failed_check_on_crowded_windows_names_the_crowding_first():
+    """Crowded frames raise the goodness of fit with a correct model (unresolved light): the
+    message says so before it blames the PSF or the camera; isolated fits do not get it."""
+    from sparseloc.model_check import ModelCheck, check_fit
+
+    rng = np.random.default_rng(1)
+    dof = 400
+    gof = 1.3 * rng.chisquare(dof, 300) / dof
+    crowded = check_fit(gof, np.full(gof.size, dof), emitters=np.full(gof.size, 7))
+    assert crowded.verdict == "misfit" and crowded.emitters == 7
+    assert crowded.message.index("crowded") < crowded.message.index("the wrong PSF")
+    assert "a median of 7 emitters per fitted window" in crowded.message
+    alone = check_fit(gof, np.full(gof.size, dof), emitters=np.ones(gof.size))
+    assert alone.verdict == "misfit" and "crowded" not in alone.message
+    # metadata of a run before the field existed still reads
+    old = {k: v for k, v in crowded.to_dict().items() if k != "emitters"}
+    assert ModelCheck(**old).summary().startswith("model check: misfit")
+
+
 def test_a_run_with_the_right_psf_passes_the_check(caplog):
     frames = _frames("dh-analytic")
     with caplog.at_level(logging.WARNING, logger="sparseloc"):

@@ -531,10 +531,18 @@ def localize(
     ] = None,
     run_dir: Annotated[
         Path | None,
-        typer.Option(help="Chunked, resumable run: parts + manifest here (default OUT.parts)."),
+        typer.Option(
+            help="Chunked, resumable run: parts + manifest here (default OUT.parts, removed "
+            "once OUT is written when the run was chunked only for its length)."
+        ),
     ] = None,
     chunk_frames: Annotated[
-        int | None, typer.Option(help="Frames per chunk of a chunked run (default 500).", min=1)
+        int | None,
+        typer.Option(
+            help="Frames per chunk of a chunked run (default 500; a run chunked for its "
+            "length: equal chunks, 4 per worker, or those of the run it continues).",
+            min=1,
+        ),
     ] = None,
     scheduler: Annotated[
         str | None,
@@ -556,11 +564,14 @@ def localize(
 ) -> None:
     """Localize a movie and write the localization table.
 
-    With --run-dir, --chunk-frames or --scheduler the movie is cut into chunks of frames run
-    as tasks (in this process, in threads, in --workers local processes, or on the Dask
-    scheduler given); each finished chunk is saved in the run folder, so the same
-    command started again after an interruption runs only the missing chunks."""
+    With --run-dir, --chunk-frames or --scheduler, and on every run of more than 500 frames,
+    the movie is cut into chunks of frames run as tasks (in this process, in threads, in
+    --workers local processes, or on the Dask scheduler given); each finished chunk is saved
+    in the run folder, so the same command started again after an interruption runs only the
+    missing chunks. A run chunked only for its length removes its folder once OUT is
+    written."""
     from .config import LOCALIZE_DEFAULTS, build_job
+    from .distributed import resumable_by_default
     from .io.movie import Movie
 
     given = {
@@ -615,8 +626,9 @@ def localize(
             companions=_table_companions(output, opts["format"]),
         )
         job = _run(build_job, opts, mov)
-        if any(opts[k] is not None for k in ("run_dir", "chunk_frames", "scheduler")):
-            _localize_chunked(opts, out, mov, job, default_psf)
+        asked = any(opts[k] is not None for k in ("run_dir", "chunk_frames", "scheduler"))
+        if asked or resumable_by_default(job.stop - job.start):
+            _localize_chunked(opts, out, mov, job, default_psf, auto=not asked)
             return
         workers = opts["workers"] or _auto_workers(job.stop - job.start)
         res = _localize_in_processes(mov, job, workers)
@@ -657,7 +669,7 @@ def _run_notes(meta: dict, default_psf: str | None) -> None:
 def _localize_in_processes(mov, job, workers: int):
     """The unchunked path of ``localize``: one process or a pool, with a progress bar (or
     progress lines in a log file). Ctrl-C ends it with one sentence and exit code 130."""
-    from .distributed import CameraFrames
+    from .distributed import CHUNK_FRAMES, CameraFrames
     from .pipeline import localize as run_localize
     from .progress import Progress
 
@@ -677,21 +689,25 @@ def _localize_in_processes(mov, job, workers: int):
         except KeyboardInterrupt:
             typer.echo(
                 f"interrupted (Ctrl-C) after {bar.done} of {bar.total} frames: no output was "
-                "written, as the table is written when every frame is done (a run with "
-                "--run-dir or --chunk-frames keeps its finished chunks for a rerun)",
+                "written, as the table is written when every frame is done (runs of more "
+                f"than {CHUNK_FRAMES} frames, or with --run-dir, keep finished chunks for a "
+                "rerun)",
                 err=True,
             )
             raise typer.Exit(code=130) from None
 
 
-def _localize_chunked(opts, out, mov, job, default_psf: bool = False) -> None:
-    """The chunked path of ``localize``: run, save parts, join, or report what is missing."""
-    from .distributed import CHUNK_FRAMES, CameraFrames, localize_chunked
+def _localize_chunked(opts, out, mov, job, default_psf: bool = False, auto: bool = False) -> None:
+    """The chunked path of ``localize``: run, save parts, join, or report what is missing.
+
+    ``auto``: chunked because the movie is long, not because the user asked; the run folder
+    beside the output is then removed once the table is written."""
+    from .distributed import CameraFrames, localize_chunked
     from .progress import Progress
 
-    run_dir = Path(opts["run_dir"]) if opts["run_dir"] else out.with_name(out.stem + ".parts")
+    run_dir = Path(opts["run_dir"]) if opts["run_dir"] else out.with_name(out.name + ".parts")
     sched = opts["scheduler"]
-    workers = int(opts["workers"] or 1)
+    workers = int(opts["workers"] or (_auto_workers(job.stop - job.start) if auto else 1))
     if sched is None:
         # Local worker processes, not a local Dask cluster: that one would take code from any
         # local client, unauthenticated. A Dask cluster runs only at an address given.
@@ -707,9 +723,7 @@ def _localize_chunked(opts, out, mov, job, default_psf: bool = False) -> None:
                 run_dir,
                 start=job.start,
                 stop=job.stop,
-                chunk_frames=(
-                    CHUNK_FRAMES if opts["chunk_frames"] is None else int(opts["chunk_frames"])
-                ),
+                chunk_frames=None if opts["chunk_frames"] is None else int(opts["chunk_frames"]),
                 scheduler=sched,
                 threads=max(workers, 2),
                 workers=workers,
@@ -734,8 +748,20 @@ def _localize_chunked(opts, out, mov, job, default_psf: bool = False) -> None:
         )
         raise typer.Exit(code=1)
     _write_localized(res, out, opts, mov, job)
+    if auto:
+        _remove_run_dir(run_dir)
     _run_notes(res.metadata, opts["psf"] if default_psf else None)
     typer.echo(f"wrote {out}")
+
+
+def _remove_run_dir(run_dir: Path) -> None:
+    """Remove an automatic run folder once its table is written (a failure only warns)."""
+    import shutil
+
+    try:
+        shutil.rmtree(run_dir)
+    except OSError as exc:
+        log.warning("could not remove the run folder %s: %s", run_dir, exc)
 
 
 def _write_localized(res, out: Path, opts: dict, mov, job) -> None:

@@ -35,6 +35,7 @@ __all__ = [
     "build_job",
     "check_options",
     "frame_range",
+    "noise_model",
     "read_variance_photons",
     "window_for",
 ]
@@ -91,8 +92,9 @@ class LocalizeParams:
     noise : {"poisson", "emccd", "scmos"}
         Likelihood of the maximum-likelihood stage.
     read_variance : float
-        Read-noise variance per pixel in photons^2 (``noise="scmos"``): enters the
-        detection threshold and the likelihood (Huang et al. 2013).
+        Read-noise variance per pixel in photons^2 (``noise="scmos"``, or an EMCCD's read
+        noise behind its EM gain): enters the detection threshold and the likelihood (Huang
+        et al. 2013).
     qe : float
         The camera's quantum efficiency in (0, 1]: frames converted to photons hold
         photoelectrons divided by it, so their shot noise is ``mu / qe``. It weights the
@@ -171,9 +173,10 @@ class LocalizeParams:
         if not (np.isfinite(self.read_variance) and self.read_variance >= 0):
             raise ValueError(f"read_variance must be >= 0 photons^2, got {self.read_variance}")
         object.__setattr__(self, "qe", check_qe(self.qe))  # frozen: as a float
-        if self.read_variance > 0 and self.noise != "scmos":
+        if self.read_variance > 0 and self.noise == "poisson":
             raise ValueError(
-                f"read_variance applies to noise='scmos', not {self.noise!r} (it would be ignored)"
+                "read_variance applies to noise='scmos' or 'emccd', not 'poisson' (a "
+                "photon-counting camera has no read noise)"
             )
         check_engine(self.engine)
         if not (np.isfinite(self.min_snr) and self.min_snr > 0):
@@ -219,11 +222,22 @@ def window_for(
     return int(window), int(margin)
 
 
+def noise_model(camera: Camera) -> str:
+    """The likelihood of a camera's data: ``"emccd"`` (shot noise doubled) behind an EM gain
+    above 1; ``"scmos"`` for an sCMOS camera, or an EMCCD run without EM gain but with read
+    noise; else ``"poisson"`` (as :func:`sparseloc.camera.noise_variance` describes them)."""
+    if camera.kind == "emccd":
+        if camera.em_gain > 1.0:
+            return "emccd"
+        return "scmos" if camera.read_noise > 0 else "poisson"
+    return "scmos" if camera.kind == "scmos" else "poisson"
+
+
 def read_variance_photons(camera: Camera, shape: tuple[int, int]) -> NDArray[np.float64]:
     """The camera's read-noise variance in photons^2 for the likelihood and the detection: 0
-    but for sCMOS cameras; a scalar array unless the camera has maps that vary over
+    for an ideal camera; a scalar array unless an sCMOS camera has maps that vary over
     ``shape`` (rows, cols)."""
-    if camera.kind != "scmos":
+    if camera.kind == "ideal":
         return np.asarray(0.0)
     var = np.asarray(noise_variance(np.zeros(shape), camera))
     if var.ndim == 2 and np.ptp(var) == 0:
@@ -377,7 +391,7 @@ def build_job(options: dict[str, Any], movie: Any) -> LocalizeJob:
         z_range=z_range,
         min_snr=opts["min_snr"],
         background=opts["background"],
-        noise={"emccd": "emccd", "scmos": "scmos"}.get(opts["camera"], "poisson"),
+        noise=noise_model(cam),
         read_variance=float(read_var) if read_var.ndim == 0 else 0.0,
         engine=opts["engine"],
         qe=cam.qe,

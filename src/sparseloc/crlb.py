@@ -75,9 +75,12 @@ def _variance(
 ) -> NDArray[np.float64]:
     """Effective per-pixel variance ``(..., rows, cols)`` for ``noise``."""
     _check_noise(noise)
-    if noise == "scmos":
-        if read_variance is None:
-            raise ValueError("noise='scmos' needs read_variance (photons^2, scalar or per pixel)")
+    shot = 2.0 * mu if noise == "emccd" else mu
+    if noise == "scmos" and read_variance is None:
+        raise ValueError("noise='scmos' needs read_variance (photons^2, scalar or per pixel)")
+    if read_variance is not None:
+        if noise == "poisson":
+            raise ValueError("read_variance is only used with noise='scmos' or 'emccd'")
         rv = np.asarray(read_variance, dtype=np.float64)
         if rv.ndim not in (0, 2) or (rv.ndim == 2 and rv.shape != mu.shape[-2:]):
             raise ValueError(
@@ -86,11 +89,9 @@ def _variance(
             )
         if not np.all(np.isfinite(rv)) or np.any(rv < 0):
             raise ValueError("read_variance must be finite and >= 0 photons^2")
-        var = mu + rv
+        var = shot + rv
     else:
-        if read_variance is not None:
-            raise ValueError(f"read_variance is only used with noise='scmos', not {noise!r}")
-        var = 2.0 * mu if noise == "emccd" else mu
+        var = shot
     if not np.all(var > 0):
         raise ValueError(
             "the expected signal (model image + background, + read variance for sCMOS) must be "

@@ -66,10 +66,12 @@ __all__ = [
     "CHUNK_FRAMES",
     "CameraFrames",
     "RunResult",
+    "auto_chunk_frames",
     "join_parts",
     "local_cluster",
     "localize_chunked",
     "plan_chunks",
+    "resumable_by_default",
 ]
 
 logger = logging.getLogger(__name__)
@@ -78,6 +80,11 @@ logger = logging.getLogger(__name__)
 #: reading the background context) is a few per cent of the work, short enough that a lost
 #: chunk costs little and a 10,000-frame movie still keeps 2-8 workers busy.
 CHUNK_FRAMES = 500
+#: Chunks per worker process in a run cut automatically: the workers finish together and the
+#: progress bar moves, while each chunk's set-up stays a small part of its work.
+AUTO_CHUNKS_PER_WORKER = 4
+#: The smallest chunk of an automatic cut (frames).
+MIN_AUTO_CHUNK = 50
 MANIFEST = "manifest.json"
 _PART = "part-{:09d}-{:09d}.parquet"
 #: Blocks of a movie hashed to identify its content (evenly spaced, each file's first and last
@@ -213,6 +220,31 @@ def plan_chunks(start: int, stop: int, chunk_frames: int) -> list[tuple[int, int
     if not 0 <= start < stop:
         raise ValueError(f"frame range {start}:{stop} is empty")
     return [(a, min(a + chunk_frames, stop)) for a in range(start, stop, chunk_frames)]
+
+
+def resumable_by_default(n_frames: int) -> bool:
+    """Whether ``localize`` runs ``n_frames`` frames chunked, in a run folder beside its output,
+    without being asked: a run longer than one chunk, whose loss to an interruption costs."""
+    return n_frames > CHUNK_FRAMES
+
+
+def auto_chunk_frames(n_frames: int, workers: int) -> int:
+    """Frames per chunk when the user chose none: equal chunks of at most
+    :data:`CHUNK_FRAMES` (and at least :data:`MIN_AUTO_CHUNK`) frames, at least
+    :data:`AUTO_CHUNKS_PER_WORKER` per worker and a multiple of ``workers`` in number."""
+    workers = max(1, int(workers))
+    k = max(-(-n_frames // CHUNK_FRAMES), AUTO_CHUNKS_PER_WORKER * workers)
+    k = min(-(-k // workers) * workers, max(1, n_frames // MIN_AUTO_CHUNK))
+    return max(1, -(-n_frames // max(k, 1)))
+
+
+def _chunk_frames_of_run(run_dir: Path) -> int | None:
+    """The chunk size of the run recorded in ``run_dir``'s manifest, if it holds one."""
+    try:
+        run = json.loads((run_dir / MANIFEST).read_text()).get("run", {})
+        return int(run["chunk_frames"])
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        return None
 
 
 def local_cluster(workers: int, **kwargs: Any):
@@ -380,7 +412,7 @@ def localize_chunked(
     *,
     start: int = 0,
     stop: int | None = None,
-    chunk_frames: int = CHUNK_FRAMES,
+    chunk_frames: int | None = CHUNK_FRAMES,
     scheduler: Any = "sync",
     threads: int = 2,
     workers: int = 2,
@@ -405,8 +437,9 @@ def localize_chunked(
         Folder of the run's parts and manifest (created; its parent must exist).
     start, stop : int
         Frame range (stop exclusive; default the whole movie).
-    chunk_frames : int
-        Frames per task.
+    chunk_frames : int or None
+        Frames per task; ``None``: those of the run already in ``run_dir`` (so a rerun with
+        other ``workers`` continues it), else :func:`auto_chunk_frames`.
     scheduler : "sync", "threads", "processes", distributed.Client or str
         Where the chunks run; a string other than "sync"/"threads"/"processes" is a
         scheduler address.
@@ -436,8 +469,11 @@ def localize_chunked(
     source = frames if isinstance(frames, CameraFrames) else CameraFrames(frames)
     n = len(source)
     stop = n if stop is None else min(stop, n)
-    chunks = plan_chunks(start, stop, chunk_frames)
     run_dir = Path(run_dir)
+    if chunk_frames is None:
+        pool = workers if scheduler == "processes" else threads if scheduler == "threads" else 1
+        chunk_frames = _chunk_frames_of_run(run_dir) or auto_chunk_frames(stop - start, pool)
+    chunks = plan_chunks(start, stop, chunk_frames)
     key, desc = _run_key(source, model, params, (start, stop), chunk_frames, read_variance)
     _prepare_run_dir(run_dir, key, desc, chunks, overwrite)
     done_before, todo = _done_and_todo(run_dir, chunks, chunk_frames, progress)

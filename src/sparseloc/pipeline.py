@@ -135,9 +135,9 @@ class _Solver:
 
 def _noise_kwargs(p: LocalizeParams, read_variance: Any = None) -> dict:
     """The noise keywords of the maximum-likelihood stage beside ``noise``: ``qe`` and, for
-    sCMOS, ``read_variance`` (a map) or else ``p.read_variance``."""
+    sCMOS (or an EMCCD's read noise), ``read_variance`` (a map) or else ``p.read_variance``."""
     kw: dict[str, Any] = {"qe": p.qe}
-    if p.noise == "scmos":
+    if p.noise == "scmos" or (p.noise == "emccd" and p.read_variance > 0):
         kw["read_variance"] = p.read_variance if read_variance is None else read_variance
     return kw
 
@@ -404,7 +404,7 @@ def check_model(
     else:
         pixels = np.full(len(wins), float(params.window) ** 2)
     dof = pixels - (4 * wins["k"].to_numpy() + 1)
-    res = check_fit(wins["gof"], dof, params.qe * wins["background"].to_numpy())
+    res = check_fit(wins["gof"], dof, params.qe * wins["background"].to_numpy(), wins["k"])
     if warn and not res.ok:
         log.warning("%s", res.message)
     return res

@@ -42,6 +42,7 @@ from .frame_windows import (
     lost_flip_near,
     near_window,
     window_box,
+    window_data,
 )
 from .mle import LikelihoodProblem, check_qe, fit_emitters
 from .mp import MIN_PHOTONS
@@ -469,10 +470,7 @@ class _Sweep:
         r0, r1, c0, c1 = box
         model, o = self.model, self.o
         origin = (c0 * self.px, r0 * self.px)
-        y = self.f[r0:r1, c0:c1]
-        if self.fit_kwargs.get("noise", "poisson") != "scmos":
-            # Read noise puts some pixels below zero; the Poisson fit needs counts >= 0.
-            y = np.maximum(y, 0.0)
+        y = window_data(self.f, box, {"read_variance": self.rv})
         kw = dict(
             pixel_size=self.px,
             origin=origin,

@@ -194,11 +194,12 @@ class NeighbourLight:
 
 
 def window_data(f: NDArray, box: tuple[int, int, int, int], fit_kwargs: dict) -> NDArray:
-    """A window of the frame, clipped at zero unless the likelihood is sCMOS's (read noise
-    puts some pixels below zero; the Poisson fit needs counts >= 0)."""
+    """A window of the frame, clipped at zero unless the likelihood has read noise
+    (``fit_kwargs["read_variance"]``: read noise puts some pixels below zero; the Poisson fit
+    without it needs counts >= 0)."""
     r0, r1, c0, c1 = box
     y = f[r0:r1, c0:c1]
-    return y if fit_kwargs.get("noise", "poisson") == "scmos" else np.maximum(y, 0.0)
+    return y if fit_kwargs.get("read_variance") is not None else np.maximum(y, 0.0)
 
 
 def window_kwargs(f, box, px, offset, background, fit_kwargs) -> dict:

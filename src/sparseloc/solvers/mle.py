@@ -13,6 +13,12 @@ Likelihoods (``noise``):
 - ``"scmos"``: per-pixel read noise (Huang et al. 2013): ``y + v ~ Poisson(mu + v)`` with
   ``v`` the read-noise variance in photons^2 (a scalar or a map).
 
+Read noise of any camera (``read_variance``, photons^2: required for sCMOS, optional for
+EMCCD) enters the same way, on the likelihood's scale: with the weight ``w`` below, the data
+are modelled as ``w (y + v / w') ~ Poisson(w (mu + v / w'))`` with ``v / w' = w v``, which gives
+``y`` the variance ``mu / w + v``: ``F mu / qe`` of shot noise (``F`` = 2 behind EM gain, else 1)
+plus the read variance.
+
 Quantum efficiency (``qe``): a camera counts photoelectrons, ``e ~ Poisson(qe mu)``, and the
 frames hold ``e / qe`` photons, whose variance is ``mu / qe``, not ``mu``. The likelihood of
 the photoelectrons is ``qe`` times the Poisson objective in photons (times 1/2 for EMCCD), and
@@ -143,6 +149,15 @@ def likelihood_weight(noise: str, qe: float = 1.0) -> float:
     return (0.5 if noise == "emccd" else 1.0) * check_qe(qe)
 
 
+def check_read_variance(noise: str, read_variance: object) -> None:
+    """Refuse a read variance the noise model cannot carry: sCMOS needs one, EMCCD may have
+    one (the read noise behind the EM gain), photon counting has none."""
+    if noise == "scmos" and read_variance is None:
+        raise ValueError("noise='scmos' needs read_variance (photons^2, scalar or map)")
+    if noise == "poisson" and read_variance is not None:
+        raise ValueError("read_variance is only used with noise='scmos' or 'emccd'")
+
+
 def background_basis(shape: tuple[int, int], plane: bool) -> list[NDArray[np.float64]]:
     """The background's basis images over a window (see the module notes): a constant, and
     with ``plane`` the two tilts ``u`` and ``v``."""
@@ -186,19 +201,16 @@ class LikelihoodProblem:
         self.origin = (float(origin[0]), float(origin[1]))
         self.shape = y.shape
         self.weight = likelihood_weight(noise, qe)
-        if noise == "scmos":
-            if read_variance is None:
-                raise ValueError("noise='scmos' needs read_variance (photons^2, scalar or map)")
-            # on the photoelectron scale of the likelihood: qe * v (see the module notes)
-            self.v = check_qe(qe) * np.broadcast_to(
+        check_read_variance(noise, read_variance)
+        if read_variance is None:
+            self.v = np.zeros(y.shape)
+        else:
+            # on the likelihood's scale, w * v (see the module notes)
+            self.v = self.weight * np.broadcast_to(
                 np.asarray(read_variance, dtype=np.float64), y.shape
             )
             if np.any(self.v < 0):
                 raise ValueError("read_variance must be >= 0")
-        else:
-            if read_variance is not None:
-                raise ValueError("read_variance is only used with noise='scmos'")
-            self.v = np.zeros(y.shape)
         self.yv = y + self.v
         # Known light that is not fitted (neighbours' emitters fitted elsewhere), photons/pixel.
         self.offset = 0.0 if offset is None else np.broadcast_to(np.asarray(offset, float), y.shape)
@@ -329,7 +341,7 @@ def fit_emitters(
     y = check_window(window)
     if y.ndim != 2:
         raise ValueError("fit_emitters takes one window (rows, cols)")
-    if np.any(y < -1e-9) and noise != "scmos":
+    if np.any(y < -1e-9) and read_variance is None:
         raise ValueError("the window has negative photon counts; convert ADU to photons first")
     prob = LikelihoodProblem(
         y, model, pixel_size, origin, noise, read_variance, plane, xy_margin, offset, qe

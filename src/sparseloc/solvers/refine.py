@@ -204,12 +204,10 @@ def _error_allowance(null: FitResult, model: PSFModel, kw: dict) -> float:
     e = model_error_of(model)
     if e <= 0:
         return 0.0
-    qe = check_qe(kw.get("qe", 1.0))
     rv = kw.get("read_variance")
     mu = null.model_image
-    noise_var = (mu + qe * (0.0 if rv is None else np.asarray(rv, float))) / likelihood_weight(
-        kw.get("noise", "poisson"), qe
-    )
+    w = likelihood_weight(kw.get("noise", "poisson"), check_qe(kw.get("qe", 1.0)))
+    noise_var = mu / w + (0.0 if rv is None else np.asarray(rv, float))
     signal = mu - background_image(null.background, mu.shape)
     return error_allowance(noise_var, signal, e)
 
