@@ -78,7 +78,9 @@ def test_the_manifest_points_at_the_reader():
     spec = yaml.safe_load(manifest.read_text())
     assert spec["name"] == "sparseloc"
     commands = {c["id"]: c["python_name"] for c in spec["contributions"]["commands"]}
-    [reader] = spec["contributions"]["readers"]
+    # the table reader (the plugin's other readers: movies and calibrations)
+    readers = spec["contributions"]["readers"]
+    [reader] = [r for r in readers if r["command"] == "sparseloc.get_reader"]
     module, func = commands[reader["command"]].split(":")
     assert getattr(importlib.import_module(module), func) is napari_get_reader
     assert "*.parquet" in reader["filename_patterns"]

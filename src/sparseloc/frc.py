@@ -35,7 +35,7 @@ from scipy import ndimage as ndi
 
 from .render_grid import axis_grid, check_size, check_table, finite_rows, positive_nm
 
-__all__ = ["FRC_THRESHOLD", "FRCResult", "frc", "plot_frc"]
+__all__ = ["FRC_THRESHOLD", "FRCResult", "frc", "frc_report", "plot_frc"]
 
 # Messages keep the logger of sparseloc.render, where the FRC has always logged.
 log = logging.getLogger("sparseloc.render")
@@ -130,7 +130,9 @@ def frc(
     curve = ndi.gaussian_filter1d(raw, width, mode="nearest") if width > 0 else raw.copy()
     res, warning = _resolution(curve, freq, px)
     if warning:
-        log.warning("FRC: %s", warning)
+        # Logged at INFO: the result carries the warning, and render, the report and the FRC
+        # plot state it; a log warning besides printed it twice on a correct run's terminal.
+        log.info("FRC: %s", warning)
     return FRCResult(
         frequency=freq,
         curve=curve,
@@ -143,6 +145,32 @@ def frc(
         split=split,
         extra={"extent_nm": (x0, x0 + nx * px, y0, y0 + ny * px), "smooth_rings": width},
     )
+
+
+def frc_report(locs: pd.DataFrame) -> tuple[FRCResult | None, str]:
+    """The FRC of a table as ``render`` reports it, and its one-line message.
+
+    Bins of 5 nm, coarser on wide fields so that the half images stay under about 8000 px a
+    side. A table the FRC cannot use gives ``None`` and a message saying why.
+
+    Parameters
+    ----------
+    locs : DataFrame
+        Localizations (``x_nm``, ``y_nm``, ``frame``), e.g. the rows that render draws.
+
+    Returns
+    -------
+    (FRCResult or None, str)
+        The result and e.g. ``"FRC resolution: 33.9 nm"``.
+    """
+    span = float(max(np.ptp(locs["x_nm"]), np.ptp(locs["y_nm"]), 1.0))
+    try:
+        res = frc(locs, px_nm=max(5.0, span / 8000.0))
+    except ValueError as exc:
+        return None, f"FRC not computed: {exc}"
+    if np.isfinite(res.resolution_nm):
+        return res, f"FRC resolution: {res.resolution_nm:.1f} nm"
+    return res, f"FRC resolution: not determined ({res.warning})"
 
 
 def _halves(

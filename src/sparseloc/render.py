@@ -43,7 +43,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from .frc import FRC_THRESHOLD, FRCResult, frc, plot_frc
+from .frc import FRC_THRESHOLD, FRCResult, frc, frc_report, plot_frc
 from .render_accumulate import SIGMA_BIN_RATIO
 from .render_accumulate import accumulate as _accumulate
 from .render_grid import AXIAL_DEFAULT_FACTOR as AXIAL_DEFAULT_FACTOR  # public name, kept here
@@ -66,12 +66,15 @@ __all__ = [
     "SIGMA_BIN_RATIO",
     "TRUNCATE",
     "FRCResult",
+    "Projections",
     "Rendered",
     "frc",
+    "frc_report",
     "intensity_scale",
     "plot_frc",
     "plot_projections",
     "render_gaussian",
+    "render_projections",
     "render_volume",
     "to_rgb",
     "write_volume_tiff",
@@ -529,6 +532,72 @@ def plot_projections(
     """
     from .plotting import save_figure
 
+    tables, px, ext, z_range, zpad, is3d = _projection_frame(locs, truth, px_nm, z_range)
+    panels = [_render_panel(label, t, px, ext, z_range, zpad, is3d) for label, t in tables]
+    fig = _projections_figure(panels, ext, px, z_range, is3d, title)
+    return save_figure(fig, path, dpi=150)
+
+
+@dataclass(frozen=True)
+class Projections:
+    """The images of :func:`plot_projections` for one table.
+
+    Attributes
+    ----------
+    xy : Rendered
+        The xy render (density and mean depth).
+    xz, yz : Rendered or None
+        The side projections (None for a table without z).
+    z_range : (float, float) or None
+        Depths (nm) at the ends of the colour map.
+    px_nm : float
+        Render pixel (nm).
+    """
+
+    xy: Rendered
+    xz: Rendered | None
+    yz: Rendered | None
+    z_range: tuple[float, float] | None
+    px_nm: float
+
+
+def render_projections(
+    locs: pd.DataFrame,
+    *,
+    px_nm: float | None = None,
+    z_range: tuple[float, float] | None = None,
+) -> Projections:
+    """The xy, xz and yz renders that :func:`plot_projections` draws, as arrays.
+
+    Parameters
+    ----------
+    locs : DataFrame
+        Localization table.
+    px_nm : float, optional
+        Render pixel (nm); default as :func:`plot_projections` chooses it.
+    z_range : (float, float), optional
+        Colour scale and side-panel depth range (nm); default the 0.5..99.5th percentile of z.
+
+    Returns
+    -------
+    Projections
+        Colour them with :func:`to_rgb` and ``z_range``.
+    """
+    _, px, ext, z_range, zpad, is3d = _projection_frame(locs, None, px_nm, z_range)
+    _, xy, sides = _render_panel("localizations", locs, px, ext, z_range, zpad, is3d)
+    xz, yz = sides if sides is not None else (None, None)
+    return Projections(xy, xz, yz, z_range, px)
+
+
+def _projection_frame(
+    locs: pd.DataFrame,
+    truth: pd.DataFrame | None,
+    px_nm: float | None,
+    z_range: tuple[float, float] | None,
+) -> tuple[list, float, tuple[float, float, float, float], Any, float, bool]:
+    """What every panel of the projections shares: the labelled tables, the render pixel
+    (nm), the xy extent, the depth range, the side panels' depth padding (nm) and whether
+    the tables are 3D."""
     check_table(locs, ("x", "y"))
     tables = [("localizations", locs)]
     if truth is not None:
@@ -552,10 +621,7 @@ def plot_projections(
         max(e[3] for e in exts),
     )
     z_range = _projection_z_range(locs, z_range, is3d)
-    zpad = 3.0 * medians["z"]
-    panels = [_render_panel(label, t, px, ext, z_range, zpad, is3d) for label, t in tables]
-    fig = _projections_figure(panels, ext, px, z_range, is3d, title)
-    return save_figure(fig, path, dpi=150)
+    return tables, px, ext, z_range, 3.0 * medians["z"], is3d
 
 
 def _median_widths(locs: pd.DataFrame) -> dict[str, float]:

@@ -32,7 +32,13 @@ import numpy as np
 
 from .atomic import atomic_path
 
-__all__ = ["FORMAT", "load_calibration", "read_calibration_info", "save_calibration"]
+__all__ = [
+    "FORMAT",
+    "load_calibration",
+    "read_calibration_beads",
+    "read_calibration_info",
+    "save_calibration",
+]
 
 FORMAT = "sparseloc-psf"
 FORMAT_VERSION = 1
@@ -170,6 +176,25 @@ def read_calibration_info(path: str | Path) -> dict[str, Any]:
         if "beads" in f:
             info["n_beads_used"] = int(np.sum(f["beads/used"][()])) if "used" in f["beads"] else 0
     return info
+
+
+def read_calibration_beads(path: str | Path):
+    """The bead table stored in a calibration file (one row per bead found: ``x_nm``,
+    ``y_nm`` in the bead stack's native coordinates, ``used``, ``reason``, ``photons``, ...;
+    see :data:`sparseloc.calibrate.BEAD_COLUMNS`); empty when the file holds none."""
+    import pandas as pd
+
+    with _open(path) as f:
+        if "beads" not in f:
+            return pd.DataFrame({"x_nm": [], "y_nm": [], "used": []})
+        g = f["beads"]
+        cols = {}
+        for k in g:
+            v = g[k][()]
+            if v.dtype == object:  # h5py returns variable-length strings as bytes
+                v = [x.decode() if isinstance(x, bytes) else x for x in v]
+            cols[k] = v
+        return pd.DataFrame(cols)
 
 
 def load_calibration(path: str | Path, model: str | None = None):

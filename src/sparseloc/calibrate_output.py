@@ -1,0 +1,103 @@
+"""What ``calibrate`` reports and writes: the summary lines of a calibration and its file
+with the diagnostic figure. Shared by the command line and the napari widget."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+__all__ = ["calibration_path", "calibration_summary", "write_calibration"]
+
+
+def calibration_path(path: str | Path) -> Path:
+    """``path`` as a calibration file name: ValueError in one sentence unless it ends in .h5
+    or .hdf5."""
+    out = Path(path)
+    if out.suffix.lower() not in (".h5", ".hdf5"):
+        raise ValueError(f"the calibration file must end in .h5 or .hdf5, got {out.name!r}")
+    return out
+
+
+def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
+    """The key numbers of a calibration, one line each: beads used, planes, ROI, hash (and
+    the time taken), the model error, the model's origin, the known bead positions' offset,
+    the rejected beads by reason and the pupil fit.
+
+    Parameters
+    ----------
+    cal : Calibration
+        From :func:`sparseloc.calibrate.calibrate_beads` or ``calibrate_file``.
+    seconds : float, optional
+        Time the calibration took (s), added to the first line.
+
+    Returns
+    -------
+    list of str
+    """
+    nz, nr, nc = cal.average.shape
+    took = "" if seconds is None else f"; {seconds:.1f} s"
+    lines = [
+        f"{cal.n_used} of {len(cal.beads)} beads used; {nz} planes z "
+        f"{cal.z[0]:.0f}..{cal.z[-1]:.0f} nm, ROI {nr} x {nc} px; hash {cal.content_hash}{took}",
+        f"  model error: the beads depart from the model by {100 * cal.params['model_error']:.1f} %"
+        " of their signal per pixel (rms beyond noise; the count selection allows for it)",
+    ]
+    wander = cal.params["centroid_over_z_nm"]
+    lines.append(
+        f"  model origin: {cal.params['lateral_origin']}; each plane's light centroid lies "
+        f"{wander['x'][0]:+.0f}..{wander['x'][1]:+.0f} nm in x and "
+        f"{wander['y'][0]:+.0f}..{wander['y'][1]:+.0f} nm in y from it"
+    )
+    if cal.params.get("n_beads_known"):
+        dx, dy = cal.params["centroid_offset_nm"]
+        lines.append(
+            f"  origin on {cal.params['n_beads_known']} known bead position(s): the light's "
+            f"centroid lies {dx:+.1f}, {dy:+.1f} nm (x, y) from the emitter "
+            f"(rms over beads {cal.params['bead_position_rms_nm']:.1f} nm)"
+        )
+    rejected = cal.beads[~cal.beads["used"]]
+    for reason, n in rejected["reason"].value_counts().items():
+        lines.append(f"  rejected {n}: {reason}")
+    if cal.pupil is not None:
+        terms = ", ".join(
+            f"Z({n},{m}) {a:+.3f}"
+            for (n, m), a in sorted(cal.pupil.coefficients.items())
+            if abs(a) >= 0.01
+        )
+        terms = terms or "no term above 0.01 waves"
+        lines.append(f"  pupil fit: residual {cal.pupil.residual_rms:.3f}; {terms}")
+    return lines
+
+
+def write_calibration(
+    cal: Any, out: str | Path, figure: str | Path, *, model: str = "spline"
+) -> tuple[Path, Path]:
+    """Write the calibration file and its diagnostic figure (PNG), or neither: the file is
+    removed again when the figure fails.
+
+    Parameters
+    ----------
+    cal : Calibration
+        The calibration.
+    out : str or Path
+        Calibration file (.h5), written atomically.
+    figure : str or Path
+        Diagnostic figure (.png).
+    model : {"spline", "pupil"}
+        The model the file serves by default.
+
+    Returns
+    -------
+    (Path, Path)
+        The calibration file and the figure.
+    """
+    from .io.calibration import save_calibration
+    from .plotting import plot_calibration
+
+    out = save_calibration(cal, out, model=model)
+    try:
+        plot_calibration(cal, figure)
+    except BaseException:
+        out.unlink(missing_ok=True)  # no calibration without its figure
+        raise
+    return out, Path(figure)
