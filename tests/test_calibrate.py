@@ -254,9 +254,11 @@ def test_errors(scan, one_bead):
     movie = scan["movie"]
     with pytest.raises(ValueError, match="only one frame"):
         calibrate_beads(movie[:1], PX, Z_STEP, offset=OFFSET)
-    for step in (0.0, -20.0, None, np.nan):
-        with pytest.raises(ValueError, match="z step must be a positive number"):
+    for step in (0.0, -20.0, np.nan):
+        with pytest.raises(ValueError, match="--z-step must be a positive number"):
             calibrate_beads(movie, PX, step, offset=OFFSET)
+    with pytest.raises(ValueError, match="give the stage step with --z-step"):
+        calibrate_beads(movie, PX, None, offset=OFFSET)
     with pytest.raises(ValueError, match="NaN"):
         bad = movie.astype(float)
         bad[3, 50, 50] = np.nan

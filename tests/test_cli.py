@@ -48,7 +48,7 @@ def test_simulate_then_evaluate(tmp_path):
     ("args", "message"),
     [
         (["simulate", "-o", "{tmp}/m.tif", "--psf", "helix"], "unknown PSF 'helix'"),
-        (["simulate", "-o", "{tmp}/m.tif", "--pixel-size", "-5"], "pixel_size"),
+        (["simulate", "-o", "{tmp}/m.tif", "--pixel-size", "-5"], "--pixel-size"),
         (["simulate", "-o", "{tmp}/missing/m.tif"], "does not exist"),
         (["simulate", "-o", "{tmp}/m.png"], ".tif"),
         (["evaluate", "{tmp}/nope.csv", "{tmp}/nope.csv"], "does not exist"),
@@ -189,7 +189,7 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
         (["--config", cfg, "--n-sample", "1.33"], "apply to pupil models"),
         (["--config", cfg, "--psf", "dh", "--focal-depth", "500"], "needs --n-sample"),
         (["--config", cfg, "--engine", "tpu"], "engine must be one of auto, numpy, numba"),
-        (["--config", cfg, "--min-snr", "nan"], "min_snr must be a number > 0"),
+        (["--config", cfg, "--min-snr", "nan"], "--min-snr must be a number > 0"),
         (["--config", cfg, "--frames", "0:100"], "goes past the movie's 2 frames"),
         (["--config", cfg, "--relocate", "-1"], "relocate"),
     ]:
@@ -199,7 +199,7 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
     cfg0 = tmp_path / "zero.toml"
     cfg0.write_text(cfg.read_text() + "chunk_frames = 0\n")
     res = run("localize", movie, "-o", tmp_path / "z.parquet", "--config", cfg0)
-    assert res.exit_code == 2 and "chunk_frames must be >= 1" in res.output, res.output
+    assert res.exit_code == 2 and "chunk_frames in zero.toml must be >= 1" in res.output, res.output
     res = run("localize", movie, "-o", tmp_path / "no" / "x.csv", "--config", cfg)
     assert res.exit_code == 2 and "does not exist" in res.output
     bad = tmp_path / "bad.toml"

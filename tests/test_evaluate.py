@@ -271,3 +271,34 @@ def test_evaluate_cli_scores_the_tables_frame_range(tmp_path):
     assert res.exit_code == 0, res.output
     assert "scored against the truth of frames 0:2" in res.output
     assert "4 / 0 / 0" in res.output  # TP / FP / FN: the frames not localized are not missed
+
+
+# --- cautions the new-user trial asked for -------------------------------------------------
+
+
+def test_scores_of_a_merged_table_or_the_wrong_truth_come_with_a_caution():
+    from sparseloc.evaluate import scoring_cautions
+
+    truth = pd.DataFrame(
+        {"frame": [0, 1, 2], "x_nm": [1e3] * 3, "y_nm": [1e3] * 3, "z_nm": 0.0, "photons": 1e3}
+    )
+    locs = truth.assign(flag="ok")
+    assert scoring_cautions(locs, truth) == []
+    merged = locs.assign(n_frames=[3, 1, 1], last_frame=[2, 1, 2])
+    assert "merged over frames" in scoring_cautions(merged, truth)[0]
+    other = locs.assign(frame=[10, 11, 12])
+    (said,) = scoring_cautions(other, truth)
+    assert "truth holds frames 0-2" in said and "frames 10-12" in said
+
+
+def test_the_challenges_activations_are_read_as_truth(tmp_path):
+    from sparseloc.io.truth import read_truth_csv
+
+    path = tmp_path / "activations.csv"
+    path.write_text(
+        "Ground-truth,frame,xnano,ynano,znano,intensity \n"
+        "    1,  3, 43.3, 839.8, 340.7, 2473.6 \n    2,  4, 43.3, 839.8, 340.7, 273.4 \n"
+    )
+    t = read_truth_csv(path)
+    assert t["frame"].tolist() == [2, 3]  # 1-based in the file
+    assert t["x_nm"].tolist() == [43.3, 43.3] and t["photons"].tolist() == [2473.6, 273.4]

@@ -156,7 +156,7 @@ def test_an_unknown_schedule_is_refused(tmp_path):
     tifffile.imwrite(movie, np.full((2, 40, 40), 110, np.uint16))
     res = run("localize", movie, "-o", tmp_path / "l.csv", "--pixel-size", 100,
               "--frame-schedule", "fast")  # fmt: skip
-    refused(res, "frame_schedule")
+    refused(res, "--frame-schedule")
     assert not (tmp_path / "l.csv").exists()
 
 

@@ -18,6 +18,7 @@ import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from .camera import CAMERA_MAP_OPTIONS, Camera, camera_from_options, to_photons
+from .units import check_pixel_size, check_z_step
 
 __all__ = ["BeadScan", "read_bead_positions", "read_scan", "read_z_file", "scan_conversion"]
 
@@ -216,9 +217,7 @@ def _checked_stack(
         )
     if not np.all(np.isfinite(raw)):
         raise ValueError("the bead stack contains NaN or inf values")
-    p = float(pixel_size)
-    if not np.isfinite(p) or p <= 0:
-        raise ValueError(f"--pixel-size must be a positive number of nm, got {pixel_size}")
+    p = check_pixel_size(pixel_size)
     if gain <= 0:
         raise ValueError(f"gain must be > 0 photons per ADU, got {gain}")
     if saturation is None and raw.dtype.kind in "ui":
@@ -253,9 +252,10 @@ def _planes_from_z(
     steps = np.diff(zk)
     if np.any(steps <= 0):
         raise ValueError("the z file repeats a z value; each frame needs its own z")
-    step = float(z_step) if z_step else float(np.median(steps))
-    if step <= 0:
-        raise ValueError(f"z step must be > 0 nm, got {step}")
+    if z_step:
+        step = check_z_step(z_step)
+    else:
+        step = check_z_step(float(np.median(steps)), "the z file's median step")
     photons = _adu_to_photons(raw[keep], offset, gain)
     sat_frames = raw[keep]
     if np.ptp(steps) > 1e-3 * step or z_step:
@@ -276,11 +276,9 @@ def _even_planes(
     """Photons, the ADU frames, plane z (nm) and step of a scan in even steps, z = 0 at
     ``z0_slice`` (default the middle slice)."""
     n = raw.shape[0]
-    if z_step is None or not np.isfinite(z_step) or z_step <= 0:
-        raise ValueError(
-            f"the z step must be a positive number of nm, got {z_step}; pass --z-step or a z file"
-        )
-    step = float(z_step)
+    if z_step is None:
+        raise ValueError("give the stage step with --z-step NM, or each frame's z with a z file")
+    step = check_z_step(z_step)
     z0 = (n - 1) / 2.0 if z0_slice is None else float(z0_slice)
     if not 0 <= z0 <= n - 1:
         raise ValueError(f"--z0-slice {z0_slice} is outside the stack's 0..{n - 1} slices")

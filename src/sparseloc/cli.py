@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import sys
 import time
 from contextlib import contextmanager
@@ -20,6 +21,7 @@ from rich.markup import escape
 from typer.core import TyperArgument, TyperCommand, TyperGroup
 
 from .options import LOCALIZE_DEFAULTS as _D
+from .units import check_pixel_size
 
 #: ``sparseloc --help`` lists the commands in the order of a day's work, not of definition.
 WORKFLOW_ORDER = (
@@ -63,7 +65,17 @@ def _plain(param: Any) -> Any:
 
 class _Command(TyperCommand):
     """A command whose help shows plain placeholders (see :func:`_plain`) and the usage
-    ``[OPTIONS] LOCS TRUTH`` rather than ``[OPTIONS] {locs} {truth}``."""
+    ``[OPTIONS] LOCS TRUTH`` rather than ``[OPTIONS] {locs} {truth}``; ``running`` is the
+    context of the command being run (which flags were given: :func:`_in_cli_terms`)."""
+
+    running: Any = None
+
+    def invoke(self, ctx: Any) -> Any:
+        _Command.running = ctx
+        try:
+            return super().invoke(ctx)
+        finally:
+            _Command.running = None
 
     def get_params(self, ctx: Any) -> list[Any]:
         if self.help and not getattr(self, "_sparseloc_plain", False):
@@ -113,18 +125,106 @@ class UserError(Exception):
     """A problem with the user's input, reported as one sentence."""
 
 
+#: Notes of the running command (e.g. how many flagged rows it leaves out), printed on stderr
+#: when it ends, and not at all when it ends in a refusal: a refusal is the one line printed.
+_NOTES: list[str] = []
+
+#: Option key -> where the running command's TOML file gave it (``gain in [camera] of
+#: cam.toml``), so that a refusal of the value names the file's key rather than a flag.
+_FROM_CONFIG: dict[str, str] = {}
+
+#: Library argument names that a command line spells otherwise (by default ``name`` is the
+#: option ``--name``); several keys: the options that the argument combines.
+_ARG_OPTIONS: dict[str, tuple[str, ...]] = {
+    "kind": ("camera",),
+    "px_nm": ("px",),
+    "sigma_xy_max_nm": ("sigma_max",),
+    "sigma_z_max_nm": ("sigma_z_max",),
+    "max_distance_nm": ("max_distance",),
+    "photons": ("photons_min", "photons_max"),
+    "z_range": ("z_min", "z_max"),
+}
+
+
+def _note(message: str) -> None:
+    """Say ``message`` on stderr as a note once the command has done its work (_NOTES)."""
+    _NOTES.append(message)
+
+
+def _print_notes() -> None:
+    for message in _NOTES:
+        typer.echo(f"note: {message}", err=True)
+    _NOTES.clear()
+
+
 def _fail(message: str) -> None:
-    typer.echo(f"error: {message}", err=True)
+    _NOTES.clear()  # the refusal alone: notes on work it did not finish would mislead
+    typer.echo(f"error: {' '.join(message.split())}", err=True)
     raise typer.Exit(code=2)
 
 
+def _option_term(key: str, ctx: Any) -> str | None:
+    """How the user gave option ``key`` to the running command: its flag (``--pixel-size``),
+    or the key and file of the TOML config that gave it; None if the command has neither."""
+    flag = "--" + key.replace("_", "-")
+    params = ctx.command.params if ctx is not None else []
+    param = next(
+        (p for p in params if p.param_type_name == "option" and (p.name == key or flag in p.opts)),
+        None,
+    )
+    source = None if param is None else ctx.get_parameter_source(param.name)
+    on_line = getattr(source, "name", None) in ("COMMANDLINE", "ENVIRONMENT")
+    if key in _FROM_CONFIG and not on_line:
+        return _FROM_CONFIG[key]
+    return flag if param is not None else None
+
+
+#: A lower-case word (not part of a path or a quoted name) and what follows it: "must", "=",
+#: "is", "(" or a number after a library's argument name (see below).
+_ARG_NAME = re.compile(
+    r"(?<![\w\-'\"./])([a-z][a-z0-9_]*)(?![\w\-'\"./])(\s+must\b|\s*=(?!=)|\s+is\b|\s+\(|\s+-?\d)?"
+)
+
+
+def _in_cli_terms(message: str) -> str:
+    """A library's message in the command's terms: Python argument names (``pixel_size must
+    ...``, ``photons_min (5000) is larger ...``) as the flags that set them, and a flag the
+    library names for a value that the config file gave as that file's key."""
+    ctx = _Command.running
+
+    def term(match: re.Match) -> str:
+        name, verb = match.group(1), match.group(2) or ""
+        if not verb or re.search(r"\b(the|a|an) $", match.string[: match.start()]):
+            # "the frame must be a 2D image" speaks of an image, not of --frame; "holds a
+            # pixel_size that" of a metadata key
+            return match.group(0)
+        if "_" not in name and verb.strip() != "must":
+            # a plain word names an option only before "must" ("no format='sparseloc-psf'"
+            # speaks of a file's attribute, not of --format)
+            return match.group(0)
+        terms = [_option_term(k, ctx) for k in _ARG_OPTIONS.get(name, (name,))]
+        if any(t is None for t in terms):
+            return match.group(0)
+        return "/".join(t for t in terms if t) + verb
+
+    if ".toml" not in message:  # a config file's refusal speaks of its keys, not of flags
+        message = _ARG_NAME.sub(term, message)
+    for key, where in _FROM_CONFIG.items():
+        flag = "--" + key.replace("_", "-")
+        if flag in message and _option_term(key, ctx) == where:
+            message = re.sub(rf"{re.escape(flag)}(?![\w-])", where, message)
+    return message
+
+
 def _run(func, *args, **kwargs):
-    """Call a library function, turning input errors into one sentence and exit code 2."""
+    """Call a library function, turning input errors into one sentence and exit code 2, in
+    the command's terms (:func:`_in_cli_terms`)."""
+    from .messages import INPUT_ERRORS, one_sentence
+
     try:
         return func(*args, **kwargs)
-    except (ValueError, UserError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
-        msg = str(exc).strip() or type(exc).__name__
-        _fail(msg[0].lower() + msg[1:] if msg else msg)
+    except (*INPUT_ERRORS, UserError) as exc:
+        _fail(_in_cli_terms(one_sentence(exc)))
 
 
 def _output_path(path: Path) -> Path:
@@ -166,6 +266,9 @@ def _new_output(
 def _table_companions(path: Path, fmt: str | None) -> list[Path]:
     """The files written beside a table: a Picasso HDF5 table's YAML sidecar."""
     from .io.tables import format_for
+
+    if path.is_dir():
+        _fail(f"the output {str(path)!r} is a folder, not a file")
 
     return [path.with_suffix(".yaml")] if _run(format_for, path, fmt) == "picasso" else []
 
@@ -223,9 +326,17 @@ def _camera_options(config: Path | None, given: dict[str, Any]) -> dict[str, Any
     else the defaults (:data:`sparseloc.options.CAMERA_DEFAULTS`)."""
     from .options import CAMERA_DEFAULTS, read_camera_config
 
-    opts = {**CAMERA_DEFAULTS, **({} if config is None else _run(read_camera_config, config))}
+    table = {} if config is None else _run(read_camera_config, config)
+    _config_gave(table, f"[camera] of {config.name}" if config is not None else "")
+    opts = {**CAMERA_DEFAULTS, **table}
     opts.update({k: v for k, v in given.items() if v is not None})
     return opts
+
+
+def _config_gave(options: dict[str, Any], where: str) -> None:
+    """Record that the config file (``where``) gave ``options``, for refusals of their values."""
+    for key in options:
+        _FROM_CONFIG[key] = f"{'kind' if key == 'camera' else key} in {where}"
 
 
 def _print_version(value: bool) -> None:
@@ -238,6 +349,7 @@ def _print_version(value: bool) -> None:
 
 @app.callback()
 def _main(
+    ctx: typer.Context,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log progress details.")] = False,
     version: Annotated[
         bool,
@@ -250,6 +362,9 @@ def _main(
         level=logging.INFO if verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    _NOTES.clear()
+    _FROM_CONFIG.clear()
+    ctx.call_on_close(_print_notes)
 
 
 @app.command(cls=_Command)
@@ -269,15 +384,16 @@ def demo(
     if not density > 0:
         _fail(f"--density must be > 0, got {density}")
     t0 = time.perf_counter()
-    summary = _run(
-        run_demo,
-        out,
-        seed=seed,
-        n_frames=frames,
-        density=density,
-        progress=sys.stderr.isatty(),
-        overwrite=overwrite,
-    )
+    with _info_from("sparseloc.demo"):  # what it is doing, stage by stage
+        summary = _run(
+            run_demo,
+            out,
+            seed=seed,
+            n_frames=frames,
+            density=density,
+            progress=True,
+            overwrite=overwrite,
+        )
     typer.echo(summary["text"])
     typer.echo(f"wrote {len(summary['files'])} files to {out} in {time.perf_counter() - t0:.1f} s:")
     for f in summary["files"]:
@@ -332,6 +448,9 @@ def simulate(
     out = _output_path(output)
     if out.suffix.lower() not in (".tif", ".tiff"):
         _fail(f"the output must be a .tif file, got {out.name!r}")
+    _check_scene_options(
+        pixel_size, density, photons_min, photons_max, background, z_min, z_max, cluster_size
+    )
     out = _new_output(
         out,
         overwrite=overwrite,
@@ -354,6 +473,12 @@ def simulate(
         },
     )
     cam = _run(camera_from_options, cam_opts)
+    if cam.map_shape is not None and tuple(cam.map_shape) != (rows, cols):
+        _fail(
+            f"the camera maps (--offset-map, --variance-map, --gain-map) are "
+            f"{cam.map_shape[0]}x{cam.map_shape[1]} pixels but the frames are {rows}x{cols} "
+            "(--rows, --cols)"
+        )
     # The movie is uint16: an offset beyond it would saturate every pixel.
     omap = getattr(cam, "offset_map", None)
     top = float(cam.offset if omap is None else np.max(omap))
@@ -393,6 +518,36 @@ def simulate(
     typer.echo(f"wrote {tif} and {truth}")
 
 
+def _check_scene_options(
+    pixel_size: float,
+    density: float,
+    photons_min: float,
+    photons_max: float,
+    background: float,
+    z_min: float | None,
+    z_max: float | None,
+    cluster_size: int,
+) -> None:
+    """Refuse ``simulate``'s scene options that describe no scene, naming the flag."""
+    _run(check_pixel_size, pixel_size)
+    if not (np.isfinite(density) and density >= 0):
+        _fail(f"--density must be a number >= 0 (emitters per um^2), got {density:g}")
+    for flag, value in (("--photons-min", photons_min), ("--photons-max", photons_max)):
+        if not (np.isfinite(value) and value >= 0):
+            _fail(f"{flag} must be a number >= 0, got {value:g}")
+    if photons_min > photons_max:
+        _fail(f"--photons-min {photons_min:g} is above --photons-max {photons_max:g}")
+    if not (np.isfinite(background) and background >= 0):
+        _fail(f"--background must be a number >= 0 (photons per pixel), got {background:g}")
+    for flag, value in (("--z-min", z_min), ("--z-max", z_max)):
+        if value is not None and not np.isfinite(value):
+            _fail(f"{flag} must be a number of nm, got {value:g}")
+    if z_min is not None and z_max is not None and z_min > z_max:
+        _fail(f"--z-min {z_min:g} is above --z-max {z_max:g}")
+    if cluster_size < 1:
+        _fail(f"--cluster-size must be at least 1, got {cluster_size}")
+
+
 #: ``localize --workers`` by default: one process per available core, at most this many (each
 #: holds about 300 MB: ``docs/benchmarks/memory_10k.txt``) ...
 AUTO_WORKERS_CAP = 8
@@ -410,7 +565,9 @@ def _auto_workers(n_frames: int) -> int:
 def _load_config(path: Path | None) -> dict:
     from .options import read_config
 
-    return {} if path is None else _run(read_config, path)
+    cfg = {} if path is None else _run(read_config, path)
+    _config_gave(cfg, path.name if path is not None else "")
+    return cfg
 
 
 @app.command(cls=_Command)
@@ -766,22 +923,9 @@ def _remove_run_dir(run_dir: Path) -> None:
 
 def _write_localized(res, out: Path, opts: dict, mov, job) -> None:
     """Write ``localize``'s table with the analysis, movie and camera as metadata."""
-    from .io.picasso import psf_width_table
-    from .io.tables import write_table
+    from .io.localized import write_localized
 
-    meta = {**res.metadata, "movie": [str(p) for p in mov.paths], "camera": job.camera.to_dict()}
-    # The PSF's width by depth travels with the table for the sx, sy of Picasso exports.
-    meta["psf_width"] = psf_width_table(job.model, job.params.pixel_size)
-    _run(
-        write_table,
-        res.table,
-        out,
-        format=opts["format"],
-        pixel_size=job.params.pixel_size,
-        shape=mov.shape,
-        n_frames=len(mov),
-        metadata=meta,
-    )
+    _run(write_localized, res, out, format=opts["format"], movie=mov, job=job)
 
 
 @app.command(cls=_Command)
@@ -851,15 +995,17 @@ def calibrate(
     The stack is converted to photons as localize converts a movie: (ADU - offset) x gain
     (e-/ADU) / EM gain / QE."""
     from .calibrate import calibrate_file, read_bead_positions
+    from .calibrate_output import calibration_path, calibration_summary, write_calibration
     from .calibrate_scan import scan_conversion
-    from .io.calibration import save_calibration
-    from .plotting import plot_calibration
 
-    out = _output_path(output)
-    if out.suffix.lower() not in (".h5", ".hdf5"):
-        _fail(f"the calibration file must end in .h5 or .hdf5, got {out.name!r}")
+    out = _run(calibration_path, _output_path(output))
     if z_step is None and z_file is None:
         _fail("give the stage step with --z-step NM, or each frame's z with --z-file")
+    _run(check_pixel_size, pixel_size)
+    if not (np.isfinite(threshold) and 0 < threshold <= 1):
+        _fail(f"--threshold must be a fraction of the brightest bead, in (0, 1], got {threshold:g}")
+    if saturation is not None and not (np.isfinite(saturation) and saturation > 0):
+        _fail(f"--saturation must be a positive number of ADU, got {saturation:g}")
     if model not in ("spline", "pupil"):
         _fail(f"--model must be spline or pupil, got {model!r}")
     if model == "pupil" and not fit_pupil:
@@ -883,6 +1029,8 @@ def calibrate(
     inputs = [stack, z_file, beads, Path(mask) if mask else None, config]
     out = _new_output(out, overwrite=overwrite, inputs=inputs)
     fig_path = _new_output(fig_path, overwrite=overwrite, inputs=[*inputs, out])
+    if figure is not None:  # checked before the calibration's work, not by matplotlib after it
+        _check_suffix(figure, _FIGURE_SUFFIXES, "--figure")
     pupil_options = None
     if fit_pupil:
         base = None
@@ -915,46 +1063,9 @@ def calibrate(
         pupil_options=pupil_options,
         beads=known,
     )
-    _run(save_calibration, cal, out, model=model)
-    try:
-        _run(plot_calibration, cal, fig_path)
-    except BaseException:
-        out.unlink(missing_ok=True)  # no calibration without its figure
-        raise
-    nz, nr, nc = cal.average.shape
-    typer.echo(
-        f"{cal.n_used} of {len(cal.beads)} beads used; {nz} planes z "
-        f"{cal.z[0]:.0f}..{cal.z[-1]:.0f} nm, ROI {nr} x {nc} px; hash {cal.content_hash}; "
-        f"{time.perf_counter() - t0:.1f} s"
-    )
-    typer.echo(
-        f"  model error: the beads depart from the model by {100 * cal.params['model_error']:.1f} %"
-        " of their signal per pixel (rms beyond noise; the count selection allows for it)"
-    )
-    wander = cal.params["centroid_over_z_nm"]
-    typer.echo(
-        f"  model origin: {cal.params['lateral_origin']}; each plane's light centroid lies "
-        f"{wander['x'][0]:+.0f}..{wander['x'][1]:+.0f} nm in x and "
-        f"{wander['y'][0]:+.0f}..{wander['y'][1]:+.0f} nm in y from it"
-    )
-    if known is not None:
-        dx, dy = cal.params["centroid_offset_nm"]
-        typer.echo(
-            f"  origin on {cal.params['n_beads_known']} known bead position(s): the light's "
-            f"centroid lies {dx:+.1f}, {dy:+.1f} nm (x, y) from the emitter "
-            f"(rms over beads {cal.params['bead_position_rms_nm']:.1f} nm)"
-        )
-    rejected = cal.beads[~cal.beads["used"]]
-    for reason, n in rejected["reason"].value_counts().items():
-        typer.echo(f"  rejected {n}: {reason}")
-    if cal.pupil is not None:
-        terms = ", ".join(
-            f"Z({n},{m}) {a:+.3f}"
-            for (n, m), a in sorted(cal.pupil.coefficients.items())
-            if abs(a) >= 0.01
-        )
-        terms = terms or "no term above 0.01 waves"
-        typer.echo(f"  pupil fit: residual {cal.pupil.residual_rms:.3f}; {terms}")
+    _run(write_calibration, cal, out, fig_path, model=model)
+    for line in calibration_summary(cal, time.perf_counter() - t0):
+        typer.echo(line)
     typer.echo(f"wrote {out} and {fig_path}")
 
 
@@ -981,9 +1092,18 @@ def camera_cmd(
     from .io.movie import Movie
 
     kind = camera or "scmos"
+    for flag, value in (("--offset", offset), ("--read-noise", read_noise)):
+        if value is not None and not (np.isfinite(value) and value >= 0):
+            _fail(f"{flag} must be a number >= 0, got {value:g}")
     mov = _run(Movie.open, [str(p) for p in movie] if len(movie) > 1 else str(movie[0]))
     with mov:
         adu = _run(mov.frames, 0, min(frames, len(mov)))
+    median = float(np.median(adu))
+    if offset is not None and offset >= median:
+        _fail(
+            f"--offset {offset:g} ADU is not below the median pixel value of {movie[0].name!r} "
+            f"({median:g} ADU): the offset is the dark level, below every signal"
+        )
     est = _run(
         estimate_camera,
         adu,
@@ -1011,11 +1131,16 @@ def camera_cmd(
     if est.offset_given:
         below = "" if est.read_noise > 0 else " (below what the line resolves)"
         typer.echo(f"read noise {est.read_noise:.3g} e- rms{below}")
+    source = "frame-to-frame differences" if est.method == "temporal" else "single-frame noise"
     typer.echo(
-        f"  from the line variance = {est.slope:.4g} x mean {est.intercept:+.4g} (ADU^2) over "
-        f"{adu.shape[0]} frame(s)"
+        f"  from the line variance = {est.slope:.4g} x mean {est.intercept:+.4g} (ADU^2) of the "
+        f"{source} of {adu.shape[0]} frame(s)"
     )
-    flags = f"--camera {kind}" + (f" --offset {est.offset:.1f}" if placed else "")
+    if est.caution:
+        typer.echo(f"caution: {est.caution}")
+    # an offset the line could not place is still needed: localize's default (100 ADU) is
+    # not this camera's
+    flags = f"--camera {kind} --offset " + (f"{est.offset:.1f}" if placed else "DARK_LEVEL")
     flags += f" --gain {est.gain:.4g}"
     if kind == "emccd" and em_gain is not None:
         flags += f" --em-gain {em_gain:g}"
@@ -1049,7 +1174,7 @@ def evaluate(
 ) -> None:
     """Match localizations to the truth and print Jaccard, RMSE, bias and efficiency."""
     from .evaluate import evaluate as run_evaluation
-    from .evaluate import truth_in_frames
+    from .evaluate import scoring_cautions, truth_in_frames
     from .io.tables import read_table_and_metadata
     from .io.truth import read_truth_csv
 
@@ -1059,8 +1184,8 @@ def evaluate(
     if json_out is not None:
         _new_output(json_out, overwrite=overwrite, inputs=[locs, truth])
     loc_df, meta = _run(read_table_and_metadata, locs)
-    if pixel_size is not None and not (np.isfinite(pixel_size) and pixel_size > 0):
-        _fail(f"--pixel-size must be a positive number of nm, got {pixel_size:g}")
+    if pixel_size is not None:
+        _run(check_pixel_size, pixel_size)
     truth_df = _run(read_truth_csv, truth, pixel_size=pixel_size)
     frames = meta.get("frames") if isinstance(meta, dict) else None
     if frames is not None:
@@ -1070,7 +1195,9 @@ def evaluate(
 
     note = excluded_note(int(_run(flagged_rows, loc_df, all_flags=all_flags).sum()))
     if note:
-        typer.echo(f"note: {note}", err=True)
+        _note(note)
+    for caution in _run(scoring_cautions, loc_df, truth_df):
+        _note(caution)
     result = _run(
         run_evaluation,
         loc_df,
@@ -1123,7 +1250,7 @@ def _usable(table, all_flags: bool):
 
     sel = _run(select_usable, table, all_flags=all_flags)
     if sel.note():
-        typer.echo(f"note: {sel.note()}", err=True)
+        _note(sel.note())
     return sel.locs
 
 
@@ -1171,7 +1298,7 @@ def render(
     Rows flagged other than 'ok' are left out unless --all-flags; rows with a non-finite or
     absurd coordinate are dropped with a warning; rows without uncertainties are drawn 15 nm
     wide (37.5 nm in z)."""
-    from .render import frc, plot_frc, plot_projections, render_volume, write_volume_tiff
+    from .render import frc_report, plot_frc, plot_projections, render_volume, write_volume_tiff
 
     _check_suffix(output, (".png",), "the image")
     out = _new_output(output, overwrite=overwrite, inputs=[locs])
@@ -1181,8 +1308,13 @@ def render(
     if volume is not None:
         _check_suffix(volume, (".tif", ".tiff"), "--volume")
         _new_output(volume, overwrite=overwrite, inputs=[locs, out, frc_plot])
-    if min(voxel) <= 0:
+    if not (np.all(np.isfinite(voxel)) and min(voxel) > 0):
         _fail(f"--voxel sizes must be > 0 nm, got {voxel[0]:g} and {voxel[1]:g}")
+    if px is not None and not (np.isfinite(px) and px > 0):
+        _fail(f"--px must be a positive number of nm, got {px:g}")
+    for flag, value in (("--z-min", z_min), ("--z-max", z_max)):
+        if value is not None and not np.isfinite(value):
+            _fail(f"{flag} must be a number of nm, got {value:g}")
     table, _ = _read_locs(locs)
     if len(table) == 0:
         _fail(f"{locs.name} holds no localizations")
@@ -1199,18 +1331,7 @@ def render(
     vol = vmeta = None
     if volume is not None:
         vol, vmeta = _run(render_volume, table, px_nm=voxel[0], pz_nm=voxel[1], z_range=zr)
-    # FRC bins: 5 nm, coarser on wide fields so the image stays under ~8000 px a side.
-    span = float(max(np.ptp(table.x_nm), np.ptp(table.y_nm), 1.0))
-    try:
-        res = frc(table, px_nm=max(5.0, span / 8000.0))
-    except ValueError as exc:
-        res, frc_msg = None, f"FRC not computed: {exc}"
-    else:
-        frc_msg = (
-            f"FRC resolution: {res.resolution_nm:.1f} nm"
-            if np.isfinite(res.resolution_nm)
-            else f"FRC resolution: not determined ({res.warning})"
-        )
+    res, frc_msg = frc_report(table)
     # Every file is written under a temporary name and renamed only when all are written,
     # so a failure (e.g. of the volume) leaves none of them behind.
     from contextlib import ExitStack
@@ -1251,7 +1372,7 @@ def drift(
     overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Estimate the drift (x, y, z) and write the table with it removed."""
-    from .drift import apply_drift, fiducial_drift, plot_drift, rcc_drift
+    from .drift import apply_drift, fiducial_drift, lateral_only, plot_drift, rcc_drift
 
     out = _table_output(output, overwrite=overwrite, inputs=[locs])
     if plot is not None:
@@ -1259,12 +1380,12 @@ def drift(
         _new_output(plot, overwrite=overwrite, inputs=[locs, out])
     if method not in ("rcc", "fiducial"):
         _fail(f"--method must be rcc or fiducial, got {method!r}")
-    if bin_nm <= 0:
+    if not (np.isfinite(bin_nm) and bin_nm > 0):
         _fail(f"--bin-nm must be > 0, got {bin_nm:g}")
     table, meta = _read_locs(locs)
-    # The estimators log their warnings (shown on stderr).
     _usable(table, all_flags)  # says how many flagged rows the estimate leaves out
     if method == "rcc":
+        # Its warnings are said below: in the refusal of an unreliable estimate, else after it.
         est = _run(
             rcc_drift,
             table,
@@ -1272,17 +1393,28 @@ def drift(
             bin_nm=bin_nm,
             estimate_z=not no_z,
             all_flags=all_flags,
+            log_warnings=False,
         )
     else:
-        est = _run(fiducial_drift, table, all_flags=all_flags)
+        est = _run(fiducial_drift, table, all_flags=all_flags, log_warnings=False)
+    xy = None if force else lateral_only(est)
+    if xy is not None:
+        # x and y are sound, z is not: correct what is sound rather than nothing
+        why = xy.details["z_dropped"][0].removeprefix("z: ")
+        _note(f"z drift not corrected ({why}); x and y were (--force applies z too)")
+        est = xy
+    if not est.reliable and not force:
+        # a refused run writes nothing, its plot neither (a rerun would find it in the way)
+        why = "; ".join(est.warnings) or "its checks failed"
+        _fail(
+            f"the drift estimate is unreliable ({why}); nothing was written; --force applies "
+            "it anyway (with --plot to see it)"
+        )
     if plot is not None:
         _run(plot_drift, est, plot)
         typer.echo(f"wrote {plot}")
-    if not est.reliable and not force:
-        _fail(
-            "the drift estimate is unreliable (see the warnings above); the table was not "
-            "written; --force applies it anyway"
-        )
+    for w in est.warnings:
+        typer.echo(f"warning: {w}", err=True)
     span = np.ptp(est.drift, axis=0)
     typer.echo(
         f"drift ({est.method}): range x {span[0]:.1f} nm, y {span[1]:.1f} nm, z {span[2]:.1f} nm"
@@ -1322,14 +1454,13 @@ def filter_cmd(
 
     out = _table_output(output, overwrite=overwrite, inputs=[locs])
     if merge and out.suffix.lower() not in (".parquet", ".pq"):
-        typer.echo(
-            "note: only Parquet keeps the merged rows' n_frames and last_frame columns",
-            err=True,
-        )
+        _note("only Parquet keeps the merged rows' n_frames and last_frame columns")
     table, meta = _read_locs(locs)
     if len(table):
         # The coordinate part of the rule (select_usable); filter_locs counts the flags itself.
         table = _usable(table, True)
+    if z_min is not None and z_max is not None and z_min > z_max:
+        _fail(f"--z-min {z_min:g} is above --z-max {z_max:g}")
     zr = None
     if z_min is not None or z_max is not None:
         zr = (-np.inf if z_min is None else z_min, np.inf if z_max is None else z_max)
@@ -1383,8 +1514,8 @@ def report(
     from .report import write_report
 
     out = _new_output(output, overwrite=overwrite, inputs=[locs, truth, movie])
-    if pixel_size is not None and not (np.isfinite(pixel_size) and pixel_size > 0):
-        _fail(f"--pixel-size must be a positive number of nm, got {pixel_size:g}")
+    if pixel_size is not None:
+        _run(check_pixel_size, pixel_size)
     if movie is not None and not movie.is_file():
         _fail(f"{str(movie)!r} does not exist or is not a file")
     table, meta = _read_locs(locs)
@@ -1428,8 +1559,8 @@ def overlay(
 
     out = _new_output(output, overwrite=overwrite, inputs=[movie, locs])
     _check_suffix(out, _FIGURE_SUFFIXES, "the picture")
-    if pixel_size is not None and not (np.isfinite(pixel_size) and pixel_size > 0):
-        _fail(f"--pixel-size must be a positive number of nm, got {pixel_size:g}")
+    if pixel_size is not None:
+        _run(check_pixel_size, pixel_size)
     if not movie.is_file():
         _fail(f"{str(movie)!r} does not exist or is not a file")
     table, meta = _read_locs(locs)
@@ -1443,8 +1574,9 @@ def overlay(
         shape = meta.get("shape") if isinstance(meta, dict) else None
         if isinstance(shape, list | tuple) and tuple(shape) != tuple(mov.shape):
             _fail(
-                f"the table was made from frames of {tuple(shape)} pixels, but the movie's are "
-                f"{tuple(mov.shape)}: is it the right movie?"
+                f"the table {locs.name!r} was made from frames of {tuple(shape)} pixels, but "
+                f"those of the movie {movie.name!r} are {tuple(mov.shape)}: is it the right "
+                "movie?"
             )
         px = _run(_overlay_pixel_size, pixel_size, meta, mov.pixel_size)
         image = _run(mov.__getitem__, frame)

@@ -26,6 +26,7 @@ from .psf import make_psf
 from .psf.base import PSFModel
 from .solvers.frame import RELOCATE
 from .solvers.mle import check_qe
+from .units import check_pixel_size
 
 __all__ = [
     "LOCALIZE_DEFAULTS",
@@ -161,7 +162,10 @@ class LocalizeParams:
             raise ValueError(f"relocate must be a whole number >= 0, got {r!r}")
         object.__setattr__(self, "relocate", int(r))  # frozen: as an int
         if self.window < 5 or self.margin < 0 or self.window - 2 * self.margin < 1:
-            raise ValueError(f"window {self.window} px and margin {self.margin} px leave no core")
+            raise ValueError(
+                f"window {self.window} px and margin {self.margin} px leave no core (--window "
+                "must be at least 5 px and more than twice --margin, which must be >= 0)"
+            )
         if self.frame_schedule not in SCHEDULES:
             raise ValueError(
                 f"frame_schedule must be one of {', '.join(SCHEDULES)}; got {self.frame_schedule!r}"
@@ -313,7 +317,8 @@ def build_model(options: dict[str, Any]) -> PSFModel:
         given = [k for k in OPTICS_OPTIONS if options.get(k) is not None]
         flags = ", ".join("--" + k.replace("_", "-") for k in given)
         raise ValueError(
-            f"{flags} apply to pupil models (dh, astig, clear, mask files), not {spec!r}"
+            f"{flags} {'applies' if len(given) == 1 else 'apply'} to pupil models (dh, astig, "
+            f"clear, mask files), not {spec!r}"
         )
     model = make_psf(spec, **pupil)
     if optics and not isinstance(model, PupilPSF):
@@ -355,7 +360,13 @@ def resolve_pixel_size(options: dict[str, Any], model: PSFModel, movie_pixel: fl
     if px is None and cal_px is not None:
         px = float(cal_px)
     if px is None:
-        raise ValueError("give the pixel size in sample space with --pixel-size NM")
+        raise ValueError(
+            "give the pixel size in sample space with --pixel-size NM: the PSF "
+            f"{str(options.get('psf'))!r} does not carry one (a calibration from "
+            "sparseloc calibrate does)"
+        )
+    px = check_pixel_size(px, "--pixel-size" if options["pixel_size"] is not None else
+                          "the calibration's pixel size")  # fmt: skip
     if movie_pixel and abs(movie_pixel - px) > 0.01 * px:
         raise ValueError(
             f"--pixel-size {px:g} nm differs from the movie's metadata ({movie_pixel:g} nm)"

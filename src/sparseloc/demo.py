@@ -121,6 +121,7 @@ def run_demo(
         seconds["localize"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
+        log.info("scoring, rendering and writing the report")
         ev = evaluate(res.table, sim.truth)
         files.extend(_write_results(work, out, res, sim, frames, dh, setup))
         stats = _truth_stats(sim.truth, dh, pixel_size)
@@ -207,8 +208,9 @@ def _localize(
     progress: bool,
     workers: int | None,
 ) -> Any:
-    """The default pipeline on the frames (photons), with a progress bar if asked; default
-    ``workers`` the machine's cores, at most 2."""
+    """The default pipeline on the frames (photons), with progress if asked (a bar on a
+    terminal, else lines: :class:`sparseloc.progress.Progress`); default ``workers`` the
+    machine's cores, at most 2."""
     from .pipeline import LocalizeParams, localize
 
     if workers is None:
@@ -217,16 +219,13 @@ def _localize(
         workers = min(2, available_cores())
 
     params = LocalizeParams(pixel_size=pixel_size)
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    log.info("localizing %d frames on %d process(es)", n_frames, workers)
+    if not progress:
+        return localize(frames, dh, params, workers=workers)
+    from .progress import Progress
 
-        bar = tqdm(total=n_frames, unit="frame", desc="localize")
-    try:
-        return localize(frames, dh, params, progress=bar.update if bar else None, workers=workers)
-    finally:
-        if bar is not None:
-            bar.close()
+    with Progress(n_frames) as bar:
+        return localize(frames, dh, params, progress=bar.update, workers=workers)
 
 
 def _write_results(

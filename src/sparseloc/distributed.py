@@ -314,10 +314,13 @@ def _run_key(
     chunk_frames: int,
     read_variance: NDArray | None,
 ) -> tuple[str, dict]:
+    data = source.identity()
     desc = {
         "params": asdict(params),
         "psf_hash": psf_hash(model, params.pixel_size),
-        "data": source.identity(),
+        # the movie and the camera apart, so that a refusal names the one that changed
+        "data": {k: v for k, v in data.items() if k != "camera"},
+        "camera": data.get("camera"),
         "frames": list(frame_range),
         "chunk_frames": int(chunk_frames),
         "read_variance": None if read_variance is None else array_digest(read_variance),
@@ -330,7 +333,7 @@ def _prepare_run_dir(run_dir: Path, key: str, desc: dict, chunks, overwrite: boo
     if not run_dir.parent.is_dir():
         raise ValueError(f"the folder {str(run_dir.parent)!r} does not exist")
     if run_dir.exists() and not run_dir.is_dir():
-        raise ValueError(f"{str(run_dir)!r} exists and is not a folder")
+        raise ValueError(f"the run folder (--run-dir) {str(run_dir)!r} is a file, not a folder")
     man = run_dir / MANIFEST
     # A manifest's temporary file, left by a run killed while writing it, is the run's own.
     others = run_dir.is_dir() and not man.exists()

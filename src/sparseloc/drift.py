@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -57,7 +57,14 @@ from scipy.sparse.csgraph import connected_components
 from .drift_common import DriftLocs, DriftResult, positive, read_locs
 from .drift_fiducial import fiducial_drift
 
-__all__ = ["DriftResult", "apply_drift", "fiducial_drift", "plot_drift", "rcc_drift"]
+__all__ = [
+    "DriftResult",
+    "apply_drift",
+    "fiducial_drift",
+    "lateral_only",
+    "plot_drift",
+    "rcc_drift",
+]
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +103,7 @@ def rcc_drift(
     estimate_z: bool = True,
     min_locs_per_segment: int = 200,
     all_flags: bool = False,
+    log_warnings: bool = True,
 ) -> DriftResult:
     """Drift by redundant cross-correlation of time segments (RCC).
 
@@ -129,6 +137,9 @@ def rcc_drift(
         (with a warning).
     all_flags : bool
         Use rows flagged other than "ok" too.
+    log_warnings : bool
+        Log each of the result's ``warnings`` (False: the caller shows them itself, e.g. in a
+        refusal or a report, where logged as well they would be said twice).
 
     Returns
     -------
@@ -159,7 +170,7 @@ def rcc_drift(
     shifts[:, :2] = xy.shifts
     z = _rcc_z(data, seg, shifts[:, :2], p, blur, estimate_z, warnings)
     shifts[:, 2] = z.shifts[:, 0]
-    for w in warnings:
+    for w in warnings if log_warnings else ():
         log.warning("rcc_drift: %s", w)
     return _rcc_result(data, seg, shifts, xy, z, p, blur, warnings)
 
@@ -229,7 +240,7 @@ def _segments(frame: NDArray, segments: int, min_locs: int, warnings: list[str])
     if n_frames < segments:
         raise ValueError(
             f"the table spans {n_frames} frames ({f0}..{f1}), fewer than the {segments} "
-            f"segments asked for; use between 2 and {n_frames} segments"
+            f"segments asked for; use between 2 and {n_frames} segments (drift --segments)"
         )
     seg, n_seg = _choose_segments(frame, f0, n_frames, segments, min_locs, warnings)
     counts = np.bincount(seg, minlength=n_seg)
@@ -325,6 +336,28 @@ def _rcc_z(
         "pairs_used_z": int(sol.used.sum()),
     }
     return _Stage(d_z, contrast_z, sol.used, sol.residuals, sol.shifts, sol.scale, ok, details)
+
+
+def lateral_only(result: DriftResult) -> DriftResult | None:
+    """An RCC estimate whose x and y passed their checks but z did not, with z left alone
+    (``dz`` = 0) and the z warnings moved to ``details["z_dropped"]``; None for any other
+    estimate (reliable, or unreliable in x and y)."""
+    d = result.details
+    if result.reliable or not d.get("reliable_xy") or d.get("reliable_z", True):
+        return None
+    if d.get("segments", 0) < 3:
+        return None
+    drift = result.drift.copy()
+    drift[:, 2] = 0.0
+    z_notes = [w for w in result.warnings if w.startswith("z:")]
+    rest = [w for w in result.warnings if not w.startswith("z:")]
+    return replace(
+        result,
+        drift=drift,
+        reliable=not rest,
+        warnings=rest,
+        details={**d, "z_estimated": False, "z_dropped": z_notes},
+    )
 
 
 def _rcc_result(

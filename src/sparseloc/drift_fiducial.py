@@ -49,6 +49,7 @@ def fiducial_drift(
     min_fraction: float = 0.8,
     smooth_frames: int = 25,
     all_flags: bool = False,
+    log_warnings: bool = True,
 ) -> DriftResult:
     """Drift from fiducials: spots present in at least ``min_fraction`` of the frames.
 
@@ -72,6 +73,8 @@ def fiducial_drift(
         Length of the running filters and of the detection windows (frames).
     all_flags : bool
         Use flagged rows too.
+    log_warnings : bool
+        Log each of the result's ``warnings`` (False: the caller shows them itself).
 
     Returns
     -------
@@ -99,7 +102,7 @@ def fiducial_drift(
     medians, dev, have, raw, smooth = _combine(fid_pos, smooth_frames)
     ref = smooth[0].copy()  # drift is defined up to a constant: zero at the first frame
     warnings, reliable, spread = _check_fiducials(dev, smooth, have, search)
-    for w in warnings:
+    for w in warnings if log_warnings else ():
         log.warning("fiducial_drift: %s", w)
     return DriftResult(
         frames=np.arange(f0, f1 + 1),

@@ -445,6 +445,29 @@ def truth_in_frames(truth: pd.DataFrame, frames: Sequence[int] | None) -> pd.Dat
     return truth[(f >= start) & (f < stop)]
 
 
+def scoring_cautions(locs: pd.DataFrame, truth: pd.DataFrame) -> list[str]:
+    """What makes a per-frame score of ``locs`` against ``truth`` misleading, one sentence
+    each: a table merged over frames (``filter --merge``), or truth that holds none of the
+    table's frames or only some of them."""
+    out = []
+    if "n_frames" in locs.columns and np.nanmax(locs["n_frames"].to_numpy(), initial=1) > 1:
+        out.append(
+            "the table was merged over frames (filter --merge): a row stands for several "
+            "frames but matches the truth of its first only, so the rest count as missed; "
+            "score the table before merging"
+        )
+    lf, tf = locs["frame"].to_numpy(), truth["frame"].to_numpy()
+    if len(lf) and len(tf):
+        covered = np.isin(np.unique(lf), np.unique(tf)).mean()
+        if covered < 0.5:
+            out.append(
+                f"the truth holds frames {int(tf.min())}-{int(tf.max())} but the table's rows "
+                f"lie in frames {int(lf.min())}-{int(lf.max())} ({covered:.0%} of the table's "
+                "frames have truth): is it the truth of this movie?"
+            )
+    return out
+
+
 def evaluate(
     locs: pd.DataFrame,
     truth: pd.DataFrame,

@@ -56,8 +56,9 @@ _CAUSES_HIGH = (
     "e-/ADU), read noise not given for an sCMOS camera, or an EMCCD camera not declared"
 )
 _CAUSES_LOW = (
-    "likely causes: a gain (e-/ADU) set too low, an EMCCD camera declared for one without EM "
-    "gain, or read noise overstated"
+    "likely causes: an offset set too low (the camera's dark level then counts as light), a "
+    "gain (e-/ADU) set too low, an EMCCD camera declared for one without EM gain, or read "
+    "noise overstated"
 )
 
 

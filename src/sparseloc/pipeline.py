@@ -148,6 +148,13 @@ def _variance_factor(p: LocalizeParams) -> float:
     return 2.0 if p.noise == "emccd" else 1.0
 
 
+#: Emitters closer than this many half-light radii of a typical plane are fitted as one group:
+#: 2, their half-light discs intersect. (With one radius of the broadest plane, a calibrated
+#: double helix's emitters whose lobes overlap were fitted in separate windows, each holding
+#: the other's light fixed, and on storm-analysis's 1 /um^2 frame the sweeps kept false
+#: emitters on the lobes of missed ones; docs/benchmarks/group_span.txt.)
+GROUP_SPAN = 2.0
+
 #: Largest pad (pixels) of a group's window around its emitters in the frame solver. The pad is
 #: the radius holding 90 % of the PSF's light (5 px for storm-analysis's calibrated double
 #: helix, 20 px for the pupil double helix's halo); the cap bounds the cost.
@@ -172,10 +179,9 @@ class _FrameSolver:
             model, params.pixel_size, dxy=params.coarse[0], dz=params.coarse[1], z_range=zr
         )
         self.correlators: dict = {}  # per frame (or tile) shape, see tiled_pursuit
-        r50 = self.templates.core_radius
-        # Groups: emitters closer than the radius holding half the light (broadest plane) are
-        # fitted together: their images overlap enough to trade light.
-        self.group_distance = r50 * params.pixel_size
+        # Groups: emitters whose half-light discs (of a typical plane) intersect are fitted
+        # together: their images overlap enough to trade light.
+        self.group_distance = GROUP_SPAN * self.templates.typical_radius * params.pixel_size
         self.pad = int(np.ceil(min(self.templates.radius90, PAD_CAP)))
         self.reach = 0.5 * self.templates.images.shape[-1] * params.pixel_size
         self.detection_cache: dict = {}
@@ -325,7 +331,9 @@ def localize(
     n = len(frames)
     stop = n if stop is None else min(stop, n)
     if not 0 <= start < stop:
-        raise ValueError(f"frame range {start}:{stop} is empty (the movie has {n} frames)")
+        raise ValueError(
+            f"frame range {start}:{stop} (--frames) is empty (the movie has {n} frames)"
+        )
     get = frames.frames if hasattr(frames, "frames") else (lambda a, b: np.asarray(frames[a:b]))
     shape = np.asarray(get(start, start + 1), dtype=np.float64).shape[-2:]
     # The frame solver needs no tiles but frames of at least one window all the same.

@@ -204,12 +204,6 @@ def select_usable(locs: pd.DataFrame, *, all_flags: bool = False) -> Usable:
             z = _column(locs, "z_nm")
             good &= np.isnan(z) | (np.abs(z) <= MAX_COORDINATE_NM)
     bad_position = ~good & ~flagged
-    if bad_position.any():
-        logger.warning(
-            "dropped %d localizations with a non-finite coordinate or one beyond %g nm",
-            int(bad_position.sum()),
-            MAX_COORDINATE_NM,
-        )
     keep = good & ~flagged
     if n and not keep.any():
         why = "flag 'ok' and " if not all_flags and "flag" in locs.columns else ""
@@ -217,6 +211,14 @@ def select_usable(locs: pd.DataFrame, *, all_flags: bool = False) -> Usable:
         raise ValueError(
             f"none of the {n:,} localizations is usable ({why}finite coordinates within "
             f"{MAX_COORDINATE_NM:g} nm){hint}"
+        )
+    # Warned only when rows remain: with none, the refusal above says it (a warning before
+    # it would print the same cause twice).
+    if bad_position.any():
+        logger.warning(
+            "dropped %d localizations with a non-finite coordinate or one beyond %g nm",
+            int(bad_position.sum()),
+            MAX_COORDINATE_NM,
         )
     out = locs.loc[keep].reset_index(drop=True)
     return Usable(out, n, int(flagged.sum()), int(bad_position.sum()))

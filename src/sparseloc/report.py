@@ -122,7 +122,9 @@ def _drift_section(t: pd.DataFrame, n_frames: int) -> tuple[str, str | None]:
     from .drift import plot_drift, rcc_drift
 
     try:
-        d = rcc_drift(t)
+        # Unreliable: the section's text says why; logged too, the warnings would be printed on
+        # the terminal of a run that asked only for a report (or the demo), beside its output.
+        d = rcc_drift(t, log_warnings=False)
     except ValueError as exc:
         return f"Not estimated: {html.escape(str(exc))}", None
     with tempfile.TemporaryDirectory() as tmp:

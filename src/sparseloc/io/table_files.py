@@ -40,6 +40,9 @@ FLAG_CODES: dict[str, int] = {
     "z_edge": 2,
     "not_converged": 3,
     "diverged": 4,
+    # The fits' flag of a singular Fisher matrix (sparseloc.solvers.mle): without a code every
+    # ThunderSTORM export of a correct run warned that it was written as "other".
+    "bad_sigma": 5,
 }
 _FLAG_OTHER = "other"
 _FLAG_OTHER_CODE = -1

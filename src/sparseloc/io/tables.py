@@ -180,7 +180,7 @@ def read_parquet(path: str | Path) -> tuple[pd.DataFrame, dict[str, Any]]:
         raise ValueError(f"{str(src)!r} is not a readable Parquet file ({exc})") from exc
     raw = (arrow.schema.metadata or {}).get(_PARQUET_KEY)
     meta = _checked_metadata(raw, src.name) if raw else {}
-    df = check_locs(arrow.to_pandas(), what=src.name)
+    df = check_locs(arrow.to_pandas(), what=f"table {src.name!r}")
     return df, meta
 
 
@@ -450,7 +450,7 @@ def read_table(path: str | Path) -> pd.DataFrame:
         return read_smlm_csv(src)
     if "x_nm" in labels:
         raw = read_csv_table(src)
-        return complete_locs(raw, what=f"the table {src.name}")
+        return complete_locs(raw, what=f"table {src.name!r}")
     if {"frame", "x", "y"} <= names:
         return read_thunderstorm_csv(src)
     raise ValueError(

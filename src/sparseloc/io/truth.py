@@ -112,7 +112,9 @@ def read_truth_csv(
 
     Also reads storm-analysis style truth (``frame_0based, x_px, y_px, z_um[, photons_sum]``,
     pixel positions with 0.0 at the centre of the first pixel) when ``pixel_size`` (nm) is
-    given: ``x_nm = (x_px + 0.5) * pixel_size``.
+    given: ``x_nm = (x_px + 0.5) * pixel_size``; and the SMLM 2016 challenge's activations
+    and tables (``frame`` 1-based, ``xnano, ynano[, znano], intensity`` in nm and photons),
+    as ``localize --format smlm`` writes them.
 
     Parameters
     ----------
@@ -163,4 +165,8 @@ def read_truth_csv(
                 conv["photons"] = df[key]
                 break
         df = conv
+    elif {"xnano", "ynano"} <= set(df.columns) and "x_nm" not in df.columns:
+        from .tables import read_smlm_csv
+
+        df = read_smlm_csv(p)[["frame", "x_nm", "y_nm", "z_nm", "photons"]]
     return check_truth_table(df, require_photons=require_photons, what=f"{p.name}")

@@ -228,7 +228,13 @@ def load_mask(
         arr = _read_mask_array(p, key)
         arr = np.squeeze(np.asarray(arr))
         if arr.ndim != 2:
-            raise ValueError(f"the mask in {p.name} must be 2-D, got shape {arr.shape}")
+            hint = (
+                "; a stack of images is a bead z-scan: calibrate it with sparseloc calibrate "
+                "and give the .h5 it writes"
+                if arr.ndim == 3
+                else ""
+            )
+            raise ValueError(f"the mask in {p.name} must be 2-D, got shape {arr.shape}{hint}")
         if arr.dtype.kind not in "biufc":
             raise ValueError(f"the mask in {p.name} holds {arr.dtype} values, not numbers")
         return ArrayMask(arr, centre, radius, flip=flip)
@@ -270,7 +276,14 @@ def _read_mask_array(p: Path, key: str | None) -> NDArray:
             )
         return next(iter(two_d.values()))
     if suffix == ".npy":
-        return np.load(p, allow_pickle=False)
+        try:
+            return np.load(p, allow_pickle=False)
+        except ValueError as exc:
+            # NumPy reads a damaged header as pickled data and suggests allow_pickle=True:
+            # advice for Python code (and unsafe) about a file that holds no array.
+            raise ValueError(
+                "not a NumPy array file (as numpy.save writes): damaged or of another kind"
+            ) from exc
     if suffix in (".tif", ".tiff"):
         import tifffile
 

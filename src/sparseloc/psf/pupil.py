@@ -49,8 +49,10 @@ def _check_args(
     if not (np.isfinite(blur) and blur >= 0):
         raise ValueError(f"blur must be a standard deviation >= 0 nm, got {blur}")
     if not (0 < na < n_immersion):
-        raise ValueError(f"na must be in (0, n_immersion={n_immersion}), got {na}")
-    if wavelength <= 0:
+        raise ValueError(
+            f"na must be in (0, {n_immersion:g}), below the immersion's refractive index, got {na}"
+        )
+    if not wavelength > 0:
         raise ValueError(f"wavelength must be > 0 nm, got {wavelength}")
     if pupil_samples < 16:
         raise ValueError(f"pupil_samples must be >= 16, got {pupil_samples}")

@@ -46,6 +46,10 @@ class FrameTemplates:
         twice this are not accepted in the same pursuit cycle.
     radius90 : float
         Radius (pixels) holding 90 % of the light of the broadest plane.
+    typical_radius : float
+        Radius (pixels) holding half of the light of a typical plane: the median over the
+        planes of each one's half-light radius (a pupil double helix's broadest planes, at
+        the ends of its range, hold their light in a halo twice as wide as its middle ones).
     """
 
     images: NDArray[np.float64]
@@ -55,6 +59,7 @@ class FrameTemplates:
     pixel_size: float
     core_radius: float
     radius90: float
+    typical_radius: float = float("nan")
 
 
 def frame_templates(
@@ -104,11 +109,12 @@ def frame_templates(
     if size < 3 or size % 2 == 0:
         raise ValueError(f"template size must be odd and >= 3, got {size}")
     r50 = energy_radius(imgs, rr.ravel(), 0.5)
+    typical = float(np.median([energy_radius(im[None], rr.ravel(), 0.5) for im in imgs]))
     offs = ((np.arange(phases) + 0.5) / phases - 0.5) * px
     dx, dy, zz = (a.ravel() for a in np.meshgrid(offs, offs, zs, indexing="ij"))
     centre = (size // 2 + 0.5) * px
     images = model.images(centre + dx, centre + dy, zz, (size, size), px)
-    return FrameTemplates(images, dx, dy, zz, px, float(r50), float(r90))
+    return FrameTemplates(images, dx, dy, zz, px, float(r50), float(r90), typical)
 
 
 class Correlator:

@@ -1,0 +1,58 @@
+"""Lengths given in nm, checked against what microscopes make.
+
+A pixel size in the sample (camera pixel over magnification) or a bead scan's stage step far
+outside the range of real instruments is a unit slip: a value in micrometres (the unit of
+storm-analysis, ThunderSTORM's settings and most stage software) given where nm are meant.
+Accepted, it makes a calibration of "39 planes z -1..1 nm" or positions of a few nm across a
+30 um field, and every later step runs without a word. Refused, it costs one sentence.
+"""
+
+from __future__ import annotations
+
+import math
+
+__all__ = [
+    "PIXEL_SIZE_RANGE_NM",
+    "Z_STEP_RANGE_NM",
+    "check_length_nm",
+    "check_pixel_size",
+    "check_z_step",
+]
+
+#: Pixel sizes in the sample that microscopes give (nm): 10 nm is beyond any magnification of
+#: a camera pixel, 20 um beyond any objective used for single molecules.
+PIXEL_SIZE_RANGE_NM = (10.0, 20_000.0)
+#: Stage steps of a bead z-scan (nm): piezo stages step down to a few nm, and a step above
+#: 5 um skips the whole depth of any PSF.
+Z_STEP_RANGE_NM = (1.0, 5_000.0)
+
+
+def check_length_nm(value: object, what: str, plausible: tuple[float, float]) -> float:
+    """``value`` (nm) as a float if it is positive and within ``plausible`` (nm); else
+    ValueError in one sentence naming ``what`` (a flag, say) and, below the range, the value
+    it would be in micrometres."""
+    try:
+        v = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a number of nm, got {value!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"{what} must be a positive number of nm, got {v:g}")
+    lo, hi = plausible
+    if v < lo:
+        raise ValueError(
+            f"{what} {v:g} nm is below what microscopes make ({lo:g}-{hi:g} nm): is it in "
+            f"micrometres? {v:g} um is {v * 1000:g} nm"
+        )
+    if v > hi:
+        raise ValueError(f"{what} {v:g} nm is above what microscopes make ({lo:g}-{hi:g} nm)")
+    return v
+
+
+def check_pixel_size(value: object, what: str = "--pixel-size") -> float:
+    """A pixel size in the sample (nm), checked (:data:`PIXEL_SIZE_RANGE_NM`)."""
+    return check_length_nm(value, what, PIXEL_SIZE_RANGE_NM)
+
+
+def check_z_step(value: object, what: str = "--z-step") -> float:
+    """A bead scan's stage step (nm), checked (:data:`Z_STEP_RANGE_NM`)."""
+    return check_length_nm(value, what, Z_STEP_RANGE_NM)
