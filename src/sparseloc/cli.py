@@ -384,7 +384,8 @@ def demo(
     if not density > 0:
         _fail(f"--density must be > 0, got {density}")
     t0 = time.perf_counter()
-    with _info_from("sparseloc.demo"):  # what it is doing, stage by stage
+    # what it is doing, stage by stage, and the first run's minute of tabulating the model
+    with _info_from("sparseloc.demo"), _info_from("sparseloc.psf.spline"):
         summary = _run(
             run_demo,
             out,
