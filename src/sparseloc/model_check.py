@@ -15,9 +15,8 @@ too low, an EMCCD declared for a camera without EM gain, read noise overstated).
 
 In crowded frames (most fitted windows holding more than :data:`CROWDED_EMITTERS` emitters)
 a correct model fails the check too: the light of emitters the solver could not resolve is
-left in every window, single-emitter windows included (a simulated 2 /um^2 double-helix movie
-with its exact model: median 1.31, 1.31 over its single-emitter windows). The message then
-names the crowding first.
+left in every window, single-emitter windows included, so those cannot stand in for the
+check. The message then names the crowding first.
 
 The yardstick is one window's spread, not the median's own sampling spread: that shrinks as
 ``1 / sqrt(windows)``, so on a long movie it would reject every model short of exact (a spline

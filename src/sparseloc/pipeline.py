@@ -149,10 +149,9 @@ def _variance_factor(p: LocalizeParams) -> float:
 
 
 #: Emitters closer than this many half-light radii of a typical plane are fitted as one group:
-#: 2, their half-light discs intersect. (With one radius of the broadest plane, a calibrated
-#: double helix's emitters whose lobes overlap were fitted in separate windows, each holding
-#: the other's light fixed, and on storm-analysis's 1 /um^2 frame the sweeps kept false
-#: emitters on the lobes of missed ones; docs/benchmarks/group_span.txt.)
+#: 2, their half-light discs intersect, so emitters whose images trade light are fitted
+#: jointly rather than each with the other's light held fixed (a double helix's false emitters
+#: on the lobes of missed ones survive the latter; docs/benchmarks/group_span.txt).
 GROUP_SPAN = 2.0
 
 #: Largest pad (pixels) of a group's window around its emitters in the frame solver. The pad is

@@ -3,8 +3,7 @@
 A pixel size in the sample (camera pixel over magnification) or a bead scan's stage step far
 outside the range of real instruments is a unit slip: a value in micrometres (the unit of
 storm-analysis, ThunderSTORM's settings and most stage software) given where nm are meant.
-Accepted, it makes a calibration of "39 planes z -1..1 nm" or positions of a few nm across a
-30 um field, and every later step runs without a word. Refused, it costs one sentence.
+Accepted, every later step would run on it without a word; refused, it costs one sentence.
 """
 
 from __future__ import annotations
