@@ -101,7 +101,9 @@ def _load_map_file(name: str, path: Path) -> NDArray[np.float64]:
         raise ValueError(f"the {name} map {where} is not a file")
     try:
         if suffix == ".npy":
-            data = np.load(path, allow_pickle=False)
+            from .io.npy import load_array
+
+            data = load_array(path)
         elif suffix == ".csv":
             data = np.loadtxt(path, delimiter=",", dtype=np.float64, ndmin=2)
         else:
@@ -109,12 +111,7 @@ def _load_map_file(name: str, path: Path) -> NDArray[np.float64]:
 
             data = tifffile.imread(path)
     except Exception as exc:  # numpy and tifffile raise many types for a bad file
-        why = str(exc)
-        if "allow_pickle" in why:
-            # NumPy's advice to pass allow_pickle= is for Python code (and unsafe) about a file
-            # that holds no plain array.
-            why = "not a NumPy array file as numpy.save writes: damaged or of another kind"
-        raise ValueError(f"the {name} map file {where} could not be read ({why})") from exc
+        raise ValueError(f"the {name} map file {where} could not be read ({exc})") from exc
     if isinstance(data, np.ndarray) and data.dtype.kind not in "biuf":
         raise ValueError(f"the {name} map {where} holds {data.dtype} values, not numbers")
     return _check_map_array(name, data, where)

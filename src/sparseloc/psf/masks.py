@@ -276,14 +276,9 @@ def _read_mask_array(p: Path, key: str | None) -> NDArray:
             )
         return next(iter(two_d.values()))
     if suffix == ".npy":
-        try:
-            return np.load(p, allow_pickle=False)
-        except ValueError as exc:
-            # NumPy reads a damaged header as pickled data and suggests allow_pickle=True:
-            # advice for Python code (and unsafe) about a file that holds no array.
-            raise ValueError(
-                "not a NumPy array file (as numpy.save writes): damaged or of another kind"
-            ) from exc
+        from ..io.npy import load_array
+
+        return load_array(p)
     if suffix in (".tif", ".tiff"):
         import tifffile
 
