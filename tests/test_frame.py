@@ -654,3 +654,73 @@ def test_neighbour_light_from_pieces_equals_rendering_into_the_window(dh_table, 
         light.keep(em[:1])
         if model is dh_table:
             assert len(light._pieces) == 1
+
+
+# --- count selection's thresholds --------------------------------------------------------
+
+
+def test_the_removal_threshold_is_the_chi_square_one_for_a_lone_emitter():
+    from sparseloc.solvers.refine import LR_THRESHOLD, removal_threshold
+
+    assert removal_threshold(1, 80.0, LR_THRESHOLD) == LR_THRESHOLD
+    assert removal_threshold(2, 80.0, LR_THRESHOLD) == 80.0
+    assert removal_threshold(1, 10.0, LR_THRESHOLD) == 10.0
+    assert removal_threshold(1, 80.0, None) == 80.0
+
+
+def test_a_lone_dim_emitter_at_high_background_is_kept(analytic):
+    """1,000 photons on 300 photons/px: a likelihood ratio of about 53, between the chi-square
+    threshold (18.47) and the frame's addition threshold (80). Alone in its group it stays."""
+    shape, b, n = (48, 48), 300.0, 1000.0
+    img = analytic.render(
+        np.array([2400.0]), np.array([2400.0]), np.zeros(1), np.ones(1), shape, PX
+    )
+    expected_ratio = float(np.sum((n * img) ** 2 / (b + n * img)))
+    assert 40 < expected_ratio < 70
+    t = frame_templates(analytic, PX, dxy=50.0, dz=100.0)
+    # a window holding 90 % of the light, as the pipeline pads it
+    kw = {**frame_fit_kwargs(t), "background": b, "pad": int(np.ceil(t.radius90))}
+    kept = 0
+    for seed in range(10):
+        f = np.random.default_rng(seed).poisson(n * img + b).astype(float)
+        start = Emitters.from_array(np.array([[2400.0, 2400.0, 0.0, n]]))
+        fit = frame_fit(f, analytic, start, **kw)
+        kept += len(fit.emitters) == 1
+    assert kept >= 8
+
+
+def test_localize_from_given_starts_keeps_the_true_emitters():
+    """Started from the truth, the frame solver keeps it (the fits' ceiling); started from
+    nothing, it finds nothing; bad starts are refused in one sentence."""
+    from sparseloc.evaluate import evaluate
+    from sparseloc.pipeline import LocalizeParams, localize
+
+    truth_rows = np.array([[1500.0, 1600.0, -200.0, 3000.0], [3300.0, 3100.0, 300.0, 4000.0]])
+    frames = np.stack(
+        [poisson_frame(analytic_model(), truth_rows, (48, 48), seed=s) for s in (0, 1)]
+    )
+    truth = pd.DataFrame(
+        {
+            "frame": [0, 0, 1, 1],
+            "x_nm": np.tile(truth_rows[:, 0], 2),
+            "y_nm": np.tile(truth_rows[:, 1], 2),
+            "z_nm": np.tile(truth_rows[:, 2], 2),
+            "photons": np.tile(truth_rows[:, 3], 2),
+        }
+    )
+    params = LocalizeParams(pixel_size=PX, method="frame")
+    res = localize(frames, analytic_model(), params, starts=truth.drop(columns="photons"))
+    ev = evaluate(res.table, truth)
+    assert ev.recall == 1.0 and ev.precision == 1.0
+    assert ev.rmse_lateral < 30.0
+    empty = localize(frames, analytic_model(), params, starts=truth.iloc[:0])
+    assert len(empty.table) == 0
+    with pytest.raises(ValueError, match="no column z_nm"):
+        localize(frames, analytic_model(), params, starts=truth.drop(columns="z_nm"))
+    with pytest.raises(ValueError, match="need method='frame'"):
+        params = LocalizeParams(pixel_size=PX, method="hybrid")
+        localize(frames, analytic_model(), params, starts=truth)
+
+
+def analytic_model():
+    return make_psf("dh-analytic")

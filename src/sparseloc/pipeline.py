@@ -43,6 +43,7 @@ from .pool import in_processes
 from .psf.base import PSFModel
 from .psf.spline import SplinePSF
 from .solvers import WindowSolution, convex_solve, hybrid_solve, matching_pursuit
+from .solvers.emitters import Emitters
 from .solvers.frame import FrameFit, frame_fit, frame_templates, tiled_pursuit
 from .solvers.refine import refine_solution
 from .solvers.two_tier import solve_two_tier
@@ -215,7 +216,15 @@ class _FrameSolver:
             **self.noise_kw,
         )
 
-    def __call__(self, frame: NDArray, background: NDArray) -> FrameFit:
+    def __call__(
+        self, frame: NDArray, background: NDArray, start: NDArray | None = None
+    ) -> FrameFit:
+        """Solve one frame, from the pursuit's emitters or from ``start`` (K, 4) if given."""
+        if start is not None:
+            emitters = Emitters.from_array(np.asarray(start, dtype=np.float64).reshape(-1, 4))
+            return frame_fit(
+                frame, self.model, emitters, background=background, **self.fit_kwargs()
+            )
         if self.p.frame_schedule == "two-tier":
             return solve_two_tier(
                 frame,
@@ -290,6 +299,7 @@ def localize(
     workers: int = 1,
     read_variance: NDArray | None = None,
     check: bool = True,
+    starts: pd.DataFrame | None = None,
 ) -> LocalizeResult:
     """Localize every frame of a movie (photons) and return the localization table.
 
@@ -321,6 +331,12 @@ def localize(
         ``params.read_variance``.
     check : bool
         Run the model check (a chunk of a longer run leaves it to the whole run).
+    starts : DataFrame, optional
+        Emitters to start the frame solver from in place of its pursuit: columns ``frame``
+        (0-based), ``x_nm``, ``y_nm``, ``z_nm`` and optionally ``photons`` (default
+        :data:`START_PHOTONS`). Everything after the start (fits, count selection,
+        relocation) is the same; started from the true emitters, the result is the ceiling of
+        what the fits can keep.
 
     Returns
     -------
@@ -343,6 +359,8 @@ def localize(
         read_variance = _checked_read_variance(read_variance, shape, params)
     t0 = time.perf_counter()
     inputs = _frames_and_backgrounds(get, n, start, stop, block, params)
+    if starts is not None:
+        inputs = _with_starts(inputs, starts, params)
     work_args = (work_model_for(model, params), params, shape, read_variance)
     parts: list[dict] = []
     n_windows = _collect(
@@ -481,8 +499,33 @@ def _solve(inputs, work_args: tuple, workers: int):
     # threads) and the same arithmetic gives the same table whatever ``workers``.
     with threadpool_limits(limits=1), use_engine(engine):
         work = _FrameWork(*work_args)
-        for f, frame, bg in inputs:
-            yield work(f, frame, bg)
+        for item in inputs:
+            yield work(*item)
+
+
+#: Photons of a given start without a ``photons`` column (the fits estimate them).
+START_PHOTONS = 1000.0
+
+
+def _with_starts(inputs, starts: pd.DataFrame, p: LocalizeParams):
+    """``inputs`` (frame index, frame, background) with each frame's rows of ``starts`` as an
+    array (K, 4) of x, y, z (nm) and photons."""
+    if p.method != "frame":
+        raise ValueError(f"starting emitters need method='frame', not {p.method!r}")
+    missing = [c for c in ("frame", "x_nm", "y_nm", "z_nm") if c not in starts.columns]
+    if missing:
+        raise ValueError(f"the starting emitters have no column {', '.join(missing)}")
+    photons = starts["photons"] if "photons" in starts.columns else START_PHOTONS
+    arr = np.column_stack(
+        [
+            starts["x_nm"].to_numpy(float),
+            starts["y_nm"].to_numpy(float),
+            starts["z_nm"].to_numpy(float),
+            np.broadcast_to(np.asarray(photons, dtype=float), len(starts)),
+        ]
+    )
+    frames = starts["frame"].to_numpy(np.int64)
+    return ((f, frame, bg, arr[frames == f]) for f, frame, bg in inputs)
 
 
 def _table(parts: list[dict]) -> pd.DataFrame:
@@ -546,11 +589,14 @@ class _FrameWork:
             tsize = min(2 * p.window + 1, 2 * (min(shape) // 2) - 1)
             self.template = z_averaged_psf(work_model, p.pixel_size, zr, tsize)
 
-    def __call__(self, f: int, frame: NDArray, bg: NDArray) -> tuple[list[dict], int]:
-        """Table parts and the number of windows of frame ``f``."""
+    def __call__(
+        self, f: int, frame: NDArray, bg: NDArray, start: NDArray | None = None
+    ) -> tuple[list[dict], int]:
+        """Table parts and the number of windows of frame ``f`` (the frame solver starts from
+        ``start`` (K, 4) when one is given)."""
         p = self.p
         if p.method == "frame":
-            fit = self.solver(frame, bg)
+            fit = self.solver(frame, bg, start)
             # window ids: the group index here; localize() makes them unique over the movie
             return [_frame_rows(fit, f, 0)], int(fit.group.max() + 1) if len(fit.group) else 0
         parts = []

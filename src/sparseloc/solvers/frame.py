@@ -46,13 +46,14 @@ from .frame_windows import (
 )
 from .mle import LikelihoodProblem, check_qe, fit_emitters
 from .mp import MIN_PHOTONS
-from .refine import fit_with_count_selection
+from .refine import LR_THRESHOLD, fit_with_count_selection
 from .relocate import RELOCATE, RELOCATE_AFTER, relocation_pass
 
 log = logging.getLogger(__name__)
 
 __all__ = [
     "ADD_THRESHOLD",
+    "SINGLE_THRESHOLD",
     "FrameFit",
     "FrameTemplates",
     "add_threshold",
@@ -69,6 +70,14 @@ __all__ = [
 #: structured residuals read as one more emitter; 80 is an empirical value on the
 #: photon-counting scale (measurements in ``docs/benchmarks/code_notes_frame.md``).
 ADD_THRESHOLD = 80.0
+
+#: Removal threshold of an emitter alone in its group: the chi-square 0.1 % tail
+#: (:data:`~sparseloc.solvers.refine.LR_THRESHOLD`, on the likelihood's scale). Its start
+#: already passed the pursuit's significance test over the frame, and no overlapping fit
+#: lends it misplaced light, so the test is one against the noise (and the model error's
+#: allowance); at high background it keeps emitters whose ratio lies between this and
+#: :data:`ADD_THRESHOLD` (``docs/benchmarks/single_threshold.txt``).
+SINGLE_THRESHOLD = LR_THRESHOLD
 
 
 def add_threshold(lr_threshold: float | None, qe: float = 1.0) -> float:
@@ -304,7 +313,9 @@ def frame_fit(
     count_selection, lr_threshold, min_photons, max_emitters
         Count selection in each group (see :func:`fit_with_count_selection`); the default
         ``lr_threshold`` is :data:`ADD_THRESHOLD`, on the photon-counting scale (multiplied by
-        ``qe`` when one is given). A group may always grow by two emitters.
+        ``qe`` when one is given); an emitter alone in its group is removed below
+        :data:`SINGLE_THRESHOLD` (or ``lr_threshold`` if lower). A group may always grow by
+        two emitters.
     max_group : int
         Larger groups are halved (across their longer side) until no part exceeds this: a
         dense field would otherwise make one huge fit (memory and time grow with its square).
@@ -487,6 +498,7 @@ class _Sweep:
                 model,
                 start,
                 lr_threshold=o["lr_threshold"],
+                single_threshold=SINGLE_THRESHOLD,
                 min_photons=o["min_photons"],
                 max_emitters=max(o["max_emitters"], len(start_em) + 2),
                 **kw,

@@ -6,7 +6,8 @@ weakest emitter removed is refitted; it replaces the K-emitter model when the li
 ``2 (logL_K - logL_{K-1})`` is below ``lr_threshold``. (That refit is skipped, and the emitter
 kept, when its Wald statistic ``(N / sigma_N)^2``, the quadratic approximation of the same
 ratio, is at or above ``lr_threshold`` and it has at least ``min_photons``:
-:data:`REMOVE_SKIP_FACTOR`.) Otherwise one emitter is added where the
+:data:`REMOVE_SKIP_FACTOR`; a window's only emitter may be given a lower threshold,
+:func:`removal_threshold`.) Otherwise one emitter is added where the
 residual correlates best with the PSF (the two best places are tried, each fitted) and the
 K+1 model is kept when the ratio
 ``2 (logL_{K+1} - logL_K)`` exceeds ``lr_threshold``. Each emitter has 4 parameters, so under the
@@ -212,6 +213,21 @@ def _error_allowance(null: FitResult, model: PSFModel, kw: dict) -> float:
     return error_allowance(noise_var, signal, e)
 
 
+def removal_threshold(k: int, lr_threshold: float, single_threshold: float | None) -> float:
+    """The removal test's threshold for a window of ``k`` emitters: ``lr_threshold``, or
+    ``single_threshold`` where it is lower and the window holds one emitter.
+
+    A lone emitter's ratio is that of a test at a place already found (its start passed the
+    detection's significance over the frame), against the noise alone, so the chi-square
+    threshold applies. Where images overlap, a ratio also carries the light the other fitted
+    emitters misplace, and the stricter ``lr_threshold`` keeps the emitters that absorb it
+    from staying (a frame's additions are tested against it too).
+    """
+    if k == 1 and single_threshold is not None:
+        return min(float(single_threshold), float(lr_threshold))
+    return float(lr_threshold)
+
+
 def weakest_removed(
     y: NDArray,
     model: PSFModel,
@@ -219,6 +235,7 @@ def weakest_removed(
     kw: dict,
     lr_threshold: float,
     min_photons: float = MIN_PHOTONS,
+    single_threshold: float | None = None,
 ) -> FitResult | None:
     """The count selection's removal test: the fit without the weakest emitter of ``best``
     when that emitter has fewer than ``min_photons`` or its likelihood ratio is below the
@@ -227,6 +244,8 @@ def weakest_removed(
     ``kw``: the keywords of :func:`fit_emitters` that ``best`` was fitted with. An emitter
     whose Wald statistic ``(N / sigma_N)^2`` (the quadratic approximation of the ratio) is at
     or above :data:`REMOVE_SKIP_FACTOR` times the bar is kept without the refit.
+    ``single_threshold``: the threshold when ``best`` holds one emitter, if lower (see
+    :func:`removal_threshold`).
     """
     k = len(best.emitters)
     if k == 0:
@@ -236,7 +255,8 @@ def weakest_removed(
     # sigma comes from the weighted Fisher matrix: (N / sigma)^2 is on the scale of the
     # (weighted) likelihood ratio; the model error raises the bar of both
     fit_kwargs = {key: v for key, v in kw.items() if key not in ("pixel_size", "origin")}
-    bar = lr_threshold + _error_allowance(best, model, fit_kwargs)
+    bar = removal_threshold(k, lr_threshold, single_threshold)
+    bar += _error_allowance(best, model, fit_kwargs)
     crlb = best.sigma if best.crlb is None else best.crlb
     wald = (arr[weakest, 3] / crlb[weakest, 3]) ** 2
     dim = arr[weakest, 3] < min_photons
@@ -262,6 +282,7 @@ def fit_with_count_selection(
     max_emitters: int = 10,
     max_changes: int = 4,
     min_photons: float = MIN_PHOTONS,
+    single_threshold: float | None = None,
     **fit_kwargs,
 ) -> FitResult:
     """Fit K emitters, then test K-1 and K+1 by a likelihood ratio (see the module notes).
@@ -280,6 +301,9 @@ def fit_with_count_selection(
     min_photons : float
         Emitters fitted with fewer photons are removed whatever the likelihood ratio (they
         explain noise or model mismatch, not molecules), and are never added.
+    single_threshold : float, optional
+        The removal test's threshold when the window holds one emitter, if lower than
+        ``lr_threshold`` (:func:`removal_threshold`).
     **fit_kwargs
         Passed to :func:`fit_emitters` (``noise``, ``plane``, ``background``, ...).
     """
@@ -295,7 +319,7 @@ def fit_with_count_selection(
         changed = False
         k = len(best.emitters)
         bg = float(best.background[0])
-        fewer = weakest_removed(y, model, best, kw, lr_threshold, min_photons)
+        fewer = weakest_removed(y, model, best, kw, lr_threshold, min_photons, single_threshold)
         if fewer is not None:
             best = fewer
             changes += 1

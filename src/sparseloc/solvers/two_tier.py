@@ -49,7 +49,14 @@ from scipy.spatial import cKDTree
 from ..detect import detect_candidates, snr_at
 from ..psf.base import PSFModel
 from .emitters import Emitters
-from .frame import SKIP_TOLERANCE, FrameFit, _try_z_flips, add_threshold, frame_fit
+from .frame import (
+    SINGLE_THRESHOLD,
+    SKIP_TOLERANCE,
+    FrameFit,
+    _try_z_flips,
+    add_threshold,
+    frame_fit,
+)
 from .frame_mp import FrameTemplates
 from .frame_windows import NeighbourLight, window_box, window_data, window_kwargs
 from .mle import fit_emitters
@@ -278,7 +285,7 @@ class _Tier1:
         if self.z_flip:
             fit = _try_z_flips(y, model, fit, kw, self.z_flip, None)
         # the frame solver's count selection would remove an emitter this weak
-        fewer = weakest_removed(y, model, fit, kw, self.lr, MIN_PHOTONS)
+        fewer = weakest_removed(y, model, fit, kw, self.lr, MIN_PHOTONS, SINGLE_THRESHOLD)
         if fewer is not None:
             fit = fewer
         nf, e, rv = self.noise
