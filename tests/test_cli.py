@@ -182,6 +182,16 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
     res = run("localize", movie, "-o", out_r, "--config", cfg, "--relocate", "0")
     assert res.exit_code == 0, res.output
     assert read_parquet(out_r)[1]["params"]["relocate"] == 0
+    assert meta["params"]["second_start"] is True  # the default
+    out_s = tmp_path / "locs_s.parquet"
+    res = run("localize", movie, "-o", out_s, "--config", cfg, "--no-second-start")
+    assert res.exit_code == 0, res.output
+    assert read_parquet(out_s)[1]["params"]["second_start"] is False
+    cfg_s = tmp_path / "run_s.toml"
+    cfg_s.write_text(cfg.read_text() + "second_start = false\n")
+    res = run("localize", movie, "-o", tmp_path / "locs_t.parquet", "--config", cfg_s)
+    assert res.exit_code == 0, res.output
+    assert read_parquet(tmp_path / "locs_t.parquet")[1]["params"]["second_start"] is False
     # bad input: wrong pixel size, offset above the data, missing folder, unknown config key
     for args, msg in [
         (["--config", cfg, "--pixel-size", "100"], "differs from the movie"),

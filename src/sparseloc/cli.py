@@ -644,6 +644,14 @@ def localize(
             "1.3-2x faster on sparse movies).",
         ),
     ] = None,
+    second_start: Annotated[
+        bool | None,
+        typer.Option(
+            "--second-start/--no-second-start",
+            help="Also fit each frame from its L1 deconvolution's peaks and keep the likelier "
+            "fit per region (default on; off: about 2x faster on crowded frames).",
+        ),
+    ] = None,
     relocate: Annotated[
         int | None,
         typer.Option(
@@ -747,6 +755,7 @@ def localize(
         "z_max": z_max,
         "min_snr": min_snr,
         "refine": refine,
+        "second_start": second_start,
         "relocate": relocate,
         "frame_schedule": frame_schedule,
         "background": background,

@@ -122,6 +122,12 @@ class LocalizeParams:
         (:mod:`sparseloc.solvers.two_tier`): 1.3-2x faster at 0.05 emitters/um^2 with the
         same Jaccard on simulations; on storm-analysis's 1 /um^2 double-helix frame 1.8
         points lower (``docs/benchmarks/two_tier.txt``).
+    second_start : bool
+        The whole-frame solver also fits the frame from a second start, the peaks of its
+        non-negative L1 deconvolution (:mod:`sparseloc.solvers.frame_l1`), and keeps, region
+        by region, the likelier of the two fits (:mod:`sparseloc.solvers.frame_compose`):
+        more emitters found right in crowds, at the cost of the second fit where the two
+        starts differ (``docs/benchmarks/second_start.txt``). False: the pursuit's start alone.
     """
 
     pixel_size: float
@@ -145,6 +151,7 @@ class LocalizeParams:
     qe: float = 1.0
     relocate: int = RELOCATE
     frame_schedule: str = "whole-frame"
+    second_start: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -408,5 +415,6 @@ def build_job(options: dict[str, Any], movie: Any) -> LocalizeJob:
         qe=cam.qe,
         **({} if opts["relocate"] is None else {"relocate": opts["relocate"]}),
         **({} if opts["frame_schedule"] is None else {"frame_schedule": opts["frame_schedule"]}),
+        second_start=opts["second_start"],
     )
     return LocalizeJob(model, cam, params, start, stop, read_var if read_var.ndim == 2 else None)

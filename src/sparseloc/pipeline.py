@@ -44,7 +44,17 @@ from .psf.base import PSFModel
 from .psf.spline import SplinePSF
 from .solvers import WindowSolution, convex_solve, hybrid_solve, matching_pursuit
 from .solvers.emitters import Emitters
-from .solvers.frame import FrameFit, frame_fit, frame_templates, tiled_pursuit
+from .solvers.frame import FrameFit, add_threshold, frame_fit, frame_templates, tiled_pursuit
+from .solvers.frame_compose import (
+    crowded_boxes,
+    inside,
+    joined,
+    likelier_per_region,
+    same_as,
+    shifted,
+    subset,
+)
+from .solvers.frame_l1 import l1_templates, tiled_l1_starts
 from .solvers.refine import refine_solution
 from .solvers.two_tier import solve_two_tier
 
@@ -185,6 +195,9 @@ class _FrameSolver:
         self.pad = int(np.ceil(min(self.templates.radius90, PAD_CAP)))
         self.reach = 0.5 * self.templates.images.shape[-1] * params.pixel_size
         self.detection_cache: dict = {}
+        self.l1 = l1_templates(model, self.templates) if params.second_start else None
+        planes = np.unique(self.l1.z) if self.l1 is not None else np.zeros(1)
+        self.l1_spacing = float(np.min(np.diff(planes))) if planes.size > 1 else 0.0
 
     def start(self, frame: NDArray, background: NDArray, read_variance: Any = None):
         """The pursuit's emitters of one frame or crop (the fits' starting point); the read
@@ -239,7 +252,82 @@ class _FrameSolver:
                 cache=self.detection_cache,
             )
         start = self.start(frame, background)
-        return frame_fit(frame, self.model, start, background=background, **self.fit_kwargs())
+        first = frame_fit(frame, self.model, start, background=background, **self.fit_kwargs())
+        return first if self.l1 is None else self.second(frame, background, first)
+
+    def second(self, frame: NDArray, background: NDArray, first: FrameFit) -> FrameFit:
+        """``first`` with each region where a fit from the L1 deconvolution's peaks places
+        the emitters otherwise, and is likelier, replaced by that fit. Only the parts of the
+        frame where ``first`` has groups of two or more are solved again (with a template's
+        reach around them, the light of ``first``'s other emitters known)."""
+        p = self.p
+        px = p.pixel_size
+        margin = self.templates.images.shape[-1] // 2
+        boxes = crowded_boxes(first, np.shape(frame), px, margin)
+        if not boxes:
+            return first
+        arr = first.emitters.as_array().reshape(-1, 4)
+        redone = np.zeros(len(arr), bool)
+        second = None
+        for box in boxes:
+            mine = inside(arr, box, px)
+            part = self.crop_fit(frame, background, box, arr[~mine], arr[mine])
+            if part is not None:
+                redone |= mine
+                second = part if second is None else joined(second, part)
+        if second is None:
+            return first
+        second = joined(subset(first, ~redone), second)
+        return likelier_per_region(
+            frame,
+            np.broadcast_to(background, np.shape(frame)),
+            first,
+            second,
+            self.model,
+            pixel_size=p.pixel_size,
+            group_distance=self.group_distance,
+            pad=self.pad,
+            penalty=add_threshold(None, p.qe),
+            fit_kwargs={**self.noise_kw, "noise": p.noise},
+        )
+
+    def crop_fit(
+        self, frame: NDArray, background: NDArray, box: tuple, others: NDArray, mine: NDArray
+    ) -> FrameFit | None:
+        """The frame fit of the pixels ``box`` from the L1 deconvolution's peaks, with the
+        light of ``others`` (K, 4) known; emitters in frame coordinates. None where the peaks
+        are the first fit's emitters ``mine`` (one each, within a pixel laterally and one of
+        the deconvolution's plane spacings axially): the fit from them would find the same."""
+        p, px = self.p, self.p.pixel_size
+        r0, r1, c0, c1 = box
+        crop = np.asarray(frame)[r0:r1, c0:c1]
+        bg = np.broadcast_to(background, np.shape(frame))[r0:r1, c0:c1]
+        origin = (c0 * px, r0 * px)
+        light = (
+            self.model.render(*others.T, crop.shape, px, origin=origin)
+            if len(others)
+            else np.zeros(crop.shape)
+        )
+        kw = self.fit_kwargs()
+        rv = kw.get("read_variance")
+        if rv is not None and np.ndim(rv) == 2:
+            kw["read_variance"] = rv[r0:r1, c0:c1]
+        starts = tiled_l1_starts(
+            crop - light,
+            bg,
+            self.l1,
+            peak_radius=self.templates.typical_radius,
+            min_snr=p.min_snr,
+            noise_factor=_variance_factor(p),
+            read_variance=kw.get("read_variance", 0.0),
+        )
+        shifted_starts = starts.as_array().reshape(-1, 4) + np.array([*origin, 0.0, 0.0])
+        if len(shifted_starts) == len(mine) and np.all(
+            same_as(shifted_starts, mine, px, self.l1_spacing)
+        ):
+            return None
+        fit = frame_fit(crop, self.model, starts, background=bg, fixed_light=light, **kw)
+        return shifted(fit, *origin)
 
 
 def _frame_rows(fit: FrameFit, frame: int, id0: int) -> dict:

@@ -24,7 +24,14 @@ from .emitters import Emitters
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Correlator", "FrameTemplates", "frame_pursuit", "frame_templates", "tiled_pursuit"]
+__all__ = [
+    "Correlator",
+    "FrameTemplates",
+    "frame_pursuit",
+    "frame_templates",
+    "in_tiles",
+    "tiled_pursuit",
+]
 
 
 @dataclass(frozen=True)
@@ -396,21 +403,34 @@ def tiled_pursuit(
 
     if rows * cols <= max_pixels:
         return run(f, bg)
+
+    def run_window(window: tuple[slice, slice]) -> NDArray:
+        return run(f[window], bg[window], window).as_array().reshape(-1, 4)
+
     px = templates.pixel_size
-    m = templates.images.shape[-1]
-    wr, wc = min(rows, core + 2 * m), min(cols, core + 2 * m)
-    parts = []
+    return Emitters.from_array(in_tiles(run_window, f.shape, px, core, templates.images.shape[-1]))
+
+
+def in_tiles(run, shape: tuple[int, int], pixel_size: float, core: int, margin: int) -> NDArray:
+    """Emitters (K, 4) of a large frame found tile by tile: ``run(window)`` finds those of
+    the frame's pixels ``window`` (a pair of slices) in the window's coordinates (nm); each
+    tile's core of ``core`` pixels is searched with ``margin`` pixels around it and keeps the
+    emitters inside the core. The tiles at the far edges are shifted inwards so that every
+    tile has the same shape."""
+    rows, cols = shape
+    px = pixel_size
+    wr, wc = min(rows, core + 2 * margin), min(cols, core + 2 * margin)
+    parts = [np.zeros((0, 4))]
     for r0 in range(0, rows, core):
         for c0 in range(0, cols, core):
             r1, c1 = min(r0 + core, rows), min(c0 + core, cols)
-            ra = int(np.clip(r0 - m, 0, rows - wr))
-            ca = int(np.clip(c0 - m, 0, cols - wc))
-            rb, cb = ra + wr, ca + wc
-            win = (slice(ra, rb), slice(ca, cb))
-            e = run(f[win], bg[win], win).as_array().reshape(-1, 4)
+            ra = int(np.clip(r0 - margin, 0, rows - wr))
+            ca = int(np.clip(c0 - margin, 0, cols - wc))
+            e = np.array(run((slice(ra, ra + wr), slice(ca, ca + wc))), dtype=np.float64)
+            e = e.reshape(-1, 4)
             e[:, 0] += ca * px
             e[:, 1] += ra * px
             inside = (e[:, 0] >= c0 * px) & (e[:, 0] < c1 * px)
             inside &= (e[:, 1] >= r0 * px) & (e[:, 1] < r1 * px)
             parts.append(e[inside])
-    return Emitters.from_array(np.vstack(parts))
+    return np.vstack(parts)

@@ -1,0 +1,211 @@
+"""Two fits of one frame, from two starting points, made into one: the likelier per region.
+
+The frame solver's fits only go uphill from their start, and in a crowd the pursuit's greedy
+start can leave them in a wrong arrangement that the true one beats by far (started from the
+true emitters, storm-analysis's 1 /um^2 double-helix frame keeps 98.6 % of them; from the
+pursuit, 71 %). A second start from the L1 deconvolution (:mod:`sparseloc.solvers.frame_l1`)
+gets stuck elsewhere. Where the two fits disagree, each region's two arrangements are refitted
+in the same window, with the same free background and the light of every other emitter known,
+and the one with the larger likelihood, less the count selection's threshold per emitter,
+is kept. Regions where only one fit has emitters are left to that fit's count selection.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..psf.base import PSFModel
+from .emitters import Emitters
+from .frame import FrameFit
+from .frame_windows import NeighbourLight, window_box, window_data, window_kwargs
+from .mle import fit_emitters
+
+__all__ = [
+    "crowded_boxes",
+    "inside",
+    "joined",
+    "likelier_per_region",
+    "same_as",
+    "shifted",
+    "subset",
+]
+
+#: Emitters of the two fits this close (nm, laterally and axially) are the same emitter.
+SAME_LATERAL, SAME_AXIAL = 20.0, 40.0
+
+
+def same_as(a: NDArray, b: NDArray, lateral: float, axial: float) -> NDArray[np.bool_]:
+    """(len(a),): whether each emitter of ``a`` (K, 4+) has one of ``b`` within ``lateral`` nm
+    laterally and ``axial`` nm axially."""
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros(len(a), bool)
+    d = np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
+    dz = np.abs(a[:, None, 2] - b[None, :, 2])
+    return ((d <= lateral) & (dz <= axial)).any(axis=1)
+
+
+def _regions(points: NDArray, distance: float) -> NDArray[np.intp]:
+    """Labels of the points (K, 2+) linked by steps shorter than ``distance`` (nm)."""
+    n = len(points)
+    parent = np.arange(n)
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i in range(n):
+        d = np.hypot(points[i + 1 :, 0] - points[i, 0], points[i + 1 :, 1] - points[i, 1])
+        for j in np.nonzero(d < distance)[0]:
+            parent[root(i)] = root(i + 1 + int(j))
+    return np.array([root(i) for i in range(n)], dtype=np.intp)
+
+
+def crowded_boxes(
+    fit: FrameFit, shape: tuple[int, int], pixel_size: float, margin: int
+) -> list[tuple[int, int, int, int]]:
+    """The parts of a frame where ``fit`` has groups of more than one emitter: each such
+    group's pixels and ``margin`` more each way (r0, r1, c0, c1), overlapping parts merged.
+    Where every emitter was fitted alone, a second start has no arrangement to find that the
+    first missed (the count selection decided each emitter's presence)."""
+    arr = fit.emitters.as_array().reshape(-1, 4)
+    groups, counts = np.unique(fit.group, return_counts=True)
+    boxes = [
+        window_box(arr[fit.group == g], *shape, pixel_size, margin)
+        for g, n in zip(groups, counts, strict=True)
+        if n > 1
+    ]
+    merged = True
+    while merged and len(boxes) > 1:
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                a, b = boxes[i], boxes[j]
+                if a[0] < b[1] and b[0] < a[1] and a[2] < b[3] and b[2] < a[3]:
+                    boxes[i] = (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
+                    del boxes[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    return boxes
+
+
+def inside(arr: NDArray, box: tuple[int, int, int, int], pixel_size: float) -> NDArray[np.bool_]:
+    """(K,): whether each emitter of ``arr`` (K, 4+) lies on the pixels ``box``."""
+    r0, r1, c0, c1 = box
+    c, r = arr[:, 0] / pixel_size, arr[:, 1] / pixel_size
+    return (r >= r0) & (r < r1) & (c >= c0) & (c < c1)
+
+
+def shifted(fit: FrameFit, dx: float, dy: float) -> FrameFit:
+    """``fit`` with its emitters moved by ``dx``, ``dy`` (nm): a crop's fit in the frame."""
+    arr = fit.emitters.as_array().reshape(-1, 4).copy()
+    arr[:, 0] += dx
+    arr[:, 1] += dy
+    return FrameFit(
+        Emitters.from_array(arr), fit.sigma, fit.background, fit.gof, fit.flags, fit.group
+    )
+
+
+def subset(fit: FrameFit, keep: NDArray[np.bool_]) -> FrameFit:
+    """The emitters ``keep`` of ``fit``."""
+    arr = fit.emitters.as_array().reshape(-1, 4)
+    return FrameFit(
+        Emitters.from_array(arr[keep]),
+        fit.sigma[keep],
+        fit.background[keep],
+        fit.gof[keep],
+        fit.flags[keep],
+        fit.group[keep],
+    )
+
+
+def joined(a: FrameFit, b: FrameFit) -> FrameFit:
+    """The emitters of ``a`` then ``b``; ``b``'s groups numbered after ``a``'s."""
+    g0 = int(a.group.max()) + 1 if len(a.group) else 0
+    return FrameFit(
+        Emitters.from_array(
+            np.vstack([a.emitters.as_array().reshape(-1, 4), b.emitters.as_array().reshape(-1, 4)])
+        ),
+        np.vstack([a.sigma.reshape(-1, 4), b.sigma.reshape(-1, 4)]),
+        np.concatenate([a.background, b.background]),
+        np.concatenate([a.gof, b.gof]),
+        np.concatenate([a.flags, b.flags]),
+        np.concatenate([a.group, b.group + g0]),
+    )
+
+
+def likelier_per_region(
+    frame: NDArray,
+    background: NDArray,
+    first: FrameFit,
+    second: FrameFit,
+    model: PSFModel,
+    *,
+    pixel_size: float,
+    group_distance: float,
+    pad: int,
+    penalty: float,
+    fit_kwargs: dict,
+) -> FrameFit:
+    """One fit of the frame from two: ``first``, with each region where ``second`` places its
+    emitters differently replaced by ``second``'s where that is likelier.
+
+    Parameters
+    ----------
+    frame : ndarray, shape (rows, cols)
+        The frame (photons).
+    background : ndarray, shape (rows, cols)
+        Its background (photons/pixel): each window fit's start.
+    first, second : FrameFit
+        Two fits of the frame.
+    model : PSFModel
+        The fits' PSF model.
+    pixel_size : float
+        Pixel size (nm).
+    group_distance : float
+        Emitters that only one fit has (within :data:`SAME_LATERAL` / :data:`SAME_AXIAL` nm)
+        form regions of those closer than this (nm).
+    pad : int
+        Pixels around a region's emitters in its window.
+    penalty : float
+        ``2 log L`` an emitter must add to be worth it: the count selection's threshold.
+    fit_kwargs : dict
+        The likelihood's keywords of :func:`~sparseloc.solvers.mle.fit_emitters` (``noise``,
+        ``qe``, ``read_variance``).
+
+    Returns
+    -------
+    FrameFit
+    """
+    a = first.emitters.as_array().reshape(-1, 4)
+    b = second.emitters.as_array().reshape(-1, 4)
+    only_a = np.nonzero(~same_as(a, b, SAME_LATERAL, SAME_AXIAL))[0]
+    only_b = np.nonzero(~same_as(b, a, SAME_LATERAL, SAME_AXIAL))[0]
+    labels = _regions(np.vstack([a[only_a], b[only_b]]), group_distance)
+    la, lb = labels[: len(only_a)], labels[len(only_a) :]
+    use_a = np.ones(len(a), bool)
+    use_b = np.zeros(len(b), bool)
+    light = NeighbourLight(model, np.shape(frame), pixel_size)
+    for region in np.unique(labels):
+        ea, eb = only_a[la == region], only_b[lb == region]
+        if len(ea) == 0 or len(eb) == 0:
+            continue
+        others = use_a.copy()
+        others[ea] = False
+        rest = np.vstack([a[others], b[use_b]])
+        box = window_box(np.vstack([a[ea], b[eb]]), *np.shape(frame), pixel_size, pad)
+        offset = light.window(rest, box) if len(rest) else 0.0
+        r0, r1, c0, c1 = box
+        start_bg = float(max(np.median(background[r0:r1, c0:c1]), 1e-3))
+        kw = window_kwargs(frame, box, pixel_size, offset, start_bg, fit_kwargs)
+        y = window_data(frame, box, fit_kwargs)
+        la_ = fit_emitters(y, model, Emitters.from_array(a[ea]), **kw).log_likelihood
+        lb_ = fit_emitters(y, model, Emitters.from_array(b[eb]), **kw).log_likelihood
+        if 2.0 * (lb_ - la_) > penalty * (len(eb) - len(ea)):
+            use_a[ea] = False
+            use_b[eb] = True
+    return joined(subset(first, use_a), subset(second, use_b))
