@@ -19,7 +19,8 @@ from a bead calibration of the same data set, as a microscopist would:
 
 Under each main row, the same run started from the true emitters in place of the pursuit
 (``localize(..., starts=truth)``): the ceiling of what the fits and the count selection keep,
-which the issue's acceptance compares against.
+which the issue's acceptance compares against. Under the challenge rows' recall by photons, the
+median lateral Cramer-Rao bound of the emitters of each bin, each alone on the challenge's EMCCD.
 
 Scores follow the SMLM challenge (250 nm lateral, 500 nm axial, one-to-one per frame; efficiency
 with alpha 1/nm lateral and 0.5/nm axial). The peer figures come from the data's READMEs.
@@ -159,6 +160,7 @@ def challenge_rows(data: Path, workdir: Path) -> list[dict]:
             if beads is not None:
                 row["ceiling"] = ceiling(frames, job.model, job.params, truth)
         row["recall_by_photons"] = recall_by_photons(res.table, truth)
+        row["crlb_by_photons"] = crlb_by_photons(job.model, truth, 100.0 * CHALLENGE_CAMERA["qe"])
         rows.append(row)
     return rows
 
@@ -206,6 +208,9 @@ def rendered_rows(
                     if not suffix:
                         row["ceiling"] = ceiling(frames, job.model, job.params, truth)
                 row["recall_by_photons"] = recall_by_photons(res.table, truth)
+                row["crlb_by_photons"] = crlb_by_photons(
+                    job.model, truth, 100.0 * CHALLENGE_CAMERA["qe"]
+                )
                 row["frames"] = n_frames[dens]
                 rows.append(row)
     return rows
@@ -240,6 +245,31 @@ def ceiling(frames, model, params: LocalizeParams, truth: pd.DataFrame) -> dict:
         "precision": ev.precision,
         "recall_by_photons": recall_by_photons(res.table, truth),
     }
+
+
+def crlb_by_photons(model, truth: pd.DataFrame, background: float) -> list[float]:
+    """Per photon bin of the truth, the median lateral Cramer-Rao bound (nm, the root mean of
+    the x and y variances) of its emitters each alone on the challenge's EMCCD (detected
+    photons: the truth's times the QE; ``background`` in detected photons/pixel)."""
+    from sparseloc.crlb import crlb_single
+
+    qe = CHALLENGE_CAMERA["qe"]
+    photons = truth["photons"].to_numpy(float)
+    sd = crlb_single(
+        model,
+        truth["z_nm"].to_numpy(float),
+        photons * qe,
+        background,
+        PX,
+        noise="emccd",
+        singular="pinv",
+    )
+    lateral = np.sqrt((sd[:, 0] ** 2 + sd[:, 1] ** 2) / 2.0)
+    out = []
+    for lo, hi in itertools.pairwise(PHOTON_BINS):
+        sel = (photons >= lo) & (photons < hi)
+        out.append(float(np.median(lateral[sel])) if sel.any() else float("nan"))
+    return out
 
 
 def score(label: str, locs: pd.DataFrame, truth: pd.DataFrame, seconds: float) -> dict:
@@ -286,6 +316,9 @@ def print_table(rows: list[dict]) -> None:
         if "recall_by_photons" in r:
             bins = ", ".join(f"{b}: {rc:.2f} of {n}" for b, n, rc in r["recall_by_photons"])
             print(f"{'':>{W}}        recall by photons {bins}")
+        if "crlb_by_photons" in r:
+            bins = ", ".join(f"{v:.0f}" for v in r["crlb_by_photons"])
+            print(f"{'':>{W}}        median lateral sqrt(CRLB) of an emitter alone, nm: {bins}")
         if "ceiling" in r:
             c = r["ceiling"]
             bins = ", ".join(f"{rc:.2f}" for _, _, rc in c["recall_by_photons"])
