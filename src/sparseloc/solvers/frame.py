@@ -73,7 +73,8 @@ ADD_THRESHOLD = 80.0
 
 #: Removal threshold of an emitter alone in its group: the chi-square 0.1 % tail
 #: (:data:`~sparseloc.solvers.refine.LR_THRESHOLD`, on the likelihood's scale). Its start
-#: already passed the pursuit's significance test over the frame, and no overlapping fit
+#: already passed a significance test over the frame (the pursuit's or the L1
+#: deconvolution's), and no overlapping fit
 #: lends it misplaced light, so the test is one against the noise (and the model error's
 #: allowance); at high background it keeps emitters whose ratio lies between this and
 #: :data:`ADD_THRESHOLD` (``docs/benchmarks/single_threshold.txt``).

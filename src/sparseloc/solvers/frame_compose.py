@@ -1,13 +1,13 @@
 """Two fits of one frame, from two starting points, made into one: the likelier per region.
 
 The frame solver's fits only go uphill from their start, and in a crowd the pursuit's greedy
-start can leave them in a wrong arrangement that the true one beats by far (started from the
-true emitters, storm-analysis's 1 /um^2 double-helix frame keeps 98.6 % of them; from the
-pursuit, 71 %). A second start from the L1 deconvolution (:mod:`sparseloc.solvers.frame_l1`)
-gets stuck elsewhere. Where the two fits disagree, each region's two arrangements are refitted
-in the same window, with the same free background and the light of every other emitter known,
-and the one with the larger likelihood, less the count selection's threshold per emitter,
-is kept. Regions where only one fit has emitters are left to that fit's count selection.
+start can leave them in a wrong arrangement that the true one beats by far in likelihood (the
+measurements are in ``docs/benchmarks/second_start.txt``). A second start from the L1
+deconvolution (:mod:`sparseloc.solvers.frame_l1`) gets stuck elsewhere. Where the two fits
+disagree, each region's two arrangements are refitted in the same window, with the same free
+background and the light of every other emitter known, and the one with the larger
+likelihood, less the count selection's threshold per emitter, is kept. Regions where only one
+fit has emitters are left to that fit's count selection.
 """
 
 from __future__ import annotations
@@ -31,7 +31,9 @@ __all__ = [
     "subset",
 ]
 
-#: Emitters of the two fits this close (nm, laterally and axially) are the same emitter.
+#: Emitters of the two fits this close (nm, laterally and axially) are the same emitter. The
+#: tolerance only saves work: an emitter both fits hold a little apart joins a region whose two
+#: arrangements are refitted and compared like any other.
 SAME_LATERAL, SAME_AXIAL = 20.0, 40.0
 
 

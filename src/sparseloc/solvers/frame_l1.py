@@ -28,9 +28,8 @@ from .frame_mp import FrameTemplates, frame_templates, in_tiles
 
 __all__ = ["L1_ITERATIONS", "Convolver", "l1_starts", "l1_templates", "tiled_l1_starts"]
 
-#: FISTA iterations: the peaks only start fits, and 250 iterations found no more of them
-#: than 100 on crowded double-helix frames, at 2.5x the cost
-#: (``docs/benchmarks/second_start.txt``).
+#: FISTA iterations: the peaks only start fits, and more iterations did not give better
+#: starts (``docs/benchmarks/second_start.txt``).
 L1_ITERATIONS = 100
 #: Power iterations that estimate the step (the largest eigenvalue of ``A' W A``).
 _POWER_ITERATIONS = 15
