@@ -684,7 +684,7 @@ def localize(
         str | None,
         typer.Option(
             help="auto (compiled numba kernels where numba works, else NumPy), numba or numpy "
-            f"(the plain reference); the same tables (default {_D['engine']})."
+            f"(the plain reference); the same tables to rounding (default {_D['engine']})."
         ),
     ] = None,
     n_sample: Annotated[

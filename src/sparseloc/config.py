@@ -108,7 +108,8 @@ class LocalizeParams:
     engine : {"auto", "numpy", "numba"}
         Which engine computes the solvers' arithmetic (:mod:`sparseloc.engine`): ``"auto"``
         runs the compiled numba kernels where numba works, else NumPy; ``"numpy"`` the plain
-        reference. Both give the same table.
+        reference. Both give the same table to rounding (a crowded region whose two fits
+        are about equally likely may go either way in the frame solver's second start).
     relocate : int
         Relocation passes of the frame solver (:func:`~sparseloc.solvers.frame.frame_fit`):
         each emitter in turn replaced by the best PSF position of what its neighbours leave
