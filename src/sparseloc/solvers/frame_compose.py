@@ -18,7 +18,13 @@ from numpy.typing import NDArray
 from ..psf.base import PSFModel
 from .emitters import Emitters
 from .frame import FrameFit
-from .frame_windows import NeighbourLight, window_box, window_data, window_kwargs
+from .frame_windows import (
+    NeighbourLight,
+    emitter_groups,
+    window_box,
+    window_data,
+    window_kwargs,
+)
 from .mle import fit_emitters
 
 __all__ = [
@@ -48,21 +54,12 @@ def same_as(a: NDArray, b: NDArray, lateral: float, axial: float) -> NDArray[np.
 
 
 def _regions(points: NDArray, distance: float) -> NDArray[np.intp]:
-    """Labels of the points (K, 2+) linked by steps shorter than ``distance`` (nm)."""
-    n = len(points)
-    parent = np.arange(n)
-
-    def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for i in range(n):
-        d = np.hypot(points[i + 1 :, 0] - points[i, 0], points[i + 1 :, 1] - points[i, 1])
-        for j in np.nonzero(d < distance)[0]:
-            parent[root(i)] = root(i + 1 + int(j))
-    return np.array([root(i) for i in range(n)], dtype=np.intp)
+    """Labels of the points (K, 2+) linked by steps of at most ``distance`` (nm): the frame
+    solver's grouping (:func:`~sparseloc.solvers.frame_windows.emitter_groups`) unsplit."""
+    labels = np.zeros(len(points), dtype=np.intp)
+    for k, members in enumerate(emitter_groups(points[:, :2], distance, max(len(points), 1))):
+        labels[members] = k
+    return labels
 
 
 def crowded_boxes(
