@@ -113,6 +113,45 @@ def test_fit_with_a_singular_fisher_matrix_is_flagged():
     assert np.isnan(fit.sigma).all()
 
 
+def test_an_emitter_without_z_information_leaves_its_neighbour_its_uncertainties():
+    """A spline whose images stop changing towards the end of its z range (as calibrated
+    ones do) gives an emitter fitted there no z information; its neighbour keeps its
+    uncertainties."""
+    from sparseloc.psf.spline import SplinePSF
+
+    z = np.arange(-300.0, 301.0, 20.0)
+    stack = make_psf("dh-analytic").images(
+        np.full(z.size, 1250.0), np.full(z.size, 1250.0), z, (25, 25), PX
+    )
+    stack[:3] = stack[3]
+    model = SplinePSF(stack, PX, z, normalise=False)
+    truth = np.array([[700.0, 1200.0, -300.0, 3000.0], [2700.0, 1200.0, 0.0, 3000.0]])
+    img = _window(model, truth, shape=(25, 35), seed=6)
+    fit = fit_emitters(img, model, Emitters.from_array(truth), pixel_size=PX)
+    assert list(fit.flags) == ["z_edge", "ok"]
+    assert np.isnan(fit.sigma[0]).all()
+    assert np.all(np.isfinite(fit.sigma[1])) and 1.0 < fit.sigma[1, 0] < 50.0
+
+
+def test_the_standard_errors_of_the_constrained_parameters_survive_an_unconstrained_one():
+    from sparseloc.solvers.mle import _standard_errors
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(6, 6))
+    good = a @ a.T + 6.0 * np.eye(6)
+    fisher = np.zeros((7, 7))
+    fisher[:6, :6] = good
+    sd, ok = _standard_errors(fisher)  # the last parameter carries no information
+    assert ok and np.isnan(sd[6])
+    assert np.allclose(sd[:6], np.sqrt(np.diag(np.linalg.inv(good))))
+    twin = np.zeros((8, 8))  # parameters 6 and 7 enter the data only as their sum
+    twin[:6, :6] = good
+    twin[6:, 6:] = 2.0
+    sd, ok = _standard_errors(twin)
+    assert ok and np.isnan(sd[6:]).all()
+    assert np.allclose(sd[:6], np.sqrt(np.diag(np.linalg.inv(good))))
+
+
 def test_well_posed_fit_keeps_its_uncertainties():
     model = make_psf("dh-analytic")
     truth = np.array([[860.0, 830.0, 250.0, 3000.0]])

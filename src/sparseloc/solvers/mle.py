@@ -445,28 +445,48 @@ def _numba_fit(prob: LikelihoodProblem, theta, lo, hi, max_iter: int, tol: float
 
 
 def _standard_errors(fisher: NDArray) -> tuple[NDArray, bool]:
-    """``sqrt(diag(F^-1))`` and whether ``F`` is positive definite.
+    """``sqrt(diag(F^-1))`` and whether any of it could be computed.
 
     ``F`` is scaled to unit diagonal before the Cholesky test, so that parameters of different
-    units (nm, photons) do not decide it; a matrix that fails it has no inverse that is a
-    covariance, and its standard errors are all NaN.
+    units (nm, photons) do not decide it. Where it fails, the parameters the data do not
+    constrain (no information, or the largest part of a combination without any) get NaN, and
+    the others the standard errors of ``F`` restricted to them (those parameters held at their
+    fitted values): one emitter at the end of the model's z range, or two that share one
+    image, does not void the uncertainties of the other emitters of its window.
     """
     f = np.asarray(fisher, dtype=np.float64)
     d = np.diag(f)
-    if f.size == 0 or not np.all(np.isfinite(f)) or np.any(d <= 0):
-        return np.full(len(d), np.nan), False
-    s = np.sqrt(d)
-    corr = f / np.outer(s, s)
+    out = np.full(len(d), np.nan)
+    if f.size == 0 or not np.all(np.isfinite(f)):
+        return out, False
+    keep = d > 0
+    while keep.any():
+        idx = np.flatnonzero(keep)
+        s = np.sqrt(d[idx])
+        corr = f[np.ix_(idx, idx)] / np.outer(s, s)
+        if _positive_definite(corr):
+            inv = np.linalg.inv(corr)
+            with np.errstate(invalid="ignore"):
+                out[idx] = np.sqrt(np.diag(inv)) / s
+            return out, True
+        # the parameters that carry the least-constrained combinations (two emitters that
+        # share one image: both emitters' parameters) are left out together
+        w, v = np.linalg.eigh(corr)
+        null = w < _FISHER_RCOND
+        null[0] = True
+        weight = np.abs(v[:, null]).max(axis=1)
+        keep[idx[weight >= 0.5 * weight.max()]] = False
+    return out, False
+
+
+def _positive_definite(corr: NDArray) -> bool:
+    """Whether a unit-diagonal matrix passes the Cholesky test with no pivot near zero (a
+    near-zero pivot means a combination of parameters the data do not constrain)."""
     try:
         chol = np.linalg.cholesky(corr)
     except np.linalg.LinAlgError:
-        return np.full(len(d), np.nan), False
-    # A near-zero pivot means a combination of parameters the data do not constrain.
-    if np.min(np.diag(chol)) ** 2 < _FISHER_RCOND:
-        return np.full(len(d), np.nan), False
-    inv = np.linalg.inv(corr)
-    with np.errstate(invalid="ignore"):
-        return np.sqrt(np.diag(inv)) / s, True
+        return False
+    return bool(np.min(np.diag(chol)) ** 2 >= _FISHER_RCOND)
 
 
 def fit_flags(
@@ -484,9 +504,10 @@ def fit_flags(
     A flag other than ``"ok"`` names the first reason, in this order: ``"diverged"``
     (non-finite position or photons at their floor), ``"outside"`` (x or y outside the window),
     ``"z_edge"`` (z within 1 nm of the model's z range, where the true z may lie beyond it),
-    ``"bad_sigma"`` (the Fisher matrix is not positive definite, or an uncertainty is not
-    finite, is larger than the window along x or y or than the z range along z, or is below
-    :data:`SIGMA_FLOOR_NM`), ``"not_converged"``. Rows flagged ``"diverged"``, ``"z_edge"`` or
+    ``"bad_sigma"`` (no part of the Fisher matrix could be inverted, or an uncertainty is not
+    finite (the data do not constrain one of the emitter's parameters), is larger than the
+    window along x or y or than the z range along z, or is below :data:`SIGMA_FLOOR_NM`),
+    ``"not_converged"``. Rows flagged ``"diverged"``, ``"z_edge"`` or
     ``"bad_sigma"`` get NaN uncertainties: their Cramer-Rao bound does not describe the error.
 
     Parameters
@@ -502,7 +523,7 @@ def fit_flags(
     converged : bool
         Whether the fit converged.
     fisher_ok : bool
-        Whether the Fisher matrix was positive definite.
+        Whether any part of the Fisher matrix could be inverted (:func:`_standard_errors`).
 
     Returns
     -------
