@@ -181,6 +181,50 @@ def test_the_likelier_arrangement_of_a_region_is_kept(analytic, order):
     assert len(out.sigma) == len(out.flags) == len(out.group) == len(arr)
 
 
+def _frame_fit_of(arr):
+    from sparseloc.solvers.frame import FrameFit
+
+    arr = np.asarray(arr, float)
+    k = len(arr)
+    return FrameFit(
+        Emitters.from_array(arr),
+        np.ones((k, 4)),
+        np.full(k, 10.0),
+        np.ones(k),
+        np.full(k, "ok", dtype="<U16"),
+        np.zeros(k, dtype=np.int64),
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_where_each_fit_is_half_right_the_union_is_kept(analytic, seed):
+    """Two pairs in one region: the first fit holds the upper pair and the lower one merged,
+    the second the reverse. Neither alone is right; their union, settled by the count
+    selection, holds the four true emitters."""
+    upper = np.array([[3000.0, 3000.0, 0.0, 4000.0], [3600.0, 3000.0, 200.0, 4000.0]])
+    lower = np.array([[3100.0, 3900.0, -200.0, 4000.0], [3700.0, 3900.0, 100.0, 4000.0]])
+    upper_merged = np.array([[3300.0, 3000.0, 100.0, 8000.0]])
+    lower_merged = np.array([[3400.0, 3900.0, -50.0, 8000.0]])
+    truth = np.vstack([upper, lower])
+    frame = frame_of(analytic, truth, (64, 64), seed=seed)
+    out = likelier_per_region(
+        frame,
+        np.full(frame.shape, 10.0),
+        _frame_fit_of(np.vstack([upper, lower_merged])),
+        _frame_fit_of(np.vstack([upper_merged, lower])),
+        analytic,
+        pixel_size=PX,
+        group_distance=1000.0,
+        pad=7,
+        penalty=80.0,
+        fit_kwargs={"noise": "poisson"},
+    )
+    arr = out.emitters.as_array()
+    d = np.hypot(arr[:, None, 0] - truth[None, :, 0], arr[:, None, 1] - truth[None, :, 1])
+    assert len(arr) == 4 and np.all(d.min(axis=0) < 30.0)
+    assert len(out.sigma) == len(out.flags) == len(out.group) == 4
+
+
 def test_the_second_start_is_a_parameter_of_the_run():
     from sparseloc.config import LocalizeParams
     from sparseloc.pipeline import _FrameSolver

@@ -8,6 +8,11 @@ disagree, each region's two arrangements are refitted in the same window, with t
 background and the light of every other emitter known, and the one with the larger
 likelihood, less the count selection's threshold per emitter, is kept. Regions where only one
 fit has emitters are left to that fit's count selection.
+
+Each fit also holds emitters the other missed: together the two hold nearly every true
+emitter of a crowd, where each alone holds nine in ten (``docs/benchmarks/union_start.txt``).
+So a region's third arrangement is the union of its two, settled by the frame solver's count
+selection (which removes the weakest of emitters that share one image first).
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from numpy.typing import NDArray
 
 from ..psf.base import PSFModel
 from .emitters import Emitters
-from .frame import FrameFit
+from .frame import SINGLE_THRESHOLD, FrameFit
 from .frame_windows import (
     NeighbourLight,
     emitter_groups,
@@ -25,9 +30,12 @@ from .frame_windows import (
     window_data,
     window_kwargs,
 )
-from .mle import fit_emitters
+from .mle import FitResult, fit_emitters
+from .mp import MIN_PHOTONS
+from .refine import fit_with_count_selection
 
 __all__ = [
+    "UNION_MAX",
     "crowded_boxes",
     "inside",
     "joined",
@@ -41,6 +49,12 @@ __all__ = [
 #: tolerance only saves work: an emitter both fits hold a little apart joins a region whose two
 #: arrangements are refitted and compared like any other.
 SAME_LATERAL, SAME_AXIAL = 20.0, 40.0
+#: A region's union is settled only where it holds at most this many emitters: each of its
+#: removals refits them all (seconds at this size), and where crowds percolate across a
+#: frame (hundreds of emitters in one region) the region chooses between the two fits alone.
+#: A bound on the cost, not on the result (regions of 33-52 emitters gain; see
+#: ``docs/benchmarks/union_start.txt``).
+UNION_MAX = 64
 
 
 def same_as(a: NDArray, b: NDArray, lateral: float, axial: float) -> NDArray[np.bool_]:
@@ -151,7 +165,8 @@ def likelier_per_region(
     fit_kwargs: dict,
 ) -> FrameFit:
     """One fit of the frame from two: ``first``, with each region where ``second`` places its
-    emitters differently replaced by ``second``'s where that is likelier.
+    emitters differently replaced by ``second``'s, or by the union of the two settled by the
+    count selection, where that is likelier.
 
     Parameters
     ----------
@@ -171,7 +186,9 @@ def likelier_per_region(
     pad : int
         Pixels around a region's emitters in its window.
     penalty : float
-        ``2 log L`` an emitter must add to be worth it: the count selection's threshold.
+        ``2 log L`` an emitter must add to be worth it: the count selection's threshold (also
+        the union's, with :data:`~sparseloc.solvers.frame.SINGLE_THRESHOLD` for a lone
+        emitter).
     fit_kwargs : dict
         The likelihood's keywords of :func:`~sparseloc.solvers.mle.fit_emitters` (``noise``,
         ``qe``, ``read_variance``).
@@ -188,6 +205,7 @@ def likelier_per_region(
     la, lb = labels[: len(only_a)], labels[len(only_a) :]
     use_a = np.ones(len(a), bool)
     use_b = np.zeros(len(b), bool)
+    unions: list[FrameFit] = []
     light = NeighbourLight(model, np.shape(frame), pixel_size)
     for region in np.unique(labels):
         ea, eb = only_a[la == region], only_b[lb == region]
@@ -195,16 +213,64 @@ def likelier_per_region(
             continue
         others = use_a.copy()
         others[ea] = False
-        rest = np.vstack([a[others], b[use_b]])
+        kept = [a[others], b[use_b]] + [u.emitters.as_array().reshape(-1, 4) for u in unions]
+        rest = np.vstack(kept)
         box = window_box(np.vstack([a[ea], b[eb]]), *np.shape(frame), pixel_size, pad)
         offset = light.window(rest, box) if len(rest) else 0.0
         r0, r1, c0, c1 = box
         start_bg = float(max(np.median(background[r0:r1, c0:c1]), 1e-3))
         kw = window_kwargs(frame, box, pixel_size, offset, start_bg, fit_kwargs)
         y = window_data(frame, box, fit_kwargs)
-        la_ = fit_emitters(y, model, Emitters.from_array(a[ea]), **kw).log_likelihood
-        lb_ = fit_emitters(y, model, Emitters.from_array(b[eb]), **kw).log_likelihood
-        if 2.0 * (lb_ - la_) > penalty * (len(eb) - len(ea)):
+        best, settled = _likeliest(y, model, a[ea], b[eb], kw, penalty)
+        if best > 0:
             use_a[ea] = False
+        if best == 1:
             use_b[eb] = True
-    return joined(subset(first, use_a), subset(second, use_b))
+        elif best == 2:
+            unions.append(_as_frame_fit(settled))
+    out = joined(subset(first, use_a), subset(second, use_b))
+    for u in unions:
+        out = joined(out, u)
+    return out
+
+
+def _likeliest(
+    y: NDArray, model: PSFModel, ea: NDArray, eb: NDArray, kw: dict, penalty: float
+) -> tuple[int, FitResult | None]:
+    """Which of a region's arrangements is likeliest, less ``penalty`` per emitter: 0 the
+    first fit's ``ea`` (K, 4), 1 the second's ``eb``, 2 their union settled by the count
+    selection (returned too; None where the union holds more than :data:`UNION_MAX`)."""
+    union = np.vstack([ea, eb])
+    scores = [
+        2.0 * fit_emitters(y, model, Emitters.from_array(part), **kw).log_likelihood
+        - penalty * len(part)
+        for part in (ea, eb)
+    ]
+    if len(union) > UNION_MAX:
+        return int(np.argmax(scores)), None
+    settled = fit_with_count_selection(
+        y,
+        model,
+        Emitters.from_array(union),
+        lr_threshold=penalty,
+        single_threshold=SINGLE_THRESHOLD,
+        min_photons=MIN_PHOTONS,
+        max_emitters=len(union) + 2,
+        max_changes=len(union),
+        **kw,
+    )
+    scores.append(2.0 * settled.log_likelihood - penalty * len(settled.emitters))
+    return int(np.argmax(scores)), settled
+
+
+def _as_frame_fit(fit: FitResult) -> FrameFit:
+    """A window fit's emitters as one group of a frame fit."""
+    k = len(fit.emitters)
+    return FrameFit(
+        fit.emitters,
+        np.asarray(fit.sigma).reshape(-1, 4),
+        np.full(k, float(fit.background[0])),
+        np.full(k, fit.deviance_per_dof),
+        np.asarray(fit.flags),
+        np.zeros(k, dtype=np.intp),
+    )
