@@ -440,3 +440,19 @@ def test_model_error_stops_additions_that_explain_only_the_model_misfit():
     img = window(true_model, second, seed=9)
     fit = fit_with_count_selection(img, known, Emitters.from_array(row[None]), pixel_size=PX)
     assert len(fit.emitters) == 2
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_count_selection_removes_a_duplicate_before_testing_a_dim_emitter(analytic, seed):
+    """Two emitters on one image share its light: each one's photons are poorly determined,
+    so the removal test takes one of them first (the least determined by its Wald
+    statistic), not the dim emitter elsewhere, which would stay and end the removals."""
+    truth = np.array([[500.0, 600.0, -200.0, 6000.0], [1150.0, 1150.0, 300.0, 1500.0]])
+    img = window(analytic, truth, seed=seed)
+    twins = [[510.0, 600.0, -200.0, 3000.0], [490.0, 610.0, -180.0, 3000.0]]
+    start = Emitters.from_array(np.vstack([twins, truth[1:]]))
+    fit = fit_with_count_selection(img, analytic, start, pixel_size=PX, lr_threshold=80.0)
+    arr = fit.emitters.as_array()
+    assert len(arr) == 2
+    d = np.hypot(arr[:, None, 0] - truth[None, :, 0], arr[:, None, 1] - truth[None, :, 1])
+    assert np.all(d.min(axis=0) < 50.0)

@@ -12,7 +12,8 @@ fit has emitters are left to that fit's count selection.
 Each fit also holds emitters the other missed: together the two hold nearly every true
 emitter of a crowd, where each alone holds nine in ten (``docs/benchmarks/union_start.txt``).
 So a region's third arrangement is the union of its two, settled by the frame solver's count
-selection (which removes the weakest of emitters that share one image first).
+selection (which tests first the emitter whose brightness the data determine least: one of
+two that share one image).
 """
 
 from __future__ import annotations

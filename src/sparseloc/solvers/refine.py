@@ -2,7 +2,8 @@
 fit of :mod:`sparseloc.solvers.mle`, and the refinement of a window solver's solution.
 
 Count selection (:func:`fit_with_count_selection`): after fitting K emitters, the model with the
-weakest emitter removed is refitted; it replaces the K-emitter model when the likelihood ratio
+least-determined emitter removed (smallest Wald statistic, :func:`weakest_removed`) is
+refitted; it replaces the K-emitter model when the likelihood ratio
 ``2 (logL_K - logL_{K-1})`` is below ``lr_threshold``. (That refit is skipped, and the emitter
 kept, when its Wald statistic ``(N / sigma_N)^2``, the quadratic approximation of the same
 ratio, is at or above ``lr_threshold`` and it has at least ``min_photons``:
@@ -65,7 +66,7 @@ LR_THRESHOLD = 18.47
 #: An addition's refits are skipped when the score statistic of the best grid emitter is this
 #: many times below the threshold.
 SKIP_FACTOR = 4.0
-#: The factor for a removal: its refit runs only when the weakest emitter's Wald statistic
+#: The factor for a removal: its refit runs only when the tested emitter's Wald statistic
 #: ``(N / sigma_N)^2`` is below this many times the threshold (removals above it are almost
 #: never accepted on dense frames; measurements in ``docs/benchmarks/code_notes_frame.md``).
 REMOVE_SKIP_FACTOR = 1.0
@@ -237,9 +238,15 @@ def weakest_removed(
     min_photons: float = MIN_PHOTONS,
     single_threshold: float | None = None,
 ) -> FitResult | None:
-    """The count selection's removal test: the fit without the weakest emitter of ``best``
-    when that emitter has fewer than ``min_photons`` or its likelihood ratio is below the
-    threshold plus the model error's allowance; None when it stays (or ``best`` is empty).
+    """The count selection's removal test: the fit without the least-determined emitter of
+    ``best`` when that emitter has fewer than ``min_photons`` or its likelihood ratio is below
+    the threshold plus the model error's allowance; None when it stays (or ``best`` is empty).
+
+    The emitter tested is one below ``min_photons`` if any (the dimmest), else the one with the
+    smallest Wald statistic ``(N / sigma_N)^2``, the quadratic approximation of what removing
+    it costs with the others refitted: two emitters on one image trade their light, so each
+    one's photons are poorly determined and one of them goes before a dim emitter elsewhere
+    (an unconstrained brightness, NaN, counts as zero).
 
     ``kw``: the keywords of :func:`fit_emitters` that ``best`` was fitted with. An emitter
     whose Wald statistic ``(N / sigma_N)^2`` (the quadratic approximation of the ratio) is at
@@ -251,14 +258,18 @@ def weakest_removed(
     if k == 0:
         return None
     arr = best.emitters.as_array()
-    weakest = int(np.argmin(arr[:, 3]))
     # sigma comes from the weighted Fisher matrix: (N / sigma)^2 is on the scale of the
     # (weighted) likelihood ratio; the model error raises the bar of both
     fit_kwargs = {key: v for key, v in kw.items() if key not in ("pixel_size", "origin")}
     bar = removal_threshold(k, lr_threshold, single_threshold)
     bar += _error_allowance(best, model, fit_kwargs)
     crlb = best.sigma if best.crlb is None else best.crlb
-    wald = (arr[weakest, 3] / crlb[weakest, 3]) ** 2
+    walds = np.nan_to_num((arr[:, 3] / crlb[:, 3]) ** 2, nan=0.0)
+    if arr[:, 3].min() < min_photons:
+        weakest = int(np.argmin(arr[:, 3]))
+    else:
+        weakest = int(np.argmin(walds))
+    wald = walds[weakest] if np.isfinite(crlb[weakest, 3]) else np.nan
     dim = arr[weakest, 3] < min_photons
     if np.isfinite(wald) and wald >= REMOVE_SKIP_FACTOR * bar and not dim:
         return None
@@ -427,13 +438,13 @@ def split_merge_search(
 ) -> FitResult:
     """Leave the local optima of the count selection by split, merge and exchange moves.
 
-    The count selection (:func:`fit_with_count_selection`) removes only the weakest emitter
-    and adds one only where the residual correlates best with the PSF. Overlapping
+    The count selection (:func:`fit_with_count_selection`) removes only the least-determined
+    emitter and adds one only where the residual correlates best with the PSF. Overlapping
     engineered PSFs defeat both: two close emitters fitted as one bright emitter leave a flat
     residual (nothing to add), and a spurious emitter that took part of a true one's lobes is
-    not the weakest. On the paper's Figure 2 case, fits started from the true emitters found
-    the right count in 83.5 % of 200 windows where the count selection alone found 75 %.
-    Each move refits every trial model and keeps the likeliest:
+    not the least determined. On the paper's Figure 2 case, fits started from the true
+    emitters found the right count in 83.5 % of 200 windows where the count selection alone
+    found 75 %. Each move refits every trial model and keeps the likeliest:
 
     1. one fewer: each emitter dropped, each pair merged (photon-weighted centre, summed
        photons); taken when ``2 (logL_K - logL_{K-1}) < lr_threshold``;
