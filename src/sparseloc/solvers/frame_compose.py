@@ -9,11 +9,10 @@ background and the light of every other emitter known, and the one with the larg
 likelihood, less the count selection's threshold per emitter, is kept. Regions where only one
 fit has emitters are left to that fit's count selection.
 
-Each fit also holds emitters the other missed: together the two hold nearly every true
-emitter of a crowd, where each alone holds nine in ten (``docs/benchmarks/union_start.txt``).
-So a region's third arrangement is the union of its two, settled by the frame solver's count
-selection (which tests first the emitter whose brightness the data determine least: one of
-two that share one image).
+Each fit also holds true emitters the other missed, so together they hold more of a crowd
+than either (``docs/benchmarks/union_start.txt``). So a region's third arrangement is the
+union of its two, settled by the frame solver's count selection (which tests first the
+emitter whose brightness the data determine least: one of two that share one image).
 """
 
 from __future__ import annotations
@@ -53,8 +52,7 @@ SAME_LATERAL, SAME_AXIAL = 20.0, 40.0
 #: A region's union is settled only where it holds at most this many emitters: each of its
 #: removals refits them all (seconds at this size), and where crowds percolate across a
 #: frame (hundreds of emitters in one region) the region chooses between the two fits alone.
-#: A bound on the cost, not on the result (regions of 33-52 emitters gain; see
-#: ``docs/benchmarks/union_start.txt``).
+#: A bound on the cost, not a threshold of the result (``docs/benchmarks/union_start.txt``).
 UNION_MAX = 64
 
 
