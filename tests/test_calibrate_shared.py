@@ -156,15 +156,10 @@ def test_storm_analysis_dh_random_density_1_per_um2(shared_data, dh_calibration)
     """1 emitter/um^2 of double helices (a third of the frame): most images overlap two or
     more others.
 
-    Measured on this crop with the frame solver: recall 0.907, precision 0.907, Jaccard
-    83.1 %, RMSE 34 / 53 nm (with its second start from the L1 deconvolution and the union of
-    the two fits per region, and uncertainties that one unconstrained emitter no longer voids
-    for its whole window, docs/benchmarks/union_start.txt; before those two: recall 0.840,
-    precision 0.907, Jaccard 77.3 %; from the pursuit alone: recall 0.809, precision 0.873,
-    Jaccard 72.4 %, RMSE 56 / 94 nm; with the earlier groups of one half-light radius:
-    recall 0.907, precision 0.714, Jaccard 66.5 %, false emitters on the lobes of true ones,
-    issue 27 item 3). The thresholds guard the precision, the recall, the Jaccard index and
-    the errors against regressions.
+    Measured on this crop with the frame solver: recall 0.938, precision 0.899, Jaccard
+    84.9 %, RMSE 46 / 78 nm (earlier versions and their figures:
+    docs/benchmarks/union_start.txt and second_start.txt). The thresholds guard the
+    precision, the recall, the Jaccard index and the errors against regressions.
     """
     ev = _localize_crop(shared_data, "dh_random_density0.01px2", dh_calibration, 21, 6)
     assert ev.precision >= 0.88

@@ -264,13 +264,12 @@ def weakest_removed(
     bar = removal_threshold(k, lr_threshold, single_threshold)
     bar += _error_allowance(best, model, fit_kwargs)
     crlb = best.sigma if best.crlb is None else best.crlb
-    walds = np.nan_to_num((arr[:, 3] / crlb[:, 3]) ** 2, nan=0.0)
-    if arr[:, 3].min() < min_photons:
-        weakest = int(np.argmin(arr[:, 3]))
-    else:
-        weakest = int(np.argmin(walds))
-    wald = walds[weakest] if np.isfinite(crlb[weakest, 3]) else np.nan
-    dim = arr[weakest, 3] < min_photons
+    with np.errstate(divide="ignore", invalid="ignore"):
+        walds = (arr[:, 3] / crlb[:, 3]) ** 2
+    dim = arr[:, 3].min() < min_photons
+    order = arr[:, 3] if dim else np.nan_to_num(walds, nan=0.0)
+    weakest = int(np.argmin(order))
+    wald = walds[weakest]
     if np.isfinite(wald) and wald >= REMOVE_SKIP_FACTOR * bar and not dim:
         return None
     start = Emitters.from_array(np.delete(arr, weakest, axis=0))
