@@ -1,7 +1,8 @@
 """Background, candidate detection and windows for whole frames.
 
 - Background: a temporal percentile over a sliding block of frames follows slow changes while
-  ignoring blinking molecules (a pixel is dark most of the time), then a small spatial smoothing.
+  ignoring blinking molecules (a pixel is dark most of the time), then a small spatial smoothing;
+  the bumps of molecules that stay on for much of the block are capped (:func:`capped_bumps`).
 - Candidates: the background-subtracted frame is correlated with the z-averaged PSF (a matched
   filter for an engineered PSF: a double helix's two lobes give one peak, not two) and local
   maxima whose signal-to-noise ratio exceeds ``threshold`` are kept.
@@ -28,6 +29,7 @@ from .psf.base import PSFModel
 
 __all__ = [
     "Tile",
+    "capped_bumps",
     "detect_candidates",
     "spatial_background",
     "temporal_background",
@@ -153,24 +155,101 @@ def spatial_background(
     arr = np.asarray(frame, dtype=np.float64)
     if arr.ndim != 2:
         raise ValueError(f"frame must be 2-D, got shape {arr.shape}")
-    rows, cols = arr.shape
-    nr, nc = max(1, round(rows / block)), max(1, round(cols / block))
-    redges = np.linspace(0, rows, nr + 1).round().astype(int)
-    cedges = np.linspace(0, cols, nc + 1).round().astype(int)
-    q = np.empty((nr, nc))
-    for i in range(nr):
-        for j in range(nc):
-            q[i, j] = np.percentile(
-                arr[redges[i] : redges[i + 1], cedges[j] : cedges[j + 1]], percentile
-            )
-    lam = _poisson_mean(q, percentile)
-    # Block centres -> every pixel (bilinear, constant beyond the outer centres).
-    rc = 0.5 * (redges[:-1] + redges[1:]) - 0.5
-    cc = 0.5 * (cedges[:-1] + cedges[1:]) - 0.5
-    ri = np.interp(np.arange(rows), rc, np.arange(nr))
-    ci = np.interp(np.arange(cols), cc, np.arange(nc))
-    bg = ndi.map_coordinates(lam, np.meshgrid(ri, ci, indexing="ij"), order=1, mode="nearest")
+    lam = _poisson_mean(_block_statistic(arr[None], block, np.percentile, percentile), percentile)
+    bg = _block_interpolated(lam, arr.shape)[0]
     return ndi.gaussian_filter(bg, smooth) if smooth > 0 else bg
+
+
+def _block_edges(n: int, block: int) -> NDArray[np.int64]:
+    """Edges of about ``n / block`` equal blocks of ``n`` pixels (at least one block)."""
+    return _edges(n, max(1, round(n / block)))
+
+
+def _edges(n: int, nb: int) -> NDArray[np.int64]:
+    """Edges of ``nb`` equal blocks of ``n`` pixels."""
+    return np.linspace(0, n, nb + 1).round().astype(np.int64)
+
+
+def _block_statistic(arr: NDArray, block: int, statistic, *args) -> NDArray[np.float64]:
+    """``statistic(values, *args, axis=(1, 2))`` of each block of ``block`` pixels of each
+    image of ``arr`` (K, rows, cols): shape (K, row blocks, column blocks)."""
+    redges, cedges = _block_edges(arr.shape[1], block), _block_edges(arr.shape[2], block)
+    q = np.empty((len(arr), len(redges) - 1, len(cedges) - 1))
+    for i in range(q.shape[1]):
+        for j in range(q.shape[2]):
+            part = arr[:, redges[i] : redges[i + 1], cedges[j] : cedges[j + 1]]
+            q[:, i, j] = statistic(part, *args, axis=(1, 2))
+    return q
+
+
+def _interpolation_matrix(n: int, nb: int) -> NDArray[np.float64]:
+    """(n, nb) weights taking values at the centres of ``nb`` equal blocks of ``n`` pixels to
+    every pixel: linear between the centres, constant beyond the outer ones."""
+    edges = _edges(n, nb)
+    centres = 0.5 * (edges[:-1] + edges[1:]) - 0.5
+    pos = np.interp(np.arange(n), centres, np.arange(nb))
+    lo = np.minimum(np.floor(pos).astype(np.int64), nb - 1)
+    hi = np.minimum(lo + 1, nb - 1)
+    w = np.zeros((n, nb))
+    frac = pos - lo
+    np.add.at(w, (np.arange(n), lo), 1.0 - frac)
+    np.add.at(w, (np.arange(n), hi), frac)
+    return w
+
+
+def _block_interpolated(q: NDArray, shape: tuple[int, int]) -> NDArray[np.float64]:
+    """Block values ``q`` (K, row blocks, column blocks) at every pixel of ``shape``
+    (bilinear between the block centres, constant beyond the outer ones): (K, rows, cols)."""
+    wr = _interpolation_matrix(shape[0], q.shape[1])
+    wc = _interpolation_matrix(shape[1], q.shape[2])
+    cols = (q.reshape(-1, q.shape[2]) @ wc.T).reshape(len(q), q.shape[1], shape[1])
+    return np.ascontiguousarray(np.tensordot(wr, cols, axes=([1], [1])).transpose(1, 0, 2))
+
+
+#: The cap of :func:`capped_bumps` above the local median, in robust standard deviations of
+#: the background estimate. On a background without bumps the cap then lowers the estimate by
+#: 0.08 of its standard deviation on average (``E[max(0, e - 1)]`` for a normal ``e``), so
+#: it costs nothing where no molecule stays on.
+BUMP_ALLOWANCE = 1.0
+
+
+def capped_bumps(
+    backgrounds: NDArray, block: int, allowance: float = BUMP_ALLOWANCE
+) -> NDArray[np.float64]:
+    """Backgrounds with bumps the size of one emitter's image capped.
+
+    A temporal percentile takes in a molecule that stays on for about a third of its window
+    or more: its image becomes a bump of the background, and the detection, which sees the
+    frame less the background, then misses the molecule. A microscope's background varies on
+    larger scales than one emitter's image, so each background is capped at its median over
+    blocks of ``block`` pixels (an image's width; interpolated between the block centres)
+    plus ``allowance`` times the robust standard deviation of the background about that
+    median (1.4826 times the median absolute deviation).
+
+    Parameters
+    ----------
+    backgrounds : ndarray, shape (K, rows, cols)
+        Backgrounds (photons/pixel), one per frame.
+    block : int
+        Block side (pixels): the width of one emitter's image.
+    allowance : float
+        The cap above the local median, in standard deviations of the background.
+
+    Returns
+    -------
+    ndarray, shape (K, rows, cols)
+    """
+    bg = np.asarray(backgrounds, dtype=np.float64)
+    if bg.ndim != 3:
+        raise ValueError(f"backgrounds must be (K, rows, cols), got shape {bg.shape}")
+    if len(bg) == 0:
+        return bg.copy()
+    local = _block_interpolated(_block_statistic(bg, int(block), np.median), bg.shape[1:])
+    # the spread from about 16,000 pixels of each background: precise to about 1 %
+    step = max(1, int(np.sqrt(bg.shape[1] * bg.shape[2] / 16384)))
+    d = (bg - local)[:, ::step, ::step]
+    spread = 1.4826 * np.median(np.abs(d - np.median(d, axis=(1, 2), keepdims=True)), axis=(1, 2))
+    return np.minimum(bg, local + allowance * spread[:, None, None])
 
 
 def z_averaged_psf(

@@ -28,6 +28,7 @@ from . import __version__
 from .config import METHODS, LocalizeParams
 from .detect import (
     Tile,
+    capped_bumps,
     detect_candidates,
     spatial_background,
     temporal_backgrounds,
@@ -446,7 +447,9 @@ def localize(
     if read_variance is not None:
         read_variance = _checked_read_variance(read_variance, shape, params)
     t0 = time.perf_counter()
-    inputs = _frames_and_backgrounds(get, n, start, stop, block, params)
+    inputs = _frames_and_backgrounds(
+        get, n, start, stop, block, params, _image_width(model, params)
+    )
     if starts is not None:
         inputs = _with_starts(inputs, starts, params)
     work_args = (work_model_for(model, params), params, shape, read_variance)
@@ -707,8 +710,19 @@ class _FrameWork:
         return parts, len(todo)
 
 
-def _frames_and_backgrounds(get, n: int, start: int, stop: int, block: int, p: LocalizeParams):
-    """Yield (frame index, frame, background), reading ``block`` frames at a time."""
+def _image_width(model: PSFModel, p: LocalizeParams) -> int:
+    """Width (pixels) of one emitter's image: the diameter of the disc holding 90 % of its
+    light at the z of the widest image."""
+    r90 = model.support_radius(p.pixel_size, 0.9, z_range=p.z_range or model.z_range)
+    return 2 * int(np.ceil(r90 / p.pixel_size)) + 1
+
+
+def _frames_and_backgrounds(
+    get, n: int, start: int, stop: int, block: int, p: LocalizeParams, image_width: int
+):
+    """Yield (frame index, frame, background), reading ``block`` frames at a time. A temporal
+    background has the bumps of molecules that stay on capped (:func:`capped_bumps`, blocks
+    of ``image_width`` pixels)."""
     half = p.background_frames // 2
     temporal = p.background == "temporal" or (p.background == "auto" and n >= p.min_temporal_frames)
     for b0 in range(start, stop, block):
@@ -720,6 +734,7 @@ def _frames_and_backgrounds(get, n: int, start: int, stop: int, block: int, p: L
         if temporal:
             centres = np.arange(b0, b1) - lo
             bgs = temporal_backgrounds(chunk, centres, half, percentile=p.background_percentile)
+            bgs = capped_bumps(bgs, image_width)
         for f in range(b0, b1):
             i = f - lo
             bg = bgs[f - b0] if temporal else spatial_background(chunk[i])
