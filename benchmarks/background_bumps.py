@@ -7,8 +7,8 @@ active emitters /um^2, 1,000-5,000 photons) for each case:
 
 - on-times: short (``p_off`` 0.5, a molecule is on for 2 frames on average) or long
   (``p_off`` 0.05, 20 frames: longer than half the 21-frame background window);
-- background: flat (20 photons/px), or structured: 20 photons/px plus smooth blobs of
-  1-2 um reaching 60 photons/px (a cell's autofluorescence);
+- background: flat (20 photons/px), or structured: 20 photons/px plus six smooth blobs of
+  1-2 um adding 15-40 photons/px each (a cell's autofluorescence);
 
 and localizes each with default settings (temporal background) with the cap and with the
 cap switched off. Prints Jaccard, recall, precision and RMSE; writes

@@ -23,7 +23,7 @@ from .camera import Camera, camera_from_options, noise_variance
 from .engine import check_engine
 from .options import LOCALIZE_DEFAULTS, check_options
 from .psf import make_psf
-from .psf.base import PSFModel
+from .psf.base import PSFModel, light_radius
 from .solvers.frame import RELOCATE
 from .solvers.mle import check_qe
 from .units import check_pixel_size
@@ -224,7 +224,7 @@ def window_for(
 
     if margin is None:
         if isinstance(model, SplinePSF):
-            margin = int(np.ceil(model.support_radius(pixel_size, 0.9) / pixel_size))
+            margin = light_radius(model, pixel_size)
         else:
             margin = 3
         if window is not None:  # a window the user chose keeps a core of at least 1 px

@@ -224,7 +224,8 @@ def capped_bumps(
     larger scales than one emitter's image, so each background is capped at its median over
     blocks of ``block`` pixels (an image's width; interpolated between the block centres)
     plus ``allowance`` times the robust standard deviation of the background about that
-    median (1.4826 times the median absolute deviation).
+    median (1.4826 times the median absolute deviation). A background's own structure
+    narrower than a block and brighter than the allowance is lowered too.
 
     Parameters
     ----------
@@ -238,10 +239,23 @@ def capped_bumps(
     Returns
     -------
     ndarray, shape (K, rows, cols)
+        The capped backgrounds (photons/pixel).
+
+    Raises
+    ------
+    ValueError
+        For a shape other than (K, rows, cols), a block below 1 pixel, a negative allowance
+        or a value that is not finite.
     """
     bg = np.asarray(backgrounds, dtype=np.float64)
     if bg.ndim != 3:
         raise ValueError(f"backgrounds must be (K, rows, cols), got shape {bg.shape}")
+    if not block >= 1 or not allowance >= 0:
+        raise ValueError(
+            f"the block must be >= 1 px and the allowance >= 0, got {block} and {allowance}"
+        )
+    if not np.all(np.isfinite(bg)):
+        raise ValueError("the backgrounds must be finite")
     if len(bg) == 0:
         return bg.copy()
     local = _block_interpolated(_block_statistic(bg, int(block), np.median), bg.shape[1:])

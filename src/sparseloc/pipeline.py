@@ -41,7 +41,7 @@ from .engine import resolve_engine, use_engine
 from .io.tables import LOCS_COLUMNS, empty_locs
 from .model_check import ModelCheck, check_fit
 from .pool import in_processes
-from .psf.base import PSFModel
+from .psf.base import PSFModel, light_radius
 from .psf.spline import SplinePSF
 from .solvers import WindowSolution, convex_solve, hybrid_solve, matching_pursuit
 from .solvers.emitters import Emitters
@@ -447,9 +447,7 @@ def localize(
     if read_variance is not None:
         read_variance = _checked_read_variance(read_variance, shape, params)
     t0 = time.perf_counter()
-    inputs = _frames_and_backgrounds(
-        get, n, start, stop, block, params, _image_width(model, params)
-    )
+    inputs = _frames_and_backgrounds(get, n, start, stop, block, params, model)
     if starts is not None:
         inputs = _with_starts(inputs, starts, params)
     work_args = (work_model_for(model, params), params, shape, read_variance)
@@ -710,21 +708,16 @@ class _FrameWork:
         return parts, len(todo)
 
 
-def _image_width(model: PSFModel, p: LocalizeParams) -> int:
-    """Width (pixels) of one emitter's image: the diameter of the disc holding 90 % of its
-    light at the z of the widest image."""
-    r90 = model.support_radius(p.pixel_size, 0.9, z_range=p.z_range or model.z_range)
-    return 2 * int(np.ceil(r90 / p.pixel_size)) + 1
-
-
 def _frames_and_backgrounds(
-    get, n: int, start: int, stop: int, block: int, p: LocalizeParams, image_width: int
+    get, n: int, start: int, stop: int, block: int, p: LocalizeParams, model: PSFModel
 ):
     """Yield (frame index, frame, background), reading ``block`` frames at a time. A temporal
     background has the bumps of molecules that stay on capped (:func:`capped_bumps`, blocks
-    of ``image_width`` pixels)."""
+    of one image's width: the diameter of the disc holding 90 % of ``model``'s light)."""
     half = p.background_frames // 2
     temporal = p.background == "temporal" or (p.background == "auto" and n >= p.min_temporal_frames)
+    if temporal:
+        width = 2 * light_radius(model, p.pixel_size, p.z_range or model.z_range) + 1
     for b0 in range(start, stop, block):
         b1 = min(b0 + block, stop)
         lo, hi = max(b0 - half, 0), min(b1 + half, n)
@@ -734,7 +727,7 @@ def _frames_and_backgrounds(
         if temporal:
             centres = np.arange(b0, b1) - lo
             bgs = temporal_backgrounds(chunk, centres, half, percentile=p.background_percentile)
-            bgs = capped_bumps(bgs, image_width)
+            bgs = capped_bumps(bgs, width)
         for f in range(b0, b1):
             i = f - lo
             bg = bgs[f - b0] if temporal else spatial_background(chunk[i])

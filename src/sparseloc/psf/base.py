@@ -21,6 +21,7 @@ __all__ = [
     "as_emitters",
     "check_pixel_size",
     "check_shape",
+    "light_radius",
     "parse_pair",
     "pixel_centres",
 ]
@@ -88,8 +89,15 @@ class PSFModel(Protocol):
         x, y, z (photons per pixel per nm) and photons (per photon)."""
         ...
 
-    def support_radius(self, pixel_size: float) -> float:
-        """Radius (nm) around the emitter that holds nearly all of its image over the z range."""
+    def support_radius(
+        self,
+        pixel_size: float,
+        fraction: float = 0.95,
+        *,
+        z_range: tuple[float, float] | None = None,
+    ) -> float:
+        """Radius (nm) around the emitter that holds ``fraction`` of its image at the z of its
+        widest image in ``z_range`` (default: the model's)."""
         ...
 
 
@@ -169,6 +177,14 @@ def energy_radius(images: NDArray[np.float64], r: NDArray[np.float64], fraction:
         idx = int(np.searchsorted(cum, fraction * cum[-1]))
         radius = max(radius, float(r[order[min(idx, r.size - 1)]]))
     return radius
+
+
+def light_radius(
+    model: PSFModel, pixel_size: float, z_range: tuple[float, float] | None = None
+) -> int:
+    """Radius (whole pixels) of the disc holding 90 % of an emitter's light at the z of its
+    widest image in ``z_range`` (default: the model's; :meth:`PSFModel.support_radius`)."""
+    return int(np.ceil(model.support_radius(pixel_size, 0.9, z_range=z_range) / pixel_size))
 
 
 def pixel_centres(n: int, pixel_size: float, origin: float = 0.0) -> NDArray[np.float64]:
