@@ -58,6 +58,7 @@ from .solvers.frame_compose import (
 from .solvers.frame_l1 import l1_templates, tiled_l1_starts
 from .solvers.refine import refine_solution
 from .solvers.two_tier import solve_two_tier
+from .solvers.variance import noise_factor_of
 
 log = logging.getLogger(__name__)
 
@@ -157,7 +158,7 @@ def _noise_kwargs(p: LocalizeParams, read_variance: Any = None) -> dict:
 def _variance_factor(p: LocalizeParams) -> float:
     """Shot-noise variance per expected photon in the detection's signal-to-noise: 2 for EMCCD
     data, else 1. The detection thresholds were set on this scale, so ``qe`` stays out."""
-    return 2.0 if p.noise == "emccd" else 1.0
+    return noise_factor_of(p.noise)
 
 
 #: Emitters closer than this many half-light radii of a typical plane are fitted as one group:

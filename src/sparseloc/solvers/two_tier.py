@@ -62,7 +62,7 @@ from .frame_windows import NeighbourLight, window_box, window_data, window_kwarg
 from .mle import fit_emitters
 from .mp import MIN_PHOTONS
 from .refine import weakest_removed
-from .variance import model_error_of, pixel_variance
+from .variance import misfit, model_error_of
 
 log = logging.getLogger(__name__)
 
@@ -225,17 +225,6 @@ class _Unit:
         """Whether one of its fits is flagged or the window's misfit is significant."""
         bad = any(fl not in ("ok", "not_converged") for fl in self.flags)
         return bad or self.misfit > PROMOTE_MISFIT
-
-
-def misfit(y: NDArray, mu: NDArray, signal: NDArray, noise_factor: float, e: float, rv) -> float:
-    """How far a window's Pearson chi-square ``X = sum((y - mu)^2 / V)`` lies above its
-    expectation, in standard deviations: ``(X - n) / sqrt(sum(2 + 1 / mu))`` for ``n`` pixels
-    (the Poisson spread of ``X``), with ``V`` the variance rule (camera noise, read noise and
-    the model's error on ``signal``, :func:`~sparseloc.solvers.variance.pixel_variance`)."""
-    var = pixel_variance(mu, noise_factor, signal, e) + rv
-    x = float(np.sum((y - mu) ** 2 / var))
-    spread = float(np.sum(2.0 + 1.0 / np.maximum(mu, 1.0)))
-    return (x - y.size) / np.sqrt(spread)
 
 
 class _Tier1:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["error_allowance", "model_error_of", "pixel_variance"]
+__all__ = ["error_allowance", "misfit", "model_error_of", "noise_factor_of", "pixel_variance"]
 
 
 def model_error_of(model: object) -> float:
@@ -70,3 +70,21 @@ def error_allowance(noise_var: NDArray, signal: NDArray, model_error: float) -> 
         return 0.0
     v = np.maximum(noise_var, 1e-12)
     return float(model_error**2 * np.sum(signal**2 / v))
+
+
+def noise_factor_of(noise: str) -> float:
+    """The camera's variance per expected photon for a likelihood's ``noise`` name: 2 for an
+    EMCCD's excess noise, else 1."""
+    return 2.0 if noise == "emccd" else 1.0
+
+
+def misfit(y: NDArray, mu: NDArray, signal: NDArray, noise_factor: float, e: float, rv) -> float:
+    """How far a window's Pearson chi-square ``X = sum((y - mu)^2 / V)`` lies above its
+    expectation, in standard deviations: ``(X - n) / sqrt(sum(2 + 1 / mu))`` for ``n`` pixels
+    (the Poisson spread of ``X``), with ``V`` the variance rule (:func:`pixel_variance` on
+    ``signal``, the emitters' part of ``mu``) plus the read-noise variance ``rv`` (scalar or
+    the window's map)."""
+    var = pixel_variance(mu, noise_factor, signal, e) + rv
+    x = float(np.sum((y - mu) ** 2 / var))
+    spread = float(np.sum(2.0 + 1.0 / np.maximum(mu, 1.0)))
+    return (x - y.size) / np.sqrt(spread)
