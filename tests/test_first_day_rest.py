@@ -182,6 +182,18 @@ def test_pixel_size_zero_with_pixel_truth_is_refused(pixel_truth, tmp_path, comm
     assert not (tmp_path / "r.html").exists()
 
 
+@pytest.mark.parametrize(
+    "size",
+    [("--rows", 100000, "--cols", 100000, "--frames", 1000), ("--frames", 100000000)],
+)
+def test_simulate_beyond_the_free_memory_is_refused(tmp_path, size):
+    """Item 19: a movie that cannot be held in memory is refused before any allocation."""
+    out = tmp_path / "big.tif"
+    res = run("simulate", "-o", out, "--psf", "dh-analytic", *size)
+    refused(res, "GiB of memory", "fewer frames")
+    assert not out.exists()
+
+
 def test_simulate_offset_beyond_uint16_is_refused(tmp_path):
     out = tmp_path / "m.tif"
     res = run("simulate", "-o", out, "--psf", "dh-analytic", "--frames", "1", "--offset", "70000")

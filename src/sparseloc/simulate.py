@@ -13,6 +13,7 @@ generator draws from a :class:`numpy.random.Generator`, so a seed fixes the resu
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -365,6 +366,8 @@ def simulate(
         Movie (uint16 ADU), expected photons, truth table, camera and parameters.
     """
     c = _check_simulation(model, camera, n_frames, shape, pixel_size, z_range, seed)
+    if not isinstance(scene, pd.DataFrame):
+        _check_memory(c, density)
     truth, scene_name = _scene_truth(scene, c, density, photons, scene_kwargs)
     expected = render_movie(
         model,
@@ -463,6 +466,36 @@ def _check_simulation(
     scene_rng = np.random.default_rng(scene_ss)
     noise_rng = np.random.default_rng(noise_ss)
     return _Checked(camera, n_frames, (rows, cols), px, zr, scene_rng, noise_rng)
+
+
+#: Bytes a simulation holds per pixel of its movie (the expected photons in float64 and the
+#: uint16 movie) and per emitter of its truth table.
+_BYTES_PER_PIXEL = 10
+_BYTES_PER_EMITTER = 100
+
+
+def _available_memory() -> int | None:
+    """Bytes of memory this machine has free now, or None where the system does not say."""
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _check_memory(c: _Checked, density: float) -> None:
+    """Refuse a simulation that cannot fit in the free memory (the movie is held whole)."""
+    rows, cols = c.shape
+    pixels = float(c.n_frames) * rows * cols
+    area_um2 = c.fov[0] * c.fov[1] * 1e-6
+    emitters = max(float(density), 0.0) * area_um2 * c.n_frames
+    need = pixels * _BYTES_PER_PIXEL + emitters * _BYTES_PER_EMITTER
+    free = _available_memory()
+    if free is not None and need > free:
+        raise ValueError(
+            f"a simulation of {c.n_frames} frames of {rows}x{cols} px with about "
+            f"{emitters:.3g} emitters needs about {need / 2**30:.3g} GiB of memory but "
+            f"{free / 2**30:.3g} GiB is free; simulate fewer frames or a smaller frame"
+        )
 
 
 def _scene_truth(
