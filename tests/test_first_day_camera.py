@@ -107,6 +107,19 @@ def test_camera_section_of_the_toml_file(tmp_path):
         read_config(cfg)
 
 
+def test_camera_table_takes_the_flags_name_for_the_kind(tmp_path):
+    """Item 6: the flag is --camera, so ``camera = "emccd"`` in [camera] is read as ``kind``;
+    both together are refused."""
+    from sparseloc.options import read_config
+
+    cfg = tmp_path / "run.toml"
+    cfg.write_text('[camera]\ncamera = "emccd"\nem_gain = 100.0\n')
+    assert read_config(cfg)["camera"] == "emccd"
+    cfg.write_text('[camera]\ncamera = "emccd"\nkind = "scmos"\n')
+    with pytest.raises(ValueError, match="both kind and camera"):
+        read_config(cfg)
+
+
 def test_calibrate_converts_adu_to_photons_as_localize_does(beads, tmp_path):
     from sparseloc.camera import to_photons
     from sparseloc.io.calibration import read_calibration_info
@@ -228,6 +241,54 @@ def test_camera_on_blinking_emitters_says_its_gain_is_not_to_be_trusted(tmp_path
     est = estimate_camera(steady, offset=100.0)
     assert est.method == "temporal" and not est.caution
     assert est.gain == pytest.approx(1.0, rel=0.05)
+
+
+def _bead_stack(camera, beads: int = 4):
+    """ADU frames of a simulated double-helix bead z-stack (50 nm steps, 20,000 photons)."""
+    from sparseloc.psf import make_psf
+    from sparseloc.simulate import bead_scan_truth, simulate
+
+    zs = np.arange(-600.0, 601.0, 50.0)
+    pos = [(1000.0 + 1600.0 * (i % 3), 1000.0 + 1600.0 * (i // 3)) for i in range(beads)]
+    truth = bead_scan_truth(np.array(pos), zs, photons=20000.0)
+    sim = simulate(make_psf("dh-analytic"), scene=truth, n_frames=zs.size, shape=(64, 64),
+                   camera=camera, background=20.0)  # fmt: skip
+    return sim.movie
+
+
+@pytest.mark.parametrize(
+    ("kind", "gain", "em_gain", "rel"),
+    # an EMCCD's skewed noise leaves a bias of a few per cent (the bins of the runs' mean
+    # select on their noise, which correlates with the differences')
+    [("scmos", 1.0, 1.0, 0.06), ("scmos", 2.0, 1.0, 0.06), ("emccd", 50.0, 300.0, 0.12)],
+)
+def test_camera_gain_from_a_bead_stack(kind, gain, em_gain, rel):
+    """Item 9: a bead z-stack's light changes from frame to frame; differences of higher order
+    cancel that change, and the gain comes out right with its standard error."""
+    from sparseloc.camera import Camera, estimate_camera
+
+    cam = Camera(kind=kind, offset=200.0, gain=gain, em_gain=em_gain, read_noise=1.5)
+    est = estimate_camera(_bead_stack(cam), kind=kind, em_gain=em_gain)
+    assert est.method == "temporal" and not est.caution
+    assert est.gain == pytest.approx(gain, rel=rel)
+    assert 0 < est.gain_error < 0.03 * gain
+    assert est.offset == pytest.approx(200.0, abs=15.0)
+
+
+def test_camera_gain_from_flat_frames_at_several_levels_but_not_one():
+    """Item 9: flat frames at three light levels (the frames where the level changes left
+    out) give the gain; flat frames at one level hold no line, and the estimate says so."""
+    from sparseloc.camera import Camera, apply_noise, estimate_camera
+
+    rng = np.random.default_rng(0)
+    cam = Camera(kind="scmos", offset=200.0, gain=2.0, read_noise=1.5)
+    flat = rng.uniform(0.95, 1.05, (1, 64, 64))  # the illumination's non-uniformity
+    levels = np.concatenate([np.full((7, 64, 64), v) for v in (50.0, 100.0, 400.0)]) * flat
+    est = estimate_camera(apply_noise(levels, cam, rng))
+    assert est.method == "temporal" and not est.caution
+    assert est.gain == pytest.approx(2.0, rel=0.03)
+    one = estimate_camera(apply_noise(np.full((20, 64, 64), 100.0) * flat, cam, rng))
+    assert "one brightness level" in one.caution
 
 
 def test_photon_transfer_lives_in_the_library_and_the_benchmark_uses_it(tmp_path):
@@ -374,6 +435,36 @@ def test_corrupt_masks_in_simulate_and_localize(movie, tmp_path):
     mat.write_bytes(bytes(blob))
     refused(run("localize", movie, "-o", tmp_path / "x.parquet", "--psf", mat,
                 "--pixel-size", 160), "m.mat")  # fmt: skip
+
+
+def _bad_tag(path: Path) -> Path:
+    """``path`` (a TIFF) with its SamplesPerPixel tag's count damaged: tifffile logs an error
+    and still reads the image."""
+    with tifffile.TiffFile(path) as tif:
+        at = tif.pages[0].tags[277].offset
+    blob = bytearray(path.read_bytes())
+    blob[at + 4] = 5
+    bad = path.with_name("tag_" + path.name)
+    bad.write_bytes(bytes(blob))
+    return bad
+
+
+def test_a_mask_or_map_tiff_tifffile_calls_damaged_is_refused_without_its_log(tmp_path, capfd):
+    """Item 20: tifffile logs ``ERROR tifffile`` for a damaged tag and reads on; masks and
+    camera maps are read with the movie reader's checks, refused in one sentence."""
+    good = tmp_path / "phase.tif"
+    tifffile.imwrite(good, np.zeros((64, 64), np.float32))
+    bad = _bad_tag(good)
+    res = run("simulate", "-o", tmp_path / "s.tif", "--psf", bad, "--frames", 1,
+              "--rows", 16, "--cols", 16)  # fmt: skip
+    refused(res, bad.name, "corrupt")
+    assert "ERROR" not in capfd.readouterr().err
+    gmap = tmp_path / "gain.tif"
+    tifffile.imwrite(gmap, np.ones((16, 16), np.float32))
+    res = run("simulate", "-o", tmp_path / "s.tif", "--camera", "scmos", "--gain-map",
+              _bad_tag(gmap), "--frames", 1, "--rows", 16, "--cols", 16)  # fmt: skip
+    refused(res, "tag_gain.tif")
+    assert "ERROR" not in capfd.readouterr().err
 
 
 # -- item 17: calibrations without negative voxels -----------------------------------------------

@@ -28,10 +28,11 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.special import comb
 
 __all__ = [
     "CAMERA_KINDS",
@@ -107,9 +108,10 @@ def _load_map_file(name: str, path: Path) -> NDArray[np.float64]:
         elif suffix == ".csv":
             data = np.loadtxt(path, delimiter=",", dtype=np.float64, ndmin=2)
         else:
-            import tifffile  # only needed here; keeps the camera model free of I/O otherwise
+            from .io.tiff import read_tiff  # the movie reader's checks for damaged files
 
-            data = tifffile.imread(path)
+            data = read_tiff(path)
+            data = data[0] if len(data) == 1 else data
     except Exception as exc:  # numpy and tifffile raise many types for a bad file
         raise ValueError(f"the {name} map file {where} could not be read ({exc})") from exc
     if isinstance(data, np.ndarray) and data.dtype.kind not in "biuf":
@@ -640,6 +642,12 @@ def photon_transfer(frames: ArrayLike, block: int = 6) -> tuple[float, float]:
 #: than 4 standard deviations of the line's noise from zero (Gaussian noise: 0.006 %);
 #: blinking emitters switch far more.
 STEADY_OUTLIERS = 0.01
+#: The temporal line needs pixels whose means differ by more than their noise: it is
+#: cautioned when the variance of the runs' means is less than this many times the variance
+#: their noise alone gives them (a true spread below sqrt(3) noise standard deviations).
+MIN_SPREAD = 4.0
+#: A gain whose standard error exceeds this fraction of it is printed with a caution.
+GAIN_CAUTION = 0.1
 #: Bins of the temporal line over the pixels' mean (equal counts).
 _TEMPORAL_BINS = 30
 #: What the spatial line says about its own bias (printed with its estimate).
@@ -664,14 +672,97 @@ def _clipped_variance(d: NDArray[np.float64]) -> float:
     return var
 
 
-def temporal_transfer(frames: ArrayLike) -> tuple[float, float, float]:
+#: Highest order of the frame-to-frame differences :func:`temporal_transfer` tries.
+_MAX_ORDER = 4
+#: Two orders' slopes agree when they differ by at most this many standard errors.
+_AGREE_SE = 3.0
+
+
+class TransferLine(NamedTuple):
+    """A mean-variance line ``variance = slope * mean + intercept`` (ADU per e-, ADU^2) from
+    :func:`temporal_transfer`, with the covariance (2, 2) of (slope, intercept), the order of
+    the differences it came from, whether two orders agreed on it, and the fraction of
+    differences beyond 4 standard deviations of it. ``spread``: the variance of the
+    differenced runs' means over the variance their noise alone gives them; near 1 the
+    bins hold noise, not brightness, and the line is not the camera's."""
+
+    slope: float
+    intercept: float
+    covariance: NDArray[np.float64]
+    order: int
+    agreed: bool
+    outliers: float
+    spread: float = np.inf
+
+    @property
+    def slope_error(self) -> float:
+        """The slope's standard error (ADU per e-)."""
+        return float(np.sqrt(max(self.covariance[0, 0], 0.0)))
+
+
+def _difference_line(a: NDArray[np.float64], order: int) -> TransferLine:
+    """The line (not yet ``agreed``) from the ``order``-th differences along the frames
+    (variance ``C(2 order, order)`` times a frame's for independent noise), fitted in bins of
+    the differenced frames' mean. Runs of frames where the light jumps (a flat series'
+    change of level: more than :data:`STEADY_OUTLIERS` of their differences beyond 4
+    standard deviations) are left out and the line fitted again, while half of them stay."""
+    d = np.diff(a, n=order, axis=0)
+    m = np.mean([a[i : len(a) - order + i] for i in range(order + 1)], axis=0)
+    scale = float(comb(2 * order, order))
+    line = _binned_line(d.ravel(), m.ravel(), scale)
+    per_run = _beyond(d, m, line, scale).reshape(len(d), -1).mean(axis=1)
+    steady = per_run <= STEADY_OUTLIERS
+    if 2 * steady.sum() >= len(d) and not steady.all():
+        d, m = d[steady], m[steady]
+        line = _binned_line(d.ravel(), m.ravel(), scale)
+    outliers = float(np.mean(_beyond(d, m, line, scale)))
+    noise = np.mean(np.maximum(line[0] * m + line[1], 0.0)) / (order + 1)
+    spread = float(np.var(m) / noise) if noise > 0 else np.inf
+    return TransferLine(line[0], line[1], line[2], order, False, outliers, spread)
+
+
+def _beyond(d: NDArray, m: NDArray, line: tuple, scale: float) -> NDArray[np.bool_]:
+    """Whether each difference ``d`` lies beyond 4 standard deviations of ``line`` at ``m``."""
+    lim = scale * (line[0] * m + line[1])
+    with np.errstate(invalid="ignore"):
+        return ~(d**2 <= 16.0 * lim)
+
+
+def _binned_line(d: NDArray, m: NDArray, scale: float) -> tuple[float, float, NDArray]:
+    """Slope, intercept and their covariance (2, 2) of the line through the clipped variance
+    of differences ``d`` (divided by ``scale``) in equal-count bins of their mean ``m``."""
+    edges = np.quantile(m, np.linspace(0.0, 1.0, _TEMPORAL_BINS + 1))
+    idx = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, _TEMPORAL_BINS - 1)
+    centre, var, count = [], [], []
+    for k in range(_TEMPORAL_BINS):
+        dk = d[idx == k]
+        if dk.size > 2:
+            centre.append(float(np.mean(m[idx == k])))
+            var.append(_clipped_variance(dk) / scale)
+            count.append(dk.size)
+    c, v = np.asarray(centre), np.asarray(var)
+    if len(c) < 3 or np.ptp(c) <= 0:
+        raise ValueError(
+            "the frames all have the same brightness: the mean-variance line needs frames "
+            "with brighter and darker parts"
+        )
+    # a bin's variance estimate scatters by about v * sqrt(2 / n)
+    sd = np.maximum(v, 1e-12) * np.sqrt(2.0 / np.asarray(count))
+    (slope, intercept), cov = np.polyfit(c, v, 1, w=1.0 / sd, cov="unscaled")
+    return float(slope), float(intercept), cov
+
+
+def temporal_transfer(frames: ArrayLike) -> TransferLine:
     """The mean-variance line from frame-to-frame differences of a steady series.
 
-    Each pixel's difference between consecutive frames is noise alone where the light does
-    not change (variance ``2 * (slope * mean + intercept)``); the line is fitted to the
-    squared difference in bins of the pair's mean, without the differences beyond 4 standard
-    deviations (robust to a few changes); then those beyond 4 standard deviations of the line
-    are counted.
+    Where the light does not change between frames, each pixel's differences along the
+    frames are noise alone. Light that changes slowly (a bead z-stack's steps, drift,
+    bleaching) adds to first differences, less to higher ones: a ``k``-th difference cancels
+    change of order below ``k``. The line is fitted to the differences of order 1, 2, ...
+    (each in bins of the mean, without differences beyond 4 standard deviations) until two
+    consecutive orders give slopes that agree within :data:`_AGREE_SE` standard errors; that
+    order's line is returned. If none agree, the light changes faster than the differences
+    cancel and the line is marked not agreed.
 
     Parameters
     ----------
@@ -680,38 +771,21 @@ def temporal_transfer(frames: ArrayLike) -> tuple[float, float, float]:
 
     Returns
     -------
-    slope, intercept : float
-        As :func:`photon_transfer`'s.
-    outliers : float
-        Fraction of differences beyond 4 standard deviations: above :data:`STEADY_OUTLIERS`
-        the series is not steady and the line not to be trusted.
+    TransferLine
+        Its ``outliers`` (the fraction of differences beyond 4 standard deviations) above
+        :data:`STEADY_OUTLIERS`, or ``agreed`` False, say the series is not steady.
     """
     a = np.asarray(frames, dtype=np.float64)
     if a.ndim != 3 or a.shape[0] < 3:
         raise ValueError("the temporal line needs a series of at least 3 frames")
-    d = np.diff(a, axis=0).ravel()
-    m = (0.5 * (a[1:] + a[:-1])).ravel()
-    edges = np.quantile(m, np.linspace(0.0, 1.0, _TEMPORAL_BINS + 1))
-    idx = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, _TEMPORAL_BINS - 1)
-    var_d = np.full(_TEMPORAL_BINS, np.nan)
-    centre = np.full(_TEMPORAL_BINS, np.nan)
-    for k in range(_TEMPORAL_BINS):
-        dk = d[idx == k]
-        if dk.size:
-            centre[k] = np.mean(m[idx == k])
-            var_d[k] = _clipped_variance(dk)
-    ok = np.isfinite(var_d) & np.isfinite(centre)
-    if ok.sum() < 2 or np.ptp(centre[ok]) <= 0:
-        raise ValueError(
-            "the frames all have the same brightness: the mean-variance line needs frames "
-            "with brighter and darker parts"
-        )
-    # a difference's variance is twice a frame's
-    slope, intercept = np.polyfit(centre[ok], var_d[ok] / 2.0, 1)
-    var = 2.0 * (slope * m + intercept)
-    with np.errstate(invalid="ignore"):
-        outliers = float(np.mean(~(d**2 <= 16.0 * var)))
-    return float(slope), float(intercept), outliers
+    top = min(_MAX_ORDER, a.shape[0] - 2)
+    lines = [_difference_line(a, 1)]
+    for order in range(2, top + 1):
+        lines.append(_difference_line(a, order))
+        low, high = lines[-2], lines[-1]
+        if abs(high.slope - low.slope) <= _AGREE_SE * np.hypot(low.slope_error, high.slope_error):
+            return low._replace(agreed=True)
+    return lines[-1]
 
 
 @dataclass(frozen=True)
@@ -737,6 +811,9 @@ class CameraEstimate:
         (:func:`photon_transfer`).
     caution : str
         What the user should know about the estimate's trust ("" for none).
+    gain_error, offset_error : float
+        Standard errors (e-/ADU, ADU) from the line's fit; NaN for the spatial line and
+        for a given offset.
     """
 
     offset: float
@@ -747,6 +824,8 @@ class CameraEstimate:
     intercept: float
     method: str = "spatial"
     caution: str = ""
+    gain_error: float = float("nan")
+    offset_error: float = float("nan")
 
 
 def estimate_camera(
@@ -801,14 +880,14 @@ def estimate_camera(
         raise ValueError("give the offset or the read noise, not both: the other is measured")
     if not em_gain >= 1:
         raise ValueError(f"em_gain must be >= 1, got {em_gain}")
-    method, caution = "spatial", SPATIAL_CAUTION
+    method, caution, cov = "spatial", SPATIAL_CAUTION, np.full((2, 2), np.nan)
     slope, intercept = photon_transfer(frames, block)
     a = np.asarray(frames)
     if a.ndim == 3 and a.shape[0] >= 3:
-        t_slope, t_intercept, outliers = temporal_transfer(a)
-        if outliers < STEADY_OUTLIERS and t_slope > 0:
-            method, caution = "temporal", ""
-            slope, intercept = t_slope, t_intercept
+        t = temporal_transfer(a)
+        if t.agreed and t.outliers < STEADY_OUTLIERS and t.slope > 0:
+            method, caution, cov = "temporal", "", t.covariance
+            slope, intercept = t.slope, t.intercept
     if not slope > 0:
         raise ValueError(
             f"the frames' variance does not grow with their mean (slope {slope:.3g}); "
@@ -816,16 +895,41 @@ def estimate_camera(
         )
     excess = 2.0 * em_gain if kind == "emccd" and em_gain > 1 else 1.0
     gain = excess / slope  # e- per ADU
+    gain_error = gain * float(np.sqrt(cov[0, 0])) / slope
+    if method == "temporal" and t.spread < MIN_SPREAD:
+        caution = (
+            "the frames hold one brightness level (the pixels' means differ by no more than "
+            "their noise), so the line's slope is not the camera's; use frames with bright "
+            "and dark parts (a bead z-stack, or flat frames at several light levels)"
+        )
+    elif gain_error > GAIN_CAUTION * gain:
+        caution = (
+            f"the gain is uncertain by {100 * gain_error / gain:.0f} %: the frames span too "
+            "narrow a range of brightness; use frames with bright and dark parts (a bead "
+            "z-stack, or flat frames at several light levels)"
+        )
     if offset is not None:
         read_var_adu = intercept + slope * float(offset)
         noise = float(np.sqrt(max(read_var_adu, 0.0)) * gain)
         return CameraEstimate(
-            float(offset), float(gain), noise, True, slope, intercept, method, caution
+            float(offset), float(gain), noise, True, slope, intercept, method, caution, gain_error
         )
     noise = 0.0 if read_noise is None else float(read_noise)
     if noise < 0:
         raise ValueError(f"read_noise must be >= 0 e- rms, got {noise}")
     est_offset = ((noise / gain) ** 2 - intercept) / slope
+    # d offset / d intercept = -1 / slope, d offset / d slope = -offset / slope
+    var = cov[1, 1] + est_offset**2 * cov[0, 0] + 2 * est_offset * cov[0, 1]
+    offset_error = float(np.sqrt(max(var, 0.0))) / slope
     return CameraEstimate(
-        float(est_offset), float(gain), noise, False, slope, intercept, method, caution
+        float(est_offset),
+        float(gain),
+        noise,
+        False,
+        slope,
+        intercept,
+        method,
+        caution,
+        gain_error,
+        offset_error,
     )

@@ -1079,6 +1079,11 @@ def calibrate(
     typer.echo(f"wrote {out} and {fig_path}")
 
 
+def _plus_minus(error: float, spec: str) -> str:
+    """`` +- error`` formatted with ``spec``, or "" for an unknown (NaN) error."""
+    return f" +- {error:{spec}}" if np.isfinite(error) else ""
+
+
 @app.command(name="camera", cls=_Command)
 def camera_cmd(
     movie: Annotated[
@@ -1129,15 +1134,16 @@ def camera_cmd(
         typer.echo(f"offset {est.offset:.1f} ADU (given)")
     elif placed:
         typer.echo(
-            f"offset at least {est.offset:.1f} ADU (with a read noise of {est.read_noise:g} e-; "
-            "more read noise puts it higher): give --offset to measure the read noise"
+            f"offset at least {est.offset:.1f}{_plus_minus(est.offset_error, '.1f')} ADU (with a "
+            f"read noise of {est.read_noise:g} e-; more read noise puts it higher): give "
+            "--offset to measure the read noise"
         )
     else:
         typer.echo(
             f"offset not placed: the line's bound ({est.offset:.1f} ADU) is below zero, as the "
             "read noise dominates; give --offset (the median of a dark frame)"
         )
-    typer.echo(f"gain {est.gain:.4g} e-/ADU")
+    typer.echo(f"gain {est.gain:.4g}{_plus_minus(est.gain_error, '.2g')} e-/ADU")
     if est.offset_given:
         below = "" if est.read_noise > 0 else " (below what the line resolves)"
         typer.echo(f"read noise {est.read_noise:.3g} e- rms{below}")

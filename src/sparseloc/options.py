@@ -147,8 +147,15 @@ def _camera_table(cfg: dict[str, Any], src: Path) -> dict[str, Any]:
     """The ``[camera]`` table of a parsed TOML file as camera options, checked."""
     table = _table(cfg, "camera", src)
     where = f"[camera] of {src.name}"
-    known = {*CAMERA_DEFAULTS, *_CAMERA_TABLE_KEYS} - set(_CAMERA_TABLE_KEYS.values())
+    # the noise model's kind is ``kind`` in this table and ``camera`` as a flag (--camera)
+    # and in [localize]: either name is read here
+    known = {*CAMERA_DEFAULTS, *_CAMERA_TABLE_KEYS}
     unknown = sorted(set(table) - known)
+    both = [k for k, v in _CAMERA_TABLE_KEYS.items() if k in table and v in table]
+    if both:
+        raise ValueError(
+            f"{where} gives both {both[0]} and {_CAMERA_TABLE_KEYS[both[0]]}; keep one"
+        )
     if unknown:
         raise ValueError(
             f"unknown keys in {where}: {', '.join(unknown)}; allowed: {', '.join(sorted(known))}"

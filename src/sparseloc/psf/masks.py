@@ -280,9 +280,9 @@ def _read_mask_array(p: Path, key: str | None) -> NDArray:
 
         return load_array(p)
     if suffix in (".tif", ".tiff"):
-        import tifffile
+        from ..io.tiff import read_tiff  # the movie reader's checks for damaged files
 
-        return tifffile.imread(p)
+        return read_tiff(p)
     if suffix in (".csv", ".txt"):
         return np.loadtxt(p, delimiter="," if suffix == ".csv" else None)
     raise ValueError(f"unknown mask file type {suffix!r}; use .mat, .npy, .tif or .csv")
