@@ -71,18 +71,21 @@ def test_the_check_limit_is_a_windows_chi_square_quantile():
     assert {"median_gof", "verdict", "upper", "lower", "dof", "fits"} <= set(d)
 
 
-def test_a_failed_check_on_crowded_windows_names_the_crowding_first():
-    """Crowded frames raise the goodness of fit with a correct model (unresolved light): the
-    message says so before it blames the PSF or the camera; isolated fits do not get it."""
+def test_a_failed_check_on_crowded_windows_names_the_model_then_the_crowding():
+    """Crowded frames raise the goodness of fit with a correct model (unresolved light), and a
+    wrong PSF makes frames look crowded: the message blames the PSF first, then names the
+    crowding with the localizations' density; isolated fits do not get it (item 2)."""
     from sparseloc.model_check import ModelCheck, check_fit
 
     rng = np.random.default_rng(1)
     dof = 400
     gof = 1.3 * rng.chisquare(dof, 300) / dof
-    crowded = check_fit(gof, np.full(gof.size, dof), emitters=np.full(gof.size, 7))
+    crowded = check_fit(gof, np.full(gof.size, dof), emitters=np.full(gof.size, 7), density=3.1)
     assert crowded.verdict == "misfit" and crowded.emitters == 7
-    assert crowded.message.index("crowded") < crowded.message.index("the wrong PSF")
-    assert "a median of 7 emitters per fitted window" in crowded.message
+    assert crowded.message.index("the wrong PSF") < crowded.message.index("crowding")
+    assert "a median of 7 emitters per fitted window (3.1 localizations per um^2" in (
+        crowded.message
+    )
     alone = check_fit(gof, np.full(gof.size, dof), emitters=np.ones(gof.size))
     assert alone.verdict == "misfit" and "crowded" not in alone.message
     # metadata of a run before the field existed still reads

@@ -16,7 +16,9 @@ too low, an EMCCD declared for a camera without EM gain, read noise overstated).
 In crowded frames (most fitted windows holding more than :data:`CROWDED_EMITTERS` emitters)
 a correct model fails the check too: the light of emitters the solver could not resolve is
 left in every window, single-emitter windows included, so those cannot stand in for the
-check. The message then names the crowding first.
+check. A wrong PSF looks crowded as well (the solver explains each image with several
+emitters of the wrong shape), so the message names the wrong model first and the crowding
+after it, with the localizations' density for the user to compare with the sample's.
 
 The yardstick is one window's spread, not the median's own sampling spread: that shrinks as
 ``1 / sqrt(windows)``, so on a long movie it would reject every model short of exact (a spline
@@ -45,9 +47,9 @@ LOW_COUNT = 0.5
 CROWDED_EMITTERS = 2
 
 _CROWDED = (
-    "the frames are crowded (a median of {k:g} emitters per fitted window), and light of "
-    "emitters the solver could not resolve stays in the fits, which raises their goodness of "
-    "fit with any model; if the data are not that dense, "
+    "; or crowding: a median of {k:g} emitters per fitted window{density}, whose unresolved "
+    "light raises the goodness of fit with any model (if the sample is that dense, the model "
+    "may be right)"
 )
 _CAUSES_HIGH = (
     "likely causes: the wrong PSF (a calibration or mask of another microscope, or the "
@@ -121,6 +123,7 @@ def check_fit(
     background: ArrayLike | None = None,
     emitters: ArrayLike | None = None,
     *,
+    density: float | None = None,
     alpha: float = ALPHA,
 ) -> ModelCheck:
     """Judge a run by the median goodness of fit of its windows (see the module notes).
@@ -137,7 +140,9 @@ def check_fit(
         limit applies only where their median is at least :data:`LOW_COUNT`.
     emitters : array_like, shape (W,), optional
         Emitters fitted in each window; a median above :data:`CROWDED_EMITTERS` names the
-        crowding as the first cause of a failed check.
+        crowding as a cause of a failed check, after the model's.
+    density : float, optional
+        Localizations per um^2 per frame, stated with the crowding.
     alpha : float
         Level of the per-window test.
 
@@ -166,7 +171,8 @@ def check_fit(
         if emitters is None
         else float(np.median(np.asarray(emitters, dtype=np.float64).ravel()[keep]))
     )
-    crowded = _CROWDED.format(k=k_med) if k_med > CROWDED_EMITTERS else ""
+    dens = f" ({density:.2g} localizations per um^2 per frame)" if density else ""
+    crowded = _CROWDED.format(k=k_med, density=dens) if k_med > CROWDED_EMITTERS else ""
     said = (
         f"the median goodness of fit (deviance per degree of freedom) of {g.size} fits is {med:.2f}"
     )
@@ -174,7 +180,7 @@ def check_fit(
         verdict = "misfit"
         message = (
             f"the model does not describe the data: {said}, above {upper:.2f}, which fewer "
-            f"than {alpha:.1%} of the fits of a correct model exceed; {crowded}{_CAUSES_HIGH}"
+            f"than {alpha:.1%} of the fits of a correct model exceed; {_CAUSES_HIGH}{crowded}"
         )
     elif med < lower and counts_ok:
         verdict = "too_little_noise"

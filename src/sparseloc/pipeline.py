@@ -519,7 +519,10 @@ def check_model(
     else:
         pixels = np.full(len(wins), float(params.window) ** 2)
     dof = pixels - (4 * wins["k"].to_numpy() + 1)
-    res = check_fit(wins["gof"], dof, params.qe * wins["background"].to_numpy(), wins["k"])
+    area_um2 = shape[0] * shape[1] * (px * 1e-3) ** 2
+    density = len(table) / (area_um2 * max(table["frame"].nunique(), 1))
+    bg = params.qe * wins["background"].to_numpy()
+    res = check_fit(wins["gof"], dof, bg, wins["k"], density=density)
     if warn and not res.ok:
         log.warning("%s", res.message)
     return res
