@@ -360,6 +360,31 @@ def test_calibrate_shows_the_model_and_saves_the_cli_file(qtbot, viewer, beads, 
     assert not (tmp_path / "locs.parquet").exists()
 
 
+def test_calibrate_cancel_stops_the_work(qtbot, viewer, beads, monkeypatch):
+    """Cancel stops the calibration at its next step (one bead's registration), not only its
+    result: the registrations after it are not run."""
+    import sparseloc.calibrate as calibrate_module
+    from sparseloc.napari_plugin.calibrate_widget import CalibrateWidget
+
+    layer = _movie_layer(viewer, beads)
+    w = CalibrateWidget(viewer)
+    w.stack.value = layer
+    w.pixel_size.value = 100.0
+    w.z_step.value = 25.0
+    fits = []
+    original = calibrate_module._fit_shift
+
+    def cancel_at_the_first_bead(*args, **kwargs):
+        fits.append(1)
+        w.cancel()  # the Cancel button, pressed during the first registration
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(calibrate_module, "_fit_shift", cancel_at_the_first_bead)
+    _finish(qtbot, w.run())
+    assert len(fits) == 1  # 4 beads x 3 rounds, and more, without the cancel
+    assert w.calibration is None and w.summary.value == "cancelled"
+
+
 def test_bad_calibrate_input_is_one_notification(qtbot, viewer, tmp_path, errors):
     from sparseloc.io.tiff import write_tiff
     from sparseloc.napari_plugin.calibrate_widget import CalibrateWidget

@@ -30,6 +30,7 @@ of the z-averaged bead image.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -268,6 +269,7 @@ def calibrate_beads(
     pupil_options: dict[str, Any] | None = None,
     z_smooth: bool = True,
     beads: ArrayLike | None = None,
+    progress: Callable[[], None] | None = None,
 ) -> Calibration:
     """Build a measured PSF model from a bead z-stack.
 
@@ -312,6 +314,9 @@ def calibrate_beads(
     fit_pupil : bool
         Also fit the pupil phase to the average (``pupil_options`` go to
         :func:`sparseloc.psf.retrieval.fit_pupil`: ``na``, ``wavelength``, ...).
+    progress : callable, optional
+        Called with no argument between the steps of the work (and after each bead's
+        registration); an exception it raises stops the calibration (a viewer's Cancel).
 
     Returns
     -------
@@ -325,7 +330,16 @@ def calibrate_beads(
     """
     scan = read_scan(stack, pixel_size, z_step, z, valid, z0_slice, offset, gain, saturation)
     cal = _calibrate_scan(
-        scan, roi_size, threshold, detect_sigma, min_beads, iterations, name, z_smooth, beads
+        scan,
+        roi_size,
+        threshold,
+        detect_sigma,
+        min_beads,
+        iterations,
+        name,
+        z_smooth,
+        beads,
+        progress or (lambda: None),
     )
     if fit_pupil:
         cal.pupil = _fit_pupil_in_frame(cal.psf, cal.z, cal.pixel_size, pupil_options)
@@ -346,10 +360,13 @@ def _calibrate_scan(
     name: str,
     z_smooth: bool,
     known: ArrayLike | None = None,
+    tick: Callable[[], None] = lambda: None,
 ) -> Calibration:
-    """Find the beads, vet them, register and average them, and build the spline model."""
+    """Find the beads, vet them, register and average them, and build the spline model;
+    ``tick()`` between the steps."""
     p, step = scan.pixel_size, scan.step
     centres = _detect(scan.projection, detect_sigma, threshold, roi_size)
+    tick()
     roi, half, profile = _roi_size(scan.data, centres, roi_size)
     # Beads share one PSF, so a neighbour's light can be modelled and removed; only beads
     # whose cores overlap are rejected.
@@ -358,10 +375,12 @@ def _calibrate_scan(
     nb = centres.shape[0]
     residual = dict.fromkeys(range(nb), np.nan)
     stacks = _BeadStacks(scan.data, centres, used, half, p, step)
+    stacks.tick = tick
     avg = stacks.register(used, scan.zplanes, iterations, name)
     neighbours = _neighbour_pairs(centres, reason, roi)
     for _ in range(NEIGHBOUR_ROUNDS if neighbours else 0):
         avg = _without_neighbours(stacks, scan, centres, used, neighbours, avg, iterations, name)
+    tick()
     used, avg = _drop_outliers(
         stacks, used, avg, reason, residual, scan.zplanes, iterations, min_beads, name
     )
@@ -384,6 +403,7 @@ def _calibrate_scan(
     cr, cc = centre
     origin["centroid_over_z_nm"] = _centroid_over_z(clean, centre, half, p)
     psf = SplinePSF(clean, p, zplanes, centre=(cr, cc), name=name)
+    tick()
     error = _model_error(psf, stacks, used, scan)
     psf.model_error = error.overall  # the solvers' allowance (sparseloc.solvers.variance)
     params = {
@@ -630,6 +650,7 @@ class _BeadStacks:
             self.shifts[i] = np.array([(c - ci) * p, (r - ri) * p, 0.0])
         self.photons = {i: float(self.rois[i].sum() / self.rois[i].shape[0]) for i in used}
         self.init_shift = {i: v.copy() for i, v in self.shifts.items()}
+        self.tick: Callable[[], None] = lambda: None  # called after each bead's registration
 
     def aligned(self, i: int) -> NDArray[np.float64]:
         """Bead ``i``'s stack resampled onto the average's frame."""
@@ -669,6 +690,7 @@ class _BeadStacks:
             ref = SplinePSF(_clean_average(smooth), self.p, zplanes, normalise=False, name=name)
             for i in ids:
                 self.shifts[i], _ = _fit_shift(ref, self.rois[i], zplanes)
+                self.tick()
             # Keep the scan's z frame: the beads' mean z is z = 0.
             mean_z = np.mean([self.shifts[i][2] for i in ids])
             for i in ids:

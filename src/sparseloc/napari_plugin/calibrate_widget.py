@@ -4,8 +4,9 @@ builds it (:func:`sparseloc.calibrate.calibrate_file` for a layer read from a fi
 beads used (green) and rejected (red) over the stack; Save writes the calibration file and
 its diagnostic figure.
 
-The library call has no progress reports: the bar shows that it is busy, and Cancel drops
-its result (nothing is shown or saved).
+The bar shows that the calibration is busy (it has no count of work to show); Cancel stops it
+at its next step (at most one bead's registration later, through the library call's
+``progress``) and drops its result: nothing is shown or saved.
 """
 
 from __future__ import annotations
@@ -60,7 +61,8 @@ def calibrate_layer(
     beads : str, optional
         CSV of the beads' known positions.
     **kwargs
-        ``z0_slice``, ``roi_size``, ``threshold`` of :func:`sparseloc.calibrate.calibrate_beads`.
+        ``z0_slice``, ``roi_size``, ``threshold``, ``progress`` of
+        :func:`sparseloc.calibrate.calibrate_beads`.
 
     Returns
     -------
@@ -202,7 +204,7 @@ class CalibrateWidget(Container):
 
         def call(_progress: Any) -> Any:
             t0 = time.perf_counter()
-            cal = calibrate_layer(*args, **kwargs)
+            cal = calibrate_layer(*args, progress=lambda: _progress(0), **kwargs)
             return cal, time.perf_counter() - t0
 
         def done(value: Any) -> None:
