@@ -302,6 +302,34 @@ def test_frame_fit_separates_overlapping_emitters(dh_table):
     assert np.all(fit.flags == "ok")
 
 
+def test_the_memo_keeps_only_the_last_sweeps_groups(dh_table, monkeypatch):
+    """The sweeps' memo of groups left in place holds the groups of the last sweep only: kept
+    for every sweep, its windows and fits piled up (gigabytes on a frame fitted with the
+    wrong PSF)."""
+    import sparseloc.solvers.frame as frame_module
+
+    sizes = []
+
+    class Sweep(frame_module._Sweep):
+        def __call__(self, em):
+            out = super().__call__(em)
+            sizes.append((len(self.memo), len(set(i[4] for i in out[1]))))
+            return out
+
+    monkeypatch.setattr(frame_module, "_Sweep", Sweep)
+    t = frame_templates(dh_table, PX, dxy=50.0, dz=120.0)
+    rng = np.random.default_rng(4)
+    truth = np.column_stack(
+        [rng.uniform(500, 4300, 12), rng.uniform(500, 4300, 12), rng.uniform(-400, 400, 12),
+         rng.uniform(2000, 4000, 12)]
+    )  # fmt: skip
+    frame = poisson_frame(dh_table, truth, (48, 48), seed=4)
+    start = truth + rng.normal(0, [60.0, 60.0, 150.0, 500.0], truth.shape)
+    frame_fit(frame, dh_table, Emitters.from_array(start), **frame_fit_kwargs(t))
+    assert len(sizes) > 2
+    assert all(memo <= groups for memo, groups in sizes), sizes
+
+
 def test_frame_fit_of_nothing(analytic):
     fit = frame_fit(
         np.full((30, 30), 10.0),

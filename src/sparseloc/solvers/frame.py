@@ -443,13 +443,18 @@ class _Sweep:
         new_em: list[NDArray] = []
         new_info: list[tuple] = []
         done = np.zeros(len(em), bool)
+        # Only this sweep's groups are remembered for the next: an older entry matches only
+        # emitters that came back exactly, and the entries (windows, fits) would pile up.
+        last, self.memo = self.memo, {}
         for gi, g in enumerate(groups):
             box = window_box(em[g], *self.f.shape, self.px, self.o["pad"])
             offset = self._offset(em, g, done, new_em, box)
             origin = (box[2] * self.px, box[0] * self.px)
-            hit = self.memo.get(np.ascontiguousarray(em[g]).tobytes())
+            key = np.ascontiguousarray(em[g]).tobytes()
+            hit = last.get(key)
             done[g] = True
             if hit is not None and _unmoved(hit, offset, origin, self.o["shift_tolerance"]):
+                self.memo[key] = hit
                 new_em.append(hit.emitters)
                 new_info.extend((*i[:4], gi) for i in hit.info)
                 continue
