@@ -196,6 +196,8 @@ def test_the_command_line_prints_the_check_and_the_default_psf(
     assert res.exit_code == 0, res.output
     assert "PSF: the built-in 'dh-analytic'" in res.output
     assert "--psf was not given" in res.output
+    # ... and before the work, on stderr
+    assert res.stderr.startswith("using the built-in PSF 'dh-analytic' as --psf was not given")
     assert "--psf" in run("localize", "--help").output
 
 

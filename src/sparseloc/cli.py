@@ -793,6 +793,9 @@ def localize(
             companions=_table_companions(output, opts["format"]),
         )
         job = _run(build_job, opts, mov)
+        if default_psf:
+            # said before the work too: with the wrong PSF a run is long and its result void
+            typer.echo(f"using the built-in PSF '{opts['psf']}' as --psf was not given", err=True)
         asked = any(opts[k] is not None for k in ("run_dir", "chunk_frames", "scheduler"))
         if asked or resumable_by_default(job.stop - job.start):
             _localize_chunked(opts, out, mov, job, default_psf, auto=not asked)
