@@ -181,6 +181,25 @@ def test_the_likelier_arrangement_of_a_region_is_kept(analytic, order):
     assert len(out.sigma) == len(out.flags) == len(out.group) == len(arr)
 
 
+def test_a_region_too_costly_to_compare_keeps_the_first_fit(analytic, monkeypatch):
+    """A region whose joint fit would hold more Jacobian entries than the bound (a wrong PSF's
+    hundreds of emitters over a whole frame: gigabytes) is not fitted: the first fit stays."""
+    import sparseloc.solvers.frame_compose as compose
+
+    pair = np.array([[3000.0, 3000.0, 0.0, 4000.0], [3500.0, 3000.0, 200.0, 4000.0]])
+    frame = frame_of(analytic, pair, (64, 64), seed=5)
+    first = _frame_fit_of([[3250.0, 3000.0, 100.0, 8000.0]])
+    second = _frame_fit_of(pair)
+    fits = []
+    monkeypatch.setattr(compose, "fit_emitters", lambda *a, **k: fits.append(1))
+    monkeypatch.setattr(compose, "REGION_MAX_ENTRIES", 9 * 10 * 10)  # 2 emitters, 10 x 10 px
+    out = likelier_per_region(
+        frame, np.full(frame.shape, 10.0), first, second, analytic, pixel_size=PX,
+        group_distance=1000.0, pad=5, penalty=80.0, fit_kwargs={"noise": "poisson"},
+    )  # fmt: skip
+    assert fits == [] and np.array_equal(out.emitters.as_array(), first.emitters.as_array())
+
+
 def _frame_fit_of(arr):
     from sparseloc.solvers.frame import FrameFit
 

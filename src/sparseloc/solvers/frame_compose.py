@@ -35,6 +35,7 @@ from .mp import MIN_PHOTONS
 from .refine import fit_with_count_selection
 
 __all__ = [
+    "REGION_MAX_ENTRIES",
     "UNION_MAX",
     "crowded_boxes",
     "inside",
@@ -54,6 +55,12 @@ SAME_LATERAL, SAME_AXIAL = 20.0, 40.0
 #: frame (hundreds of emitters in one region) the region chooses between the two fits alone.
 #: A bound on the cost, not a threshold of the result (``docs/benchmarks/union_start.txt``).
 UNION_MAX = 64
+#: A region is compared at all only where a joint fit of either arrangement has at most this
+#: many Jacobian entries (4 per emitter plus one, times the window's pixels): the fit's state
+#: holds several arrays of that size (about 130 MB each here). Beyond it (a wrong PSF's
+#: hundreds of emitters over a whole frame: gigabytes and tens of minutes) the first fit
+#: stays. A bound on the cost, not a threshold of the result.
+REGION_MAX_ENTRIES = 2**24
 
 
 def same_as(a: NDArray, b: NDArray, lateral: float, axial: float) -> NDArray[np.bool_]:
@@ -217,6 +224,8 @@ def likelier_per_region(
         box = window_box(np.vstack([a[ea], b[eb]]), *np.shape(frame), pixel_size, pad)
         offset = light.window(rest, box) if len(rest) else 0.0
         r0, r1, c0, c1 = box
+        if (4 * max(len(ea), len(eb)) + 1) * (r1 - r0) * (c1 - c0) > REGION_MAX_ENTRIES:
+            continue  # too costly to compare: the first fit stays
         start_bg = float(max(np.median(background[r0:r1, c0:c1]), 1e-3))
         kw = window_kwargs(frame, box, pixel_size, offset, start_bg, fit_kwargs)
         y = window_data(frame, box, fit_kwargs)
