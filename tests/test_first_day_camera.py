@@ -265,11 +265,14 @@ def _bead_stack(camera, beads: int = 4):
 def test_camera_gain_from_a_bead_stack(kind, gain, em_gain, rel):
     """Item 9: a bead z-stack's light changes from frame to frame; differences of higher order
     cancel that change, and the gain comes out right with its standard error."""
+    import sparseloc.camera as camera_module
     from sparseloc.camera import Camera, estimate_camera
 
     cam = Camera(kind=kind, offset=200.0, gain=gain, em_gain=em_gain, read_noise=1.5)
     est = estimate_camera(_bead_stack(cam), kind=kind, em_gain=em_gain)
-    assert est.method == "temporal" and not est.caution
+    assert est.method == "temporal"
+    # an EMCCD's estimate says that its skewed noise biases it
+    assert est.caution == ("" if kind == "scmos" else camera_module.EMCCD_CAUTION)
     assert est.gain == pytest.approx(gain, rel=rel)
     assert 0 < est.gain_error < 0.03 * gain
     assert est.offset == pytest.approx(200.0, abs=15.0)

@@ -513,7 +513,8 @@ def simulate(
     )
     tif, truth = _run(write_simulation, sim, out)
     typer.echo(
-        f"simulated {frames} frames of {rows}x{cols} px with {len(sim.truth)} emitters "
+        f"simulated {frames} frame{'s' if frames != 1 else ''} of {rows}x{cols} px with "
+        f"{len(sim.truth)} emitters "
         f"({len(sim.truth) / frames:.1f} per frame) in {time.perf_counter() - t0:.1f} s"
     )
     typer.echo(f"wrote {tif} and {truth}")

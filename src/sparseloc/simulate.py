@@ -492,7 +492,8 @@ def _check_memory(c: _Checked, density: float) -> None:
     free = _available_memory()
     if free is not None and need > free:
         raise ValueError(
-            f"a simulation of {c.n_frames} frames of {rows}x{cols} px with about "
+            f"a simulation of {c.n_frames} frame{'s' if c.n_frames != 1 else ''} of "
+            f"{rows}x{cols} px with about "
             f"{emitters:.3g} emitters needs about {need / 2**30:.3g} GiB of memory but "
             f"{free / 2**30:.3g} GiB is free; simulate fewer frames or a smaller frame"
         )
