@@ -115,8 +115,10 @@ def rates(src: Source, n: int, photons: float, background: float, e: float, seed
     """False-addition and loss rates of ``n`` windows."""
     rng = np.random.default_rng(seed)
     model = src.fit_model
-    saved = getattr(model, "model_error", 0.0)
+    saved = getattr(model, "model_error", 0.0), getattr(model, "error_table", None)
     model.model_error = e
+    if e == 0:
+        model.error_table = None  # no allowance at all
     counts = []
     try:
         for _ in range(n):
@@ -128,7 +130,7 @@ def rates(src: Source, n: int, photons: float, background: float, e: float, seed
             )
             counts.append(len(fit.emitters))
     finally:
-        model.model_error = saved
+        model.model_error, model.error_table = saved
     counts = np.array(counts)
     return {"added": float(np.mean(counts > 1)), "lost": float(np.mean(counts == 0))}
 

@@ -745,6 +745,28 @@ def test_model_error_grows_when_the_beads_differ(cal):
     assert mixed.params["model_error"] > max(0.05, 3 * cal.params["model_error"])
 
 
+def test_the_model_error_is_kept_pixel_by_pixel_and_saved(tmp_path, cal):
+    """The beads' residual variance about the model, pixel by pixel, is the model's error
+    table (rendered like the PSF, per photon squared): never negative, far larger where the
+    beads differ, and written to the calibration file."""
+    table = cal.psf.error_table
+    assert table is not None and np.all(table.stack >= 0)
+    assert table.z_range[0] <= -300 and table.z_range[1] >= 300
+    loaded = load_calibration(save_calibration(cal, tmp_path / "psf.h5"))
+    np.testing.assert_allclose(loaded.error_table.stack, table.stack)
+    assert loaded.error_table.centre == pytest.approx(table.centre)
+    positions = np.array([(x, y) for y in (25.0, 60.0, 95.0) for x in (25.0, 60.0, 95.0)]) * PX
+    narrow = simulate_scan(make_psf("dh-analytic"), positions[::2], seed=3)
+    wide = simulate_scan(make_psf("dh-analytic", lobe_sigma=190.0), positions[1::2], seed=4)
+    movie = (narrow.astype(np.int64) + wide.astype(np.int64) - int(OFFSET)).astype(np.uint16)
+    mixed = calibrate_beads(movie, PX, Z_STEP, offset=OFFSET)
+
+    def error_var(c):  # an emitter of 10,000 photons at z = 0, summed over its window
+        return c.psf.error_table.render([1000.0], [1000.0], [0.0], [1e8], (21, 21), PX).sum()
+
+    assert error_var(mixed) > 10 * error_var(cal)
+
+
 def test_calibration_too_far_from_its_beads_is_refused(monkeypatch, scan):
     import sparseloc.calibrate as calibrate_module
 

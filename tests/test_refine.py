@@ -456,3 +456,29 @@ def test_count_selection_removes_a_duplicate_before_testing_a_dim_emitter(analyt
     assert len(arr) == 2
     d = np.hypot(arr[:, None, 0] - truth[None, :, 0], arr[:, None, 1] - truth[None, :, 1])
     assert np.all(d.min(axis=0) < 50.0)
+
+
+def test_the_allowance_sums_the_error_table_where_the_model_has_one(analytic):
+    """With an error table the model error's variance is the table rendered for the fit's
+    emitters (photons squared), not ``(e * signal)^2``: the allowance is its sum over the
+    camera's variance, whatever ``e`` says."""
+    from sparseloc.psf.spline import SplinePSF
+    from sparseloc.solvers.refine import _error_allowance
+
+    table_model = SplinePSF.from_model(analytic, PX, roi=W, z_step=20.0, oversample=1)
+    truth = np.array([[850.0, 850.0, 0.0, 5000.0]])
+    kw = dict(pixel_size=PX, origin=(0.0, 0.0))
+    fit = fit_emitters(window(analytic, truth), analytic, Emitters.from_array(truth), **kw)
+    model = make_psf("dh-analytic")
+    model.model_error = 0.1
+    by_e = _error_allowance(fit, model, kw)
+    signal = fit.model_image - fit.background[0]
+    assert by_e == pytest.approx(np.sum((0.1 * signal) ** 2 / fit.model_image))
+    c = 1e-3  # error variance per photon squared, as a share of the unit image
+    model.error_table = SplinePSF(c * table_model.stack, PX, table_model.z, normalise=False,
+                                  centre=table_model.centre)  # fmt: skip
+    em = fit.emitters.as_array()
+    var = c * analytic.render(em[:, 0], em[:, 1], em[:, 2], em[:, 3] ** 2, (W, W), PX)
+    by_table = _error_allowance(fit, model, kw)
+    assert by_table == pytest.approx(np.sum(var / fit.model_image), rel=0.05)
+    assert not by_table == pytest.approx(by_e, rel=0.5)  # not the rule of e

@@ -7,6 +7,10 @@ is the squared relative model error ``e(z)^2``: the model error a localization m
 per-pixel standard deviation of about ``e * signal``. The model is the beads' average, so each
 bead's own deviation is partly in it: the residual power is scaled by ``n / (n - 1)`` for
 ``n`` beads.
+
+The error is also kept pixel by pixel (:func:`bead_error_table`): a model's error is not
+proportional to its signal everywhere (a calibrated double helix errs most in its dim wings),
+and the solvers' allowance for it (:mod:`sparseloc.solvers.variance`) sums it where it is.
 """
 
 from __future__ import annotations
@@ -15,10 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.ndimage import gaussian_filter
 
 from .psf.spline import SplinePSF
 
-__all__ = ["MAX_MODEL_ERROR", "ModelError", "bead_model_error", "plane_fits"]
+__all__ = ["MAX_MODEL_ERROR", "ModelError", "bead_error_table", "bead_model_error", "plane_fits"]
 
 #: A calibration whose model error exceeds this fraction of the signal is refused: its model
 #: would leave more than a quarter of a bead's signal power unexplained.
@@ -144,3 +149,44 @@ def _bead_residual(
     ok = np.zeros(nz, bool)
     ok[idx] = True
     return res2, noise, sig2, ok
+
+
+#: Smoothing (planes, pixels, pixels) of the error table: each pixel's variance comes from a
+#: few beads, so neighbouring planes and pixels are averaged (Gaussian standard deviations).
+ERROR_TABLE_SMOOTHING = (2.0, 1.0, 1.0)
+
+
+def bead_error_table(
+    psf: SplinePSF,
+    rois: list[NDArray[np.float64]],
+    shifts: list[NDArray[np.float64]],
+    zplanes: NDArray[np.float64],
+    background: NDArray[np.float64],
+) -> SplinePSF | None:
+    """The model error pixel by pixel: the beads' residual variance about the model beyond the
+    Poisson noise, per photon squared, as a table rendered like the PSF (an emitter of ``N``
+    photons at ``x, y, z`` has error variance ``table.render(x, y, z, N**2)`` photons^2 per
+    pixel). Arguments as :func:`bead_model_error`; None where fewer than 4 planes are covered.
+    """
+    nz, h, w = rois[0].shape
+    acc, count = np.zeros((nz, h, w)), np.zeros(nz)
+    for roi, shift in zip(rois, shifts, strict=True):
+        idx, imgs, scale, offset = plane_fits(psf, roi, shift, zplanes)
+        for k, m, a, b in zip(idx, imgs, scale, offset, strict=True):
+            if a > 0:
+                fit = a * m + b
+                acc[k] += ((roi[k] - fit) ** 2 - np.maximum(fit + background[k], 0.0)) / a**2
+                count[k] += 1
+    covered = np.flatnonzero(count > 0)
+    if covered.size < 4:
+        return None
+    n = len(rois)
+    var = np.zeros_like(acc)
+    var[covered] = acc[covered] / count[covered, None, None] * (n / (n - 1) if n > 1 else 1.0)
+    var = np.maximum(gaussian_filter(var, ERROR_TABLE_SMOOTHING, mode="nearest"), 0.0)
+    sl = slice(covered.min(), covered.max() + 1)
+    # the beads sit at the ROIs' centres plus their shifts; the table is centred on their mean
+    sx, sy = np.mean([s[:2] for s in shifts], axis=0) / psf.pixel_size
+    centre = ((h - 1) / 2.0 + sy, (w - 1) / 2.0 + sx)
+    return SplinePSF(var[sl], psf.pixel_size, zplanes[sl], centre=centre, normalise=False,
+                     name=f"{psf.name} error")  # fmt: skip

@@ -107,6 +107,13 @@ def save_calibration(cal: Any, path: str | Path, *, model: str = "spline") -> Pa
         g.create_dataset("z", data=psf.z)
         g.attrs["centre_row"], g.attrs["centre_col"] = psf.centre
         g.attrs["oversample"] = int(getattr(psf, "oversample", 1))
+        table = getattr(psf, "error_table", None)
+        if table is not None:
+            # the model error pixel by pixel (sparseloc.calibrate_error.bead_error_table)
+            t = f.create_group("error_table")
+            t.create_dataset("stack", data=table.stack, compression="gzip")
+            t.create_dataset("z", data=table.z)
+            t.attrs["centre_row"], t.attrs["centre_col"] = table.centre
         b = f.create_group("beads")
         for col in cal.beads.columns:
             values = cal.beads[col].to_numpy()
@@ -226,6 +233,19 @@ def _model_error(f) -> float:
     return e if np.isfinite(e) and e > 0 else 0.0
 
 
+def _error_table(f, px: float, name: str):
+    """The file's model-error table (None for files written before it was kept)."""
+    from ..psf.spline import SplinePSF
+
+    if "error_table" not in f:
+        return None
+    t = f["error_table"]
+    centre = (float(t.attrs["centre_row"]), float(t.attrs["centre_col"]))
+    return SplinePSF(
+        t["stack"][()], px, t["z"][()], centre=centre, normalise=False, name=f"{name} error"
+    )
+
+
 def _load(p: Path, model: str | None):
     """The model of the calibration file ``p``; every failure of a damaged file (h5py's
     OSError, KeyError, RuntimeError, TypeError, zlib errors, a model refusing its data ...)
@@ -294,6 +314,7 @@ def _read_model(p: Path, model: str | None):
                 oversample=int(g.attrs.get("oversample", 1)),
             )
             out.model_error = _model_error(f)
+            out.error_table = _error_table(f, px, name)
             return out
         if kind == "pupil":
             if "pupil" not in f:

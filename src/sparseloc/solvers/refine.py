@@ -202,16 +202,29 @@ def _addition_passes(
 def _error_allowance(null: FitResult, model: PSFModel, kw: dict) -> float:
     """The model error's allowance on a ratio against the fit ``null`` (see
     :mod:`sparseloc.solvers.variance`): the camera's variance and the emitters' light (the
-    neighbours' included) come from that fit."""
+    neighbours' included) come from that fit; the error from the model's error table where
+    it has one, else from its relative error ``e``. ``kw``: :func:`fit_emitters`'s keywords,
+    ``pixel_size`` and ``origin`` included."""
+    table = getattr(model, "error_table", None)
     e = model_error_of(model)
-    if e <= 0:
+    if table is None and e <= 0:
         return 0.0
     rv = kw.get("read_variance")
     mu = null.model_image
     w = likelihood_weight(kw.get("noise", "poisson"), check_qe(kw.get("qe", 1.0)))
     noise_var = mu / w + (0.0 if rv is None else np.asarray(rv, float))
-    signal = mu - background_image(null.background, mu.shape)
-    return error_allowance(noise_var, signal, e)
+    if table is None:
+        signal = mu - background_image(null.background, mu.shape)
+        return error_allowance(noise_var, (e * signal) ** 2)
+    em = null.emitters.as_array().reshape(-1, 4)
+    if len(em) == 0:
+        return 0.0
+    lo, hi = table.z_range
+    error_var = table.render(
+        em[:, 0], em[:, 1], np.clip(em[:, 2], lo, hi), em[:, 3] ** 2, mu.shape,
+        kw["pixel_size"], origin=kw.get("origin", (0.0, 0.0)),
+    )  # fmt: skip
+    return error_allowance(noise_var, error_var)
 
 
 def removal_threshold(k: int, lr_threshold: float, single_threshold: float | None) -> float:
@@ -260,9 +273,8 @@ def weakest_removed(
     arr = best.emitters.as_array()
     # sigma comes from the weighted Fisher matrix: (N / sigma)^2 is on the scale of the
     # (weighted) likelihood ratio; the model error raises the bar of both
-    fit_kwargs = {key: v for key, v in kw.items() if key not in ("pixel_size", "origin")}
     bar = removal_threshold(k, lr_threshold, single_threshold)
-    bar += _error_allowance(best, model, fit_kwargs)
+    bar += _error_allowance(best, model, kw)
     crlb = best.sigma if best.crlb is None else best.crlb
     with np.errstate(divide="ignore", invalid="ignore"):
         walds = (arr[:, 3] / crlb[:, 3]) ** 2
@@ -352,7 +364,7 @@ def fit_with_count_selection(
                     more = trial
             if more is not None:
                 ratio = 2.0 * (more.log_likelihood - best.log_likelihood)
-                bar = lr_threshold + _error_allowance(best, model, fit_kwargs)
+                bar = lr_threshold + _error_allowance(best, model, kw)
                 if _addition_passes(more, ratio, bar, min_photons):
                     best = more
                     best.history.append(f"added one: K={k + 1}, LR={ratio:.1f}")

@@ -8,10 +8,14 @@ at that pixel (``e``: relative model error; a bead calibration measures it, see
 A likelihood-ratio test of one emitter more or fewer asks whether the data depart from the
 smaller model by more than noise. A model error is not independent noise: it has the shape of
 the PSF's features, and a trial emitter can absorb much of it. Its expected share of the
-window's chi-square, ``B = sum((e * signal)^2 / V)`` with ``V`` the camera's variance, is the
-most it can add to the ratio: the model error's allowance. The count selection requires a
-ratio above its chi-square threshold plus ``B``, so an emitter must explain more light than
-the model's error in the window (``B = 0`` for an exact model).
+window's chi-square, ``B = sum(E / V)`` with ``E`` the model error's variance of each pixel
+and ``V`` the camera's, is the most it can add to the ratio: the model error's allowance. The
+count selection requires a ratio above its chi-square threshold plus ``B``, so an emitter must
+explain more light than the model's error in the window (``B = 0`` for an exact model).
+``E`` comes from the calibration's error table where it has one (the beads' residual
+variance pixel by pixel, :func:`sparseloc.calibrate_error.bead_error_table`, rendered for
+each emitter), else ``(e * signal)^2``: an error proportional to the signal overstates it in
+a bright core and understates it in dim wings, where a calibrated double helix errs most.
 """
 
 from __future__ import annotations
@@ -53,7 +57,7 @@ def pixel_variance(
     return var
 
 
-def error_allowance(noise_var: NDArray, signal: NDArray, model_error: float) -> float:
+def error_allowance(noise_var: NDArray, error_var: NDArray) -> float:
     """The model error's expected chi-square over a window (see the module notes), on the
     scale of the likelihood ratio ``2 delta log L``.
 
@@ -61,15 +65,12 @@ def error_allowance(noise_var: NDArray, signal: NDArray, model_error: float) -> 
     ----------
     noise_var : ndarray
         The camera's variance of each pixel under the smaller model (photons^2).
-    signal : ndarray
-        The emitters' light (photons/pixel) under the smaller model, neighbours' included.
-    model_error : float
-        Relative model error ``e``; 0 gives 0.
+    error_var : ndarray
+        The model error's variance of each pixel under the smaller model (photons^2): the
+        error table rendered for its emitters, or ``(e * signal)^2``.
     """
-    if model_error <= 0:
-        return 0.0
     v = np.maximum(noise_var, 1e-12)
-    return float(model_error**2 * np.sum(signal**2 / v))
+    return float(np.sum(np.asarray(error_var) / v))
 
 
 def noise_factor_of(noise: str) -> float:
