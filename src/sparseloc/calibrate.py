@@ -40,7 +40,7 @@ import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from .calibrate_crowd import LightProfile, light_profile, neighbour_light, plane_photons
-from .calibrate_error import MAX_MODEL_ERROR, bead_error_table, bead_model_error
+from .calibrate_error import MAX_MODEL_ERROR, bead_model_error
 from .calibrate_scan import BeadScan, read_bead_positions, read_scan, read_z_file
 from .psf.spline import SplinePSF
 
@@ -443,7 +443,7 @@ def _model_error(psf: SplinePSF, stacks: _BeadStacks, used: list[int], scan: Bea
     rois = [stacks.rois[i] for i in used]
     shifts = [_fit_shift(psf, roi, scan.zplanes)[0] for roi in rois]
     error = bead_model_error(psf, rois, shifts, scan.zplanes, bg)
-    psf.error_table = bead_error_table(psf, rois, shifts, scan.zplanes, bg)
+    psf.error_table = error.table
     log.info("model error: %.1f %% of the signal per pixel (rms over planes)", 100 * error.overall)
     if not error.overall <= MAX_MODEL_ERROR:
         raise ValueError(

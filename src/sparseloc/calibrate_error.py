@@ -8,7 +8,7 @@ per-pixel standard deviation of about ``e * signal``. The model is the beads' av
 bead's own deviation is partly in it: the residual power is scaled by ``n / (n - 1)`` for
 ``n`` beads.
 
-The error is also kept pixel by pixel (:func:`bead_error_table`): a model's error is not
+The error is also kept pixel by pixel (:attr:`ModelError.table`): a model's error is not
 proportional to its signal everywhere (a calibrated double helix errs most in its dim wings),
 and the solvers' allowance for it (:mod:`sparseloc.solvers.variance`) sums it where it is.
 """
@@ -23,7 +23,7 @@ from scipy.ndimage import gaussian_filter
 
 from .psf.spline import SplinePSF
 
-__all__ = ["MAX_MODEL_ERROR", "ModelError", "bead_error_table", "bead_model_error", "plane_fits"]
+__all__ = ["MAX_MODEL_ERROR", "ModelError", "bead_model_error", "plane_fits"]
 
 #: A calibration whose model error exceeds this fraction of the signal is refused: its model
 #: would leave more than a quarter of a bead's signal power unexplained.
@@ -40,10 +40,16 @@ class ModelError:
         ``sqrt(sum_z excess(z) / sum_z signal(z))``: the relative error over all planes.
     per_plane : ndarray, shape (Nz,)
         ``e(z)`` of each of the model's planes (NaN where no bead covers the plane).
+    table : SplinePSF or None
+        The error pixel by pixel: the beads' residual variance about the model beyond the
+        Poisson noise, per photon squared, tabulated like the PSF (an emitter of ``N`` photons
+        at ``x, y, z`` has error variance ``table.render(x, y, z, N**2)`` photons^2 per
+        pixel); None where fewer than 4 planes are covered.
     """
 
     overall: float
     per_plane: NDArray[np.float64]
+    table: SplinePSF | None = None
 
 
 def bead_model_error(
@@ -75,11 +81,15 @@ def bead_model_error(
     nz = zplanes.size
     excess = np.zeros(nz)
     signal = np.zeros(nz)
+    maps, count = np.zeros((nz, *rois[0].shape[1:])), np.zeros(nz)
     n = len(rois)
     for roi, shift in zip(rois, shifts, strict=True):
-        res2, noise, sig2, ok = _bead_residual(psf, roi, shift, zplanes, background)
+        res2, noise, sig2, ok, bead_map = _bead_residual(psf, roi, shift, zplanes, background)
         excess[ok] += res2[ok] * (n / (n - 1) if n > 1 else 1.0) - noise[ok]
         signal[ok] += sig2[ok]
+        maps[ok] += bead_map[ok]
+        count[ok] += 1
+    table = _error_table(psf, maps, count, n, zplanes, shifts)
     covered = signal > 0
     per_plane = np.full(nz, np.nan)
     per_plane[covered] = np.sqrt(np.maximum(excess[covered], 0.0) / signal[covered])
@@ -87,7 +97,7 @@ def bead_model_error(
     overall = float(np.sqrt(max(excess[covered].sum(), 0.0) / total)) if total > 0 else np.nan
     lo, hi = psf.z_range
     inside = (zplanes >= lo - 1e-6) & (zplanes <= hi + 1e-6)
-    return ModelError(overall, per_plane[inside])
+    return ModelError(overall, per_plane[inside], table)
 
 
 def plane_fits(
@@ -135,20 +145,24 @@ def _bead_residual(
     shift: NDArray[np.float64],
     zplanes: NDArray[np.float64],
     background: NDArray[np.float64],
-) -> tuple[NDArray, NDArray, NDArray, NDArray[np.bool_]]:
+) -> tuple[NDArray, NDArray, NDArray, NDArray[np.bool_], NDArray]:
     """Per plane: the residual power, the expected noise power and the signal power of one
-    bead against the model (:func:`plane_fits`), and which planes count."""
+    bead against the model (:func:`plane_fits`), which planes count, and the residual's
+    excess over the noise pixel by pixel per photon squared (planes, rows, cols)."""
     nz = roi.shape[0]
     res2, noise, sig2 = np.zeros(nz), np.zeros(nz), np.zeros(nz)
+    excess = np.zeros(roi.shape)
+    ok = np.zeros(nz, bool)
     idx, imgs, scale, offset = plane_fits(psf, roi, shift, zplanes)
     for k, m, a, b in zip(idx, imgs, scale, offset, strict=True):
         fit = a * m + b
-        res2[k] = float(np.sum((roi[k] - fit) ** 2))
-        noise[k] = float(np.sum(np.maximum(fit + background[k], 0.0)))
+        r2, var = (roi[k] - fit) ** 2, np.maximum(fit + background[k], 0.0)
+        res2[k], noise[k] = float(np.sum(r2)), float(np.sum(var))
         sig2[k] = float(np.sum((a * m) ** 2))
-    ok = np.zeros(nz, bool)
-    ok[idx] = True
-    return res2, noise, sig2, ok
+        ok[k] = True
+        if a > 0:
+            excess[k] = (r2 - var) / a**2
+    return res2, noise, sig2, ok, excess
 
 
 #: Smoothing (planes, pixels, pixels) of the error table: each pixel's variance comes from a
@@ -156,36 +170,25 @@ def _bead_residual(
 ERROR_TABLE_SMOOTHING = (2.0, 1.0, 1.0)
 
 
-def bead_error_table(
+def _error_table(
     psf: SplinePSF,
-    rois: list[NDArray[np.float64]],
-    shifts: list[NDArray[np.float64]],
+    maps: NDArray,
+    count: NDArray,
+    n: int,
     zplanes: NDArray[np.float64],
-    background: NDArray[np.float64],
+    shifts: list[NDArray[np.float64]],
 ) -> SplinePSF | None:
-    """The model error pixel by pixel: the beads' residual variance about the model beyond the
-    Poisson noise, per photon squared, as a table rendered like the PSF (an emitter of ``N``
-    photons at ``x, y, z`` has error variance ``table.render(x, y, z, N**2)`` photons^2 per
-    pixel). Arguments as :func:`bead_model_error`; None where fewer than 4 planes are covered.
-    """
-    nz, h, w = rois[0].shape
-    acc, count = np.zeros((nz, h, w)), np.zeros(nz)
-    for roi, shift in zip(rois, shifts, strict=True):
-        idx, imgs, scale, offset = plane_fits(psf, roi, shift, zplanes)
-        for k, m, a, b in zip(idx, imgs, scale, offset, strict=True):
-            if a > 0:
-                fit = a * m + b
-                acc[k] += ((roi[k] - fit) ** 2 - np.maximum(fit + background[k], 0.0)) / a**2
-                count[k] += 1
+    """:attr:`ModelError.table` from the beads' excess maps summed over ``count`` beads per
+    plane (``n`` beads in all, each partly in the model: scaled by ``n / (n - 1)``)."""
     covered = np.flatnonzero(count > 0)
     if covered.size < 4:
         return None
-    n = len(rois)
-    var = np.zeros_like(acc)
-    var[covered] = acc[covered] / count[covered, None, None] * (n / (n - 1) if n > 1 else 1.0)
+    var = np.zeros_like(maps)
+    var[covered] = maps[covered] / count[covered, None, None] * (n / (n - 1) if n > 1 else 1.0)
     var = np.maximum(gaussian_filter(var, ERROR_TABLE_SMOOTHING, mode="nearest"), 0.0)
     sl = slice(covered.min(), covered.max() + 1)
     # the beads sit at the ROIs' centres plus their shifts; the table is centred on their mean
+    _, h, w = maps.shape
     sx, sy = np.mean([s[:2] for s in shifts], axis=0) / psf.pixel_size
     centre = ((h - 1) / 2.0 + sy, (w - 1) / 2.0 + sx)
     return SplinePSF(var[sl], psf.pixel_size, zplanes[sl], centre=centre, normalise=False,

@@ -109,7 +109,7 @@ def save_calibration(cal: Any, path: str | Path, *, model: str = "spline") -> Pa
         g.attrs["oversample"] = int(getattr(psf, "oversample", 1))
         table = getattr(psf, "error_table", None)
         if table is not None:
-            # the model error pixel by pixel (sparseloc.calibrate_error.bead_error_table)
+            # the model error pixel by pixel (sparseloc.calibrate_error.ModelError.table)
             t = f.create_group("error_table")
             t.create_dataset("stack", data=table.stack, compression="gzip")
             t.create_dataset("z", data=table.z)

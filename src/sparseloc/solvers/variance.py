@@ -13,7 +13,7 @@ and ``V`` the camera's, is the most it can add to the ratio: the model error's a
 count selection requires a ratio above its chi-square threshold plus ``B``, so an emitter must
 explain more light than the model's error in the window (``B = 0`` for an exact model).
 ``E`` comes from the calibration's error table where it has one (the beads' residual
-variance pixel by pixel, :func:`sparseloc.calibrate_error.bead_error_table`, rendered for
+variance pixel by pixel, :attr:`sparseloc.calibrate_error.ModelError.table`, rendered for
 each emitter), else ``(e * signal)^2``: an error proportional to the signal overstates it in
 a bright core and understates it in dim wings, where a calibrated double helix errs most.
 """
