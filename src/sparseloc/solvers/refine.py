@@ -201,10 +201,11 @@ def _addition_passes(
 
 def _error_allowance(null: FitResult, model: PSFModel, kw: dict) -> float:
     """The model error's allowance on a ratio against the fit ``null`` (see
-    :mod:`sparseloc.solvers.variance`): the camera's variance and the emitters' light (the
-    neighbours' included) come from that fit; the error from the model's error table where
-    it has one, else from its relative error ``e``. ``kw``: :func:`fit_emitters`'s keywords,
-    ``pixel_size`` and ``origin`` included."""
+    :mod:`sparseloc.solvers.variance`): the camera's variance comes from that fit, the error
+    from the model's error table rendered for the fit's own emitters where the model has one
+    (the neighbours' fixed light is not counted; docs/benchmarks/model_error_allowance.txt),
+    else ``(e * signal)^2`` of all the fit's light, the neighbours' included. ``kw``:
+    :func:`fit_emitters`'s keywords, ``pixel_size`` and ``origin`` included."""
     table = getattr(model, "error_table", None)
     e = model_error_of(model)
     if table is None and e <= 0:
