@@ -647,11 +647,11 @@ STEADY_OUTLIERS = 0.01
 #: their noise alone gives them (a true spread below sqrt(3) noise standard deviations).
 MIN_SPREAD = 4.0
 #: What the temporal line of an EMCCD says about its own bias (printed with its estimate).
+#: (Measurements: docs/benchmarks/camera_estimate.txt.)
 EMCCD_CAUTION = (
-    "an EMCCD's skewed noise biases this line: on simulated EMCCD bead stacks and flat frames "
-    "the gain came out 2-17 % low and the offset's bound above the true offset, beyond the "
-    "+- shown (which is the noise's alone); prefer the camera's data sheet or its own "
-    "calibration for an EMCCD"
+    "an EMCCD's skewed noise biases this line: the gain tends to come out low (by up to a "
+    "fifth) and the offset's bound above the true offset, beyond the +- shown (which is the "
+    "noise's alone); prefer the camera's data sheet or its own calibration for an EMCCD"
 )
 #: A gain whose standard error exceeds this fraction of it is printed with a caution.
 GAIN_CAUTION = 0.1
