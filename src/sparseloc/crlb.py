@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .psf.base import PSFModel, as_emitters, check_pixel_size, check_shape
+from .solvers.variance import noise_factor_of
 
 __all__ = [
     "NOISE_MODELS",
@@ -75,7 +76,7 @@ def _variance(
 ) -> NDArray[np.float64]:
     """Effective per-pixel variance ``(..., rows, cols)`` for ``noise``."""
     _check_noise(noise)
-    shot = 2.0 * mu if noise == "emccd" else mu
+    shot = noise_factor_of(noise) * mu
     if noise == "scmos" and read_variance is None:
         raise ValueError("noise='scmos' needs read_variance (photons^2, scalar or per pixel)")
     if read_variance is not None:

@@ -47,6 +47,7 @@ from .emitters import Emitters, WindowSolution, group_by_boxes, group_coefficien
 from .mp import MIN_PHOTONS, matching_pursuit, pearson_chi2
 from .polish import PointModel, nearest_atoms, polish, prune
 from .refine import refine_solution
+from .variance import noise_factor_of
 
 log = logging.getLogger(__name__)
 
@@ -230,8 +231,8 @@ def hybrid_solve(
     y = check_window(window, fine.shape)
     if y.ndim != 2:
         raise ValueError("hybrid_solve takes one window (rows, cols)")
-    if noise == "emccd" and noise_factor == 1.0:
-        noise_factor = 2.0
+    if noise_factor == 1.0:
+        noise_factor = noise_factor_of(noise)
     if tuple(coarse.shape) != tuple(fine.shape):
         raise ValueError(f"coarse {coarse.shape} and fine {fine.shape} windows differ")
     mp = matching_pursuit(

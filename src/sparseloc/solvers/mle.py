@@ -61,6 +61,7 @@ from ..psf.base import PSFModel
 from ..psf.spline import SplinePSF
 from .emitters import Emitters
 from .lm import clamp, damped_system, make_levenberg_marquardt
+from .variance import noise_factor_of
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +147,7 @@ def check_qe(qe: float) -> float:
 def likelihood_weight(noise: str, qe: float = 1.0) -> float:
     """The weight ``w`` of the Poisson objective in photons (see the module notes): ``qe``,
     halved for EMCCD data (excess noise factor 2)."""
-    return (0.5 if noise == "emccd" else 1.0) * check_qe(qe)
+    return check_qe(qe) / noise_factor_of(noise)
 
 
 def check_read_variance(noise: str, read_variance: object) -> None:
