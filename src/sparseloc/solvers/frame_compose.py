@@ -217,15 +217,15 @@ def likelier_per_region(
         ea, eb = only_a[la == region], only_b[lb == region]
         if len(ea) == 0 or len(eb) == 0:
             continue
+        box = window_box(np.vstack([a[ea], b[eb]]), *np.shape(frame), pixel_size, pad)
+        r0, r1, c0, c1 = box
+        if (4 * max(len(ea), len(eb)) + 1) * (r1 - r0) * (c1 - c0) > REGION_MAX_ENTRIES:
+            continue  # too costly to compare: the first fit stays
         others = use_a.copy()
         others[ea] = False
         kept = [a[others], b[use_b]] + [u.emitters.as_array().reshape(-1, 4) for u in unions]
         rest = np.vstack(kept)
-        box = window_box(np.vstack([a[ea], b[eb]]), *np.shape(frame), pixel_size, pad)
         offset = light.window(rest, box) if len(rest) else 0.0
-        r0, r1, c0, c1 = box
-        if (4 * max(len(ea), len(eb)) + 1) * (r1 - r0) * (c1 - c0) > REGION_MAX_ENTRIES:
-            continue  # too costly to compare: the first fit stays
         start_bg = float(max(np.median(background[r0:r1, c0:c1]), 1e-3))
         kw = window_kwargs(frame, box, pixel_size, offset, start_bg, fit_kwargs)
         y = window_data(frame, box, fit_kwargs)
