@@ -684,6 +684,27 @@ def test_neighbour_light_from_pieces_equals_rendering_into_the_window(dh_table, 
             assert len(light._pieces) == 1
 
 
+def test_neighbour_light_renders_only_emitters_that_reach_the_window(dh_table):
+    """An emitter whose light cannot reach a window adds exactly zero there: it is neither
+    rendered nor summed, and a window out of every emitter's reach is all zeros."""
+    from sparseloc.solvers.frame_windows import NeighbourLight
+
+    _, rx = dh_table.zero_beyond(PX)
+    shape = (200, 200)
+    near = [2000.0, 2000.0, 0.0, 3000.0]
+    far = [2000.0 + 2 * rx + 20 * PX, 2000.0, 0.0, 3000.0]
+    light = NeighbourLight(dh_table, shape, PX)
+    box = (15, 26, 15, 26)
+    got = light.window(np.array([near, far]), box)
+    ref = dh_table.render([near[0]], [near[1]], [0.0], [3000.0], (11, 11), PX, origin=(1500, 1500))
+    np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-12)
+    assert len(light._pieces) == 1  # the far emitter was not rendered
+    c = int((far[0] + rx) / PX) + 3  # beyond the far emitter's reach too
+    empty = light.window(np.array([near, far]), (0, 5, c, c + 5))
+    assert empty.shape == (5, 5) and not empty.any()
+    assert len(light._pieces) == 1
+
+
 # --- count selection's thresholds --------------------------------------------------------
 
 

@@ -318,15 +318,17 @@ def detect_candidates(
     corr = _correlations(f - bg, stack, cache)
     sq, scale = _variance_weights(stack)
     var = fftconvolve(noise, sq[::-1, ::-1], mode="same")
-    snrs = corr / np.sqrt(np.maximum(var[None] * scale[:, None, None], 1e-12))
-    plane = np.argmax(snrs, axis=0)
-    snr = np.take_along_axis(snrs, plane[None], axis=0)[0]
+    # corr_p / sqrt(var scale_p): the pixel's 1 / sqrt(var) is common to the planes, so the
+    # best plane is the one of largest corr_p / sqrt(scale_p)
+    weighted = corr * (1.0 / np.sqrt(scale))[:, None, None]
+    snr = weighted.max(axis=0) / np.sqrt(np.maximum(var, 1e-12))
     peaks = (ndi.maximum_filter(snr, size=2 * min_distance + 1) == snr) & (snr > threshold)
     rc = np.argwhere(peaks)
     order = np.argsort(-snr[peaks])
     rc = rc[order]
     if return_plane:
-        return rc.astype(np.float64), plane[rc[:, 0], rc[:, 1]]
+        plane = np.argmax(weighted[:, rc[:, 0], rc[:, 1]], axis=0)
+        return rc.astype(np.float64), plane
     return rc.astype(np.float64)
 
 

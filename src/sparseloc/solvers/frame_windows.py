@@ -163,10 +163,8 @@ class NeighbourLight:
         """Images of emitters (K, 4) not seen yet, in one call: each over a box of the same
         shape from the pixel before its extent begins (the boxes may reach past the frame;
         the sums crop them)."""
-        (ry, rx), px = self.extent, self.px
-        wy, wx = int(np.floor(2 * ry / px)) + 2, int(np.floor(2 * rx / px)) + 2
-        c0 = np.floor((rows[:, 0] - rx) / px - 0.5)
-        r0 = np.floor((rows[:, 1] - ry) / px - 0.5)
+        px = self.px
+        r0, c0, wy, wx = self._boxes(rows)
         # positions relative to each box: one window shape serves them all
         imgs = self.model.images(
             rows[:, 0] - c0 * px, rows[:, 1] - r0 * px, rows[:, 2], (wy, wx), px
@@ -181,11 +179,31 @@ class NeighbourLight:
         if self.extent is None:
             origin = (c0 * self.px, r0 * self.px)
             return self.model.render(*em.T, (r1 - r0, c1 - c0), self.px, origin=origin)
-        em = np.ascontiguousarray(em, dtype=np.float64)
+        em = np.ascontiguousarray(em, dtype=np.float64).reshape(-1, 4)
+        em = em[self._touching(em, box)]
+        if len(em) == 0:
+            return np.zeros((r1 - r0, c1 - c0))
         new = [k for k, row in enumerate(em) if row.tobytes() not in self._pieces]
         if new:
             self._render(em[new])
         return sum_pieces([self._pieces[row.tobytes()] for row in em], box)
+
+    def _touching(self, em: NDArray, box: tuple[int, int, int, int]) -> NDArray[np.bool_]:
+        """Which emitters (K, 4) have light on the pixels ``box``: their boxes of
+        :meth:`_render` (the model's extent) intersect it. The others add exactly zero, so
+        they are neither rendered nor summed."""
+        r0, c0, wy, wx = self._boxes(em)
+        b = box
+        return (r0 < b[1]) & (r0 + wy > b[0]) & (c0 < b[3]) & (c0 + wx > b[2])
+
+    def _boxes(self, rows: NDArray) -> tuple[NDArray, NDArray, int, int]:
+        """First row and column (K,) of each emitter's box and the boxes' shape: from the
+        pixel before the model's extent begins."""
+        (ry, rx), px = self.extent, self.px
+        wy, wx = int(np.floor(2 * ry / px)) + 2, int(np.floor(2 * rx / px)) + 2
+        c0 = np.floor((rows[:, 0] - rx) / px - 0.5)
+        r0 = np.floor((rows[:, 1] - ry) / px - 0.5)
+        return r0, c0, wy, wx
 
     def keep(self, em: NDArray) -> None:
         """Forget the images of emitters no longer in ``em`` (K, 4)."""
