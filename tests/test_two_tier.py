@@ -168,3 +168,32 @@ def test_a_unit_too_weak_for_the_count_selection_is_dropped(astig):
     assert len(detect_candidates(frame, 0.2, solver.templates.images[:1], threshold=5.0))
     fit = _solve(solver, frame, background=0.2)
     assert len(fit.emitters) == 0
+
+
+def test_a_unit_is_refitted_only_where_the_frame_solvers_rule_says_it_would_move(astig):
+    """A neighbour's light that changes a unit's window beyond the skip tolerance but moves
+    its emitter by less than the shift tolerance (the frame solver's linear response) leaves
+    the unit as it is; a bright, near neighbour makes it refit."""
+    from sparseloc.solvers.frame import SHIFT_TOLERANCE, _unmoved
+    from sparseloc.solvers.two_tier import _Tier1
+
+    work, _, solver = astig
+    a = np.array([[3200.0, 3200.0, 0.0, 3000.0]])
+    f = _frame(work, a, seed=3)
+    tier = _Tier1(f, np.full(SHAPE, 10.0), work, solver.fit_kwargs(), 1.0, np.zeros(SHAPE), 0.15)
+    unit = tier.fit(tier.fit(a).rows)  # started where it ends: its window stays
+    box = unit.box
+    assert tier.box(unit.rows) == box
+    origin = (box[2] * PX, box[0] * PX)
+    kept = moved = 0
+    for photons in (100.0, 300.0, 1000.0, 3000.0, 10000.0):
+        for dx in (1100.0, 1500.0, 2000.0):
+            other = np.array([[3200.0 + dx, 3200.0, 0.0, photons]])
+            offset = tier.light.window(other, box)
+            beyond_tol = np.max(np.abs(offset - unit.memo.offset)) > unit.memo.tol
+            stays = _unmoved(unit.memo, offset, origin, SHIFT_TOLERANCE)
+            again = tier.refit(unit, [other])
+            assert (again is unit) == stays
+            kept += beyond_tol and stays
+            moved += not stays
+    assert kept and moved  # both branches of the rule were taken
