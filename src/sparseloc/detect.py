@@ -40,7 +40,12 @@ __all__ = [
 
 
 def temporal_background(
-    frames: NDArray, *, percentile: float = 30.0, smooth: float = 1.0
+    frames: NDArray,
+    *,
+    percentile: float = 30.0,
+    smooth: float = 1.0,
+    noise_factor: float = 1.0,
+    read_variance: float | NDArray = 0.0,
 ) -> NDArray[np.float64]:
     """Background of the middle of a block of frames: a per-pixel percentile over the block.
 
@@ -50,9 +55,13 @@ def temporal_background(
         A block of frames in photons centred on the frame(s) of interest.
     percentile : float
         Per-pixel percentile over time (below 50 because molecules only add light); corrected
-        for the Poisson spread so that a constant background comes out unbiased.
+        for the camera's spread so that a constant background comes out unbiased.
     smooth : float
         Gaussian smoothing (pixels) of the result.
+    noise_factor : float
+        Variance per expected photon (2 for EMCCD data: excess noise).
+    read_variance : float or ndarray, shape (rows, cols)
+        Read-noise variance per pixel (photons^2).
 
     Returns
     -------
@@ -62,12 +71,20 @@ def temporal_background(
     arr = np.asarray(frames, dtype=np.float64)
     if arr.ndim != 3:
         raise ValueError(f"frames must be (n, rows, cols), got shape {arr.shape}")
-    bg = _poisson_mean(np.percentile(arr, percentile, axis=0), percentile)
+    q = np.percentile(arr, percentile, axis=0)
+    bg = _poisson_mean(q, percentile, noise_factor, read_variance)
     return ndi.gaussian_filter(bg, smooth) if smooth > 0 else bg
 
 
 def temporal_backgrounds(
-    frames: NDArray, centres: NDArray, half: int, *, percentile: float = 30.0, smooth: float = 1.0
+    frames: NDArray,
+    centres: NDArray,
+    half: int,
+    *,
+    percentile: float = 30.0,
+    smooth: float = 1.0,
+    noise_factor: float = 1.0,
+    read_variance: float | NDArray = 0.0,
 ) -> NDArray[np.float64]:
     """:func:`temporal_background` of several frames of one block at once.
 
@@ -80,7 +97,7 @@ def temporal_backgrounds(
         ``frames[max(c - half, 0) : min(c + half + 1, n)]``.
     half : int
         Frames on either side.
-    percentile, smooth
+    percentile, smooth, noise_factor, read_variance
         As in :func:`temporal_background`.
 
     Returns
@@ -103,6 +120,8 @@ def temporal_backgrounds(
                         arr[max(c - half, 0) : min(c + half + 1, n)],
                         percentile=percentile,
                         smooth=smooth,
+                        noise_factor=noise_factor,
+                        read_variance=read_variance,
                     )
                     for c in centres
                 ]
@@ -112,29 +131,46 @@ def temporal_backgrounds(
         )
     raw = np.empty((len(centres), *arr.shape[1:]))
     k.percentiles(np.ascontiguousarray(arr), centres, int(half), float(percentile), raw)
-    bg = _poisson_mean(raw, percentile)
+    bg = _poisson_mean(raw, percentile, noise_factor, read_variance)
     if smooth > 0:
         bg = np.stack([ndi.gaussian_filter(b, smooth) for b in bg]) if len(bg) else bg
     return bg
 
 
-def _poisson_mean(q: NDArray[np.float64], percentile: float) -> NDArray[np.float64]:
-    """The Poisson mean whose ``percentile`` is ``q``.
+def _poisson_mean(
+    q: NDArray[np.float64],
+    percentile: float,
+    noise_factor: float = 1.0,
+    read_variance: float | NDArray = 0.0,
+) -> NDArray[np.float64]:
+    """The mean photon count whose ``percentile`` is ``q``, for counts of variance
+    ``noise_factor * lam + read_variance`` (Poisson: 1 and 0; EMCCD: 2; sCMOS: its read noise).
 
-    A low percentile of Poisson counts sits below the mean: with ``q = lam + z sqrt(lam)``
-    (normal approximation, ``z`` the standard normal quantile), ``lam = (sqrt(z^2/4 + q) - z/2)^2``.
+    A low percentile sits below the mean: with ``q = lam + z sd(lam)`` (normal approximation,
+    ``z`` the standard normal quantile), ``lam = q + z^2 F / 2 - z sqrt(F q + z^2 F^2 / 4 + r)``;
+    for Poisson counts ``(sqrt(z^2/4 + q) - z/2)^2``. Read noise widens the spread, so a
+    correction for shot noise alone would leave the background too low.
     """
     z = float(ndtri(percentile / 100.0))
-    return (np.sqrt(z * z / 4 + np.maximum(q, 0.0)) - z / 2) ** 2
+    f = float(noise_factor)
+    r = np.maximum(np.asarray(read_variance, dtype=np.float64), 0.0)
+    root = np.sqrt(np.maximum(f * q + z * z * f * f / 4 + r, z * z * f * f / 4))
+    return np.maximum(q + z * z * f / 2 - z * root, 0.0)
 
 
 def spatial_background(
-    frame: NDArray, *, percentile: float = 20.0, block: int = 16, smooth: float = 2.0
+    frame: NDArray,
+    *,
+    percentile: float = 20.0,
+    block: int = 16,
+    smooth: float = 2.0,
+    noise_factor: float = 1.0,
+    read_variance: float | NDArray = 0.0,
 ) -> NDArray[np.float64]:
     """Background of one frame from its darker pixels: for movies too short for time.
 
-    A per-block percentile (blocks of ``block`` pixels), corrected for the Poisson spread as in
-    :func:`temporal_background`, interpolated back to full size and smoothed. It follows
+    A per-block percentile (blocks of ``block`` pixels), corrected for the camera's spread as
+    in :func:`temporal_background`, interpolated back to full size and smoothed. It follows
     changes on scales of a few blocks; molecules brighten only part of each block.
 
     Parameters
@@ -147,6 +183,8 @@ def spatial_background(
         Block side (pixels).
     smooth : float
         Gaussian smoothing (pixels) of the result.
+    noise_factor, read_variance
+        As in :func:`temporal_background` (a read-variance map is averaged over each block).
 
     Returns
     -------
@@ -155,7 +193,11 @@ def spatial_background(
     arr = np.asarray(frame, dtype=np.float64)
     if arr.ndim != 2:
         raise ValueError(f"frame must be 2-D, got shape {arr.shape}")
-    lam = _poisson_mean(_block_statistic(arr[None], block, np.percentile, percentile), percentile)
+    q = _block_statistic(arr[None], block, np.percentile, percentile)
+    rv = np.asarray(read_variance, dtype=np.float64)
+    if rv.ndim:
+        rv = _block_statistic(np.broadcast_to(rv, arr.shape)[None], block, np.mean)
+    lam = _poisson_mean(q, percentile, noise_factor, rv)
     bg = _block_interpolated(lam, arr.shape)[0]
     return ndi.gaussian_filter(bg, smooth) if smooth > 0 else bg
 

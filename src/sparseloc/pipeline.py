@@ -448,7 +448,7 @@ def localize(
     if read_variance is not None:
         read_variance = _checked_read_variance(read_variance, shape, params)
     t0 = time.perf_counter()
-    inputs = _frames_and_backgrounds(get, n, start, stop, block, params, model)
+    inputs = _frames_and_backgrounds(get, n, start, stop, block, params, model, read_variance)
     if starts is not None:
         inputs = _with_starts(inputs, starts, params)
     work_args = (work_model_for(model, params), params, shape, read_variance)
@@ -713,11 +713,24 @@ class _FrameWork:
 
 
 def _frames_and_backgrounds(
-    get, n: int, start: int, stop: int, block: int, p: LocalizeParams, model: PSFModel
+    get,
+    n: int,
+    start: int,
+    stop: int,
+    block: int,
+    p: LocalizeParams,
+    model: PSFModel,
+    read_variance: NDArray | None = None,
 ):
     """Yield (frame index, frame, background), reading ``block`` frames at a time. A temporal
     background has the bumps of molecules that stay on capped (:func:`capped_bumps`, blocks
-    of one image's width: the diameter of the disc holding 90 % of ``model``'s light)."""
+    of one image's width: the diameter of the disc holding 90 % of ``model``'s light). Both
+    estimates know the camera's noise (excess factor, read noise: ``read_variance``, a map,
+    else the run's)."""
+    noise = dict(
+        noise_factor=_variance_factor(p),
+        read_variance=_noise_kwargs(p, read_variance).get("read_variance", 0.0),
+    )
     half = p.background_frames // 2
     temporal = p.background == "temporal" or (p.background == "auto" and n >= p.min_temporal_frames)
     if temporal:
@@ -730,11 +743,13 @@ def _frames_and_backgrounds(
             raise ValueError(f"frames {lo}-{hi - 1} contain NaN or inf values")
         if temporal:
             centres = np.arange(b0, b1) - lo
-            bgs = temporal_backgrounds(chunk, centres, half, percentile=p.background_percentile)
+            bgs = temporal_backgrounds(
+                chunk, centres, half, percentile=p.background_percentile, **noise
+            )
             bgs = capped_bumps(bgs, width)
         for f in range(b0, b1):
             i = f - lo
-            bg = bgs[f - b0] if temporal else spatial_background(chunk[i])
+            bg = bgs[f - b0] if temporal else spatial_background(chunk[i], **noise)
             yield f, chunk[i], bg
 
 
