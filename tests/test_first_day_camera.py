@@ -587,3 +587,36 @@ def test_camera_command_never_suggests_a_negative_offset(tmp_path, monkeypatch):
     assert res.exit_code == 0, res.output
     assert "offset not placed" in res.output
     assert "--offset -25" not in res.output and "--gain 0.6" in res.output
+
+
+def test_an_em_gain_refusal_speaks_of_the_camera_not_of_kind(tmp_path):
+    """The second walk-through: ``[camera]`` with an EM gain on an sCMOS named ``kind``, a
+    word the user never wrote."""
+    movie = tmp_path / "m.tif"
+    assert run("simulate", "-o", movie, "--frames", 1, "--rows", 16, "--cols", 16).exit_code == 0
+    cfg = tmp_path / "cam.toml"
+    cfg.write_text('[camera]\ncamera = "scmos"\nem_gain = 100\n')
+    for extra in (["--config", cfg], ["--camera", "scmos", "--em-gain", 100]):
+        res = run("localize", movie, "-o", tmp_path / "x.parquet", "--psf", "dh",
+                  "--pixel-size", 100, *extra)  # fmt: skip
+        assert res.exit_code == 2, res.output
+        assert "unless the camera is an emccd (this one is scmos)" in res.output
+        assert "kind" not in res.output
+
+
+def test_an_unreadable_mask_names_the_psf_option(tmp_path):
+    """The second walk-through: a damaged TIFF given as ``--psf`` was refused without naming
+    the option."""
+    bad = tmp_path / "bad.tif"
+    bad.write_bytes(b"not a tiff at all" * 20)
+    movie = tmp_path / "m.tif"
+    assert run("simulate", "-o", movie, "--frames", 1, "--rows", 16, "--cols", 16).exit_code == 0
+    for args in (
+        ["localize", movie, "-o", tmp_path / "x.parquet", "--psf", bad, "--pixel-size", 100],
+        ["simulate", "-o", tmp_path / "s.tif", "--psf", bad],
+    ):
+        res = run(*args)
+        assert res.exit_code == 2, res.output
+        assert "--psf: cannot use the mask file: " in res.output
+        assert "bad.tif' is not a TIFF file" in res.output
+    assert not (tmp_path / "x.parquet").exists() and not (tmp_path / "s.tif").exists()

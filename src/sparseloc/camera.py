@@ -214,8 +214,8 @@ class Camera:
             raise ValueError(f"em_gain must be >= 1, got {scalars['em_gain']}")
         if self.kind != "emccd" and scalars["em_gain"] != 1.0:
             raise ValueError(
-                f"em_gain must be 1 unless kind='emccd' (kind={self.kind!r}, "
-                f"em_gain={scalars['em_gain']})"
+                f"em_gain must be 1 unless the camera is an emccd (this one is {self.kind}); "
+                f"got {scalars['em_gain']:g}"
             )
         if not 0 < scalars["qe"] <= 1:
             raise ValueError(f"qe must be in (0, 1], got {scalars['qe']}")

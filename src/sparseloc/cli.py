@@ -442,7 +442,7 @@ def simulate(
 ) -> None:
     """Simulate a movie with ground truth: writes OUT.tif and OUT_truth.csv."""
     from .camera import camera_from_options
-    from .psf import make_psf
+    from .config import psf_option
     from .simulate import simulate as run_simulation
     from .simulate import truth_path_for, write_simulation
 
@@ -458,7 +458,7 @@ def simulate(
         inputs=[Path(psf), config, offset_map, variance_map, gain_map],
         companions=[truth_path_for(out)],
     )
-    model = _run(make_psf, psf)
+    model = _run(psf_option, psf)
     cam_opts = _camera_options(
         config,
         {

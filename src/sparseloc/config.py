@@ -302,6 +302,16 @@ OPTICS_OPTIONS: dict[str, str] = {
 }
 
 
+def psf_option(spec: str, **kwargs: Any) -> PSFModel:
+    """:func:`~sparseloc.psf.make_psf` of the ``--psf`` option, its refusals naming it."""
+    try:
+        return make_psf(spec, **kwargs)
+    except ValueError as exc:
+        if "--psf" in str(exc):
+            raise
+        raise ValueError(f"--psf: {exc}") from exc
+
+
 def build_model(options: dict[str, Any]) -> PSFModel:
     """The PSF model of ``options["psf"]``, with the sample's optics, the pupil's optics
     (``na``, ``wavelength``, ``blur``; ``mask_radius`` for mask files) and the user's z range
@@ -328,7 +338,7 @@ def build_model(options: dict[str, Any]) -> PSFModel:
             f"{flags} {'applies' if len(given) == 1 else 'apply'} to pupil models (dh, astig, "
             f"clear, mask files), not {spec!r}"
         )
-    model = make_psf(spec, **pupil)
+    model = psf_option(spec, **pupil)
     if optics and not isinstance(model, PupilPSF):
         raise ValueError(
             "--n-sample and --focal-depth apply to pupil models (built-in names, mask files)"
@@ -339,7 +349,7 @@ def build_model(options: dict[str, Any]) -> PSFModel:
     if isinstance(model, PupilPSF) and (optics or zmin is not None or zmax is not None):
         lo, hi = model.z_range
         z_range = (lo if zmin is None else float(zmin), hi if zmax is None else float(zmax))
-        model = make_psf(spec, z_range=z_range, **optics, **pupil)
+        model = psf_option(spec, z_range=z_range, **optics, **pupil)
     return model
 
 

@@ -239,9 +239,10 @@ def load_mask(
             raise ValueError(f"the mask in {p.name} holds {arr.dtype} values, not numbers")
         return ArrayMask(arr, centre, radius, flip=flip)
     except ValueError as exc:
-        if p.name in str(exc):
+        if str(exc).startswith("the mask in"):
             raise
-        raise ValueError(f"cannot use the mask file {str(p)!r}: {exc}") from exc
+        name = "" if p.name in str(exc) else f" {str(p)!r}"
+        raise ValueError(f"cannot use the mask file{name}: {exc}") from exc
     except Exception as exc:
         # A damaged file makes the readers raise almost anything (OSError, zlib.error,
         # struct.error, MemoryError for a corrupt size field ...): all mean "not readable".
