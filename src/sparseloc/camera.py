@@ -649,9 +649,9 @@ MIN_SPREAD = 4.0
 #: What the temporal line of an EMCCD says about its own bias (printed with its estimate).
 #: (Measurements: docs/benchmarks/camera_estimate.txt.)
 EMCCD_CAUTION = (
-    "an EMCCD's skewed noise biases this line: the gain tends to come out low (by up to a "
-    "fifth) and the offset's bound above the true offset, beyond the +- shown (which is the "
-    "noise's alone); prefer the camera's data sheet or its own calibration for an EMCCD"
+    "an EMCCD's skewed noise leaves this line uncertain by a few per cent beyond the +- shown "
+    "(which is the noise's alone), and its read noise, small beside the amplified shot noise, "
+    "is not measured well; prefer the camera's data sheet or its own calibration for an EMCCD"
 )
 #: A gain whose standard error exceeds this fraction of it is printed with a caution.
 GAIN_CAUTION = 0.1
@@ -710,22 +710,38 @@ class TransferLine(NamedTuple):
 def _difference_line(a: NDArray[np.float64], order: int) -> TransferLine:
     """The line (not yet ``agreed``) from the ``order``-th differences along the frames
     (variance ``C(2 order, order)`` times a frame's for independent noise), fitted in bins of
-    the differenced frames' mean. Runs of frames where the light jumps (a flat series'
-    change of level: more than :data:`STEADY_OUTLIERS` of their differences beyond 4
-    standard deviations) are left out and the line fitted again, while half of them stay."""
+    the frames around each run (:func:`_neighbours`). Runs of frames where the light jumps (a
+    flat series' change of level: more than :data:`STEADY_OUTLIERS` of their differences
+    beyond 4 standard deviations) are left out and the line fitted again, while half of them
+    stay."""
     d = np.diff(a, n=order, axis=0)
     m = np.mean([a[i : len(a) - order + i] for i in range(order + 1)], axis=0)
+    near = _neighbours(a, order)
     scale = float(comb(2 * order, order))
-    line = _binned_line(d.ravel(), m.ravel(), scale)
+    line = _binned_line(d.ravel(), m.ravel(), near.ravel(), scale)
     per_run = _beyond(d, m, line, scale).reshape(len(d), -1).mean(axis=1)
     steady = per_run <= STEADY_OUTLIERS
     if 2 * steady.sum() >= len(d) and not steady.all():
-        d, m = d[steady], m[steady]
-        line = _binned_line(d.ravel(), m.ravel(), scale)
+        d, m, near = d[steady], m[steady], near[steady]
+        line = _binned_line(d.ravel(), m.ravel(), near.ravel(), scale)
     outliers = float(np.mean(_beyond(d, m, line, scale)))
     noise = np.mean(np.maximum(line[0] * m + line[1], 0.0)) / (order + 1)
     spread = float(np.var(m) / noise) if noise > 0 else np.inf
     return TransferLine(line[0], line[1], line[2], order, False, outliers, spread)
+
+
+def _neighbours(a: NDArray[np.float64], order: int) -> NDArray[np.float64]:
+    """For each run of ``order + 1`` frames, each pixel's mean over the frame before the run
+    and the frame after it (the one that exists at the series' ends): a measure of its light
+    whose noise is independent of the run's."""
+    runs = len(a) - order
+    start = np.arange(runs)
+    before, after = start - 1, start + order + 1
+    has_before = (before >= 0)[:, None, None]
+    has_after = (after < len(a))[:, None, None]
+    total = np.where(has_before, a[np.maximum(before, 0)], 0.0)
+    total = total + np.where(has_after, a[np.minimum(after, len(a) - 1)], 0.0)
+    return total / (has_before.astype(np.float64) + has_after)
 
 
 def _beyond(d: NDArray, m: NDArray, line: tuple, scale: float) -> NDArray[np.bool_]:
@@ -735,11 +751,20 @@ def _beyond(d: NDArray, m: NDArray, line: tuple, scale: float) -> NDArray[np.boo
         return ~(d**2 <= 16.0 * lim)
 
 
-def _binned_line(d: NDArray, m: NDArray, scale: float) -> tuple[float, float, NDArray]:
+def _binned_line(
+    d: NDArray, m: NDArray, near: NDArray, scale: float
+) -> tuple[float, float, NDArray]:
     """Slope, intercept and their covariance (2, 2) of the line through the clipped variance
-    of differences ``d`` (divided by ``scale``) in equal-count bins of their mean ``m``."""
-    edges = np.quantile(m, np.linspace(0.0, 1.0, _TEMPORAL_BINS + 1))
-    idx = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, _TEMPORAL_BINS - 1)
+    of differences ``d`` (divided by ``scale``) against the runs' mean ``m``, in equal-count
+    bins of ``near`` (each run's light measured on other frames).
+
+    Bins of ``m`` itself would select on the run's own noise: a bin of runs that read low
+    holds pixels brighter than its centre says, and with skewed noise (Poisson, and an
+    EMCCD's far more) that noise correlates with the differences' size: the line's slope and
+    intercept come out biased (``docs/benchmarks/camera_estimate.txt``). Binned by ``near``
+    instead, each bin's mean ``m`` is the mean of its pixels' light."""
+    edges = np.quantile(near, np.linspace(0.0, 1.0, _TEMPORAL_BINS + 1))
+    idx = np.clip(np.searchsorted(edges, near, side="right") - 1, 0, _TEMPORAL_BINS - 1)
     centre, var, count = [], [], []
     for k in range(_TEMPORAL_BINS):
         dk = d[idx == k]
