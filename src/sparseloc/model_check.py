@@ -49,7 +49,7 @@ CROWDED_EMITTERS = 2
 _CROWDED = (
     "; or crowding: a median of {k:g} emitters per fitted window{density}, whose unresolved "
     "light raises the goodness of fit with any model (if the sample is that dense, the model "
-    "may be right)"
+    "may be right; a wrong PSF inflates both counts)"
 )
 _CAUSES_HIGH = (
     "likely causes: the wrong PSF (a calibration or mask of another microscope, or the "
@@ -171,7 +171,7 @@ def check_fit(
         if emitters is None
         else float(np.median(np.asarray(emitters, dtype=np.float64).ravel()[keep]))
     )
-    dens = f" ({density:.2g} localizations per um^2 per frame)" if density else ""
+    dens = f" ({density:.2g} localizations per um^2 per frame with this model)" if density else ""
     crowded = _CROWDED.format(k=k_med, density=dens) if k_med > CROWDED_EMITTERS else ""
     said = (
         f"the median goodness of fit (deviance per degree of freedom) of {g.size} fits is {med:.2f}"
