@@ -300,6 +300,28 @@ def test_the_transfer_line_is_not_biased_by_binning_on_its_own_noise(kind):
         assert np.mean(noises) < 1.75
 
 
+def test_an_emccd_read_noise_the_line_cannot_resolve_is_not_printed_as_measured(tmp_path):
+    """Behind an EM gain of 300, 1.5 e- of read noise is far below what the line resolves;
+    the command says so and does not pass a read noise on to localize. An sCMOS stack's read
+    noise is measured, with its bound."""
+    from sparseloc.camera import Camera
+    from sparseloc.io.tiff import write_tiff
+
+    for kind, gain, em_gain in (("emccd", 50.0, 300.0), ("scmos", 1.0, 1.0)):
+        cam = Camera(kind=kind, offset=200.0, gain=gain, em_gain=em_gain, read_noise=1.5)
+        tif = write_tiff(tmp_path / f"{kind}.tif", _bead_stack(cam, seed=1), pixel_size=100.0)
+        args = ["camera", tif, "--offset", 200, "--camera", kind, "--frames", 25]
+        res = run(*args, *(["--em-gain", em_gain] if kind == "emccd" else []))
+        assert res.exit_code == 0, res.output
+        if kind == "emccd":
+            assert "read noise not resolved by the line" in res.output
+            assert "--read-noise" not in res.output.split("localize with:")[1]
+        else:
+            assert _number(res.output, "read noise") == pytest.approx(1.53, rel=0.2)
+            assert "at two standard errors" in res.output
+            assert "--read-noise" in res.output.split("localize with:")[1]
+
+
 def test_camera_gain_from_flat_frames_at_several_levels_but_not_one():
     """Item 9: flat frames at three light levels (the frames where the level changes left
     out) give the gain; flat frames at one level hold no line, and the estimate says so."""

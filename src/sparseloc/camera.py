@@ -846,6 +846,11 @@ class CameraEstimate:
     gain_error, offset_error : float
         Standard errors (e-/ADU, ADU) from the line's fit; NaN for the spatial line and
         for a given offset.
+    read_noise_bound : float
+        With a given offset and the temporal line: the read noise (e- rms) that the line's
+        read variance reaches at two standard errors above its estimate; where the estimate
+        lies within two standard errors of zero the line does not resolve the read noise,
+        only this bound. NaN otherwise.
     """
 
     offset: float
@@ -858,6 +863,15 @@ class CameraEstimate:
     caution: str = ""
     gain_error: float = float("nan")
     offset_error: float = float("nan")
+    read_noise_bound: float = float("nan")
+
+    @property
+    def read_noise_resolved(self) -> bool:
+        """Whether the line measured the read noise (its read variance lies more than two
+        standard errors above zero); True where no bound was computed."""
+        if not np.isfinite(self.read_noise_bound):
+            return True
+        return self.read_noise > 0 and self.read_noise**2 > 0.5 * self.read_noise_bound**2
 
 
 def estimate_camera(
@@ -943,11 +957,16 @@ def estimate_camera(
     elif method == "temporal" and excess > 1:
         caution = EMCCD_CAUTION
     if offset is not None:
-        read_var_adu = intercept + slope * float(offset)
+        off = float(offset)
+        read_var_adu = intercept + slope * off
         noise = float(np.sqrt(max(read_var_adu, 0.0)) * gain)
+        # d read variance / d (slope, intercept) = (offset, 1)
+        se = float(np.sqrt(max(cov[1, 1] + off**2 * cov[0, 0] + 2 * off * cov[0, 1], 0.0)))
+        bound = float(np.sqrt(max(read_var_adu + 2.0 * se, 0.0)) * gain)
         return CameraEstimate(
-            float(offset), float(gain), noise, True, slope, intercept, method, caution, gain_error
-        )
+            off, float(gain), noise, True, slope, intercept, method, caution, gain_error,
+            read_noise_bound=bound,
+        )  # fmt: skip
     noise = 0.0 if read_noise is None else float(read_noise)
     if noise < 0:
         raise ValueError(f"read_noise must be >= 0 e- rms, got {noise}")

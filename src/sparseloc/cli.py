@@ -1148,9 +1148,18 @@ def camera_cmd(
             "read noise dominates; give --offset (the median of a dark frame)"
         )
     typer.echo(f"gain {est.gain:.4g}{_plus_minus(est.gain_error, '.2g')} e-/ADU")
-    if est.offset_given:
-        below = "" if est.read_noise > 0 else " (below what the line resolves)"
-        typer.echo(f"read noise {est.read_noise:.3g} e- rms{below}")
+    resolved = est.read_noise_resolved
+    if est.offset_given and not resolved:
+        bound = est.read_noise_bound
+        below = f": below about {bound:.3g} e- rms (two standard errors)" if bound > 0 else ""
+        typer.echo(f"read noise not resolved by the line{below}; take the camera's data sheet")
+    elif est.offset_given:
+        upto = (
+            f" (up to {est.read_noise_bound:.3g} at two standard errors)"
+            if np.isfinite(est.read_noise_bound)
+            else ""
+        )
+        typer.echo(f"read noise {est.read_noise:.3g} e- rms{upto}")
     source = "frame-to-frame differences" if est.method == "temporal" else "single-frame noise"
     typer.echo(
         f"  from the line variance = {est.slope:.4g} x mean {est.intercept:+.4g} (ADU^2) of the "
@@ -1164,7 +1173,7 @@ def camera_cmd(
     flags += f" --gain {est.gain:.4g}"
     if kind == "emccd" and em_gain is not None:
         flags += f" --em-gain {em_gain:g}"
-    if est.read_noise > 0 and kind != "ideal":
+    if est.read_noise > 0 and resolved and kind != "ideal":
         flags += f" --read-noise {est.read_noise:.3g}"
     typer.echo(f"localize with: {flags}")
 
