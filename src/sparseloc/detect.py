@@ -72,7 +72,7 @@ def temporal_background(
     if arr.ndim != 3:
         raise ValueError(f"frames must be (n, rows, cols), got shape {arr.shape}")
     q = np.percentile(arr, percentile, axis=0)
-    bg = _poisson_mean(q, percentile, noise_factor, read_variance)
+    bg = _mean_below_percentile(q, percentile, noise_factor, read_variance)
     return ndi.gaussian_filter(bg, smooth) if smooth > 0 else bg
 
 
@@ -131,13 +131,13 @@ def temporal_backgrounds(
         )
     raw = np.empty((len(centres), *arr.shape[1:]))
     k.percentiles(np.ascontiguousarray(arr), centres, int(half), float(percentile), raw)
-    bg = _poisson_mean(raw, percentile, noise_factor, read_variance)
+    bg = _mean_below_percentile(raw, percentile, noise_factor, read_variance)
     if smooth > 0:
         bg = np.stack([ndi.gaussian_filter(b, smooth) for b in bg]) if len(bg) else bg
     return bg
 
 
-def _poisson_mean(
+def _mean_below_percentile(
     q: NDArray[np.float64],
     percentile: float,
     noise_factor: float = 1.0,
@@ -197,7 +197,7 @@ def spatial_background(
     rv = np.asarray(read_variance, dtype=np.float64)
     if rv.ndim:
         rv = _block_statistic(np.broadcast_to(rv, arr.shape)[None], block, np.mean)
-    lam = _poisson_mean(q, percentile, noise_factor, rv)
+    lam = _mean_below_percentile(q, percentile, noise_factor, rv)
     bg = _block_interpolated(lam, arr.shape)[0]
     return ndi.gaussian_filter(bg, smooth) if smooth > 0 else bg
 
