@@ -318,6 +318,44 @@ def test_pool_workers_die_with_a_killed_parent(tmp_path):
             proc.kill()
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_ctrl_c_twice_to_the_process_group_ends_the_pool_at_once(tmp_path):
+    """The third walk-through: Ctrl-C sent twice to the whole group (or ``timeout -s INT``)
+    left the run hanging in the pool's shutdown with both workers alive. The workers now
+    leave Ctrl-C to the parent, which ends them without waiting for their items."""
+    script = tmp_path / "pool_run.py"
+    script.write_text(textwrap.dedent(_POOL_SCRIPT))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    proc = subprocess.Popen(
+        [sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+        start_new_session=True,
+    )  # fmt: skip
+    workers: list[int] = []
+    try:
+        deadline = time.monotonic() + 60
+        while len(workers) < 2 and time.monotonic() < deadline:
+            time.sleep(0.5)
+            workers = [p for p in _children(proc.pid) if _alive(p)]
+        assert len(workers) >= 2, workers
+        time.sleep(2.0)  # the workers are inside their (sleeping) items
+        os.killpg(proc.pid, signal.SIGINT)
+        time.sleep(0.3)
+        os.killpg(proc.pid, signal.SIGINT)
+        proc.wait(20)  # raises TimeoutExpired where it hangs
+        deadline = time.monotonic() + 10
+        while any(_alive(p) for p in workers) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not [p for p in workers if _alive(p)]
+    finally:
+        for p in workers:
+            try:
+                os.kill(p, signal.SIGKILL)
+            except OSError:
+                pass
+        if proc.poll() is None:
+            proc.kill()
+
+
 def test_refusal_of_a_bad_table_names_the_file(tmp_path):
     bad = tmp_path / "broken.parquet"
     bad.write_bytes(b"not a table")

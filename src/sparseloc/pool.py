@@ -68,7 +68,12 @@ def _init_worker(
     make_work: Callable[..., Any], args: tuple, engine: str, parent: int | None = None
 ) -> None:
     global _WORK
+    import signal
     import threading
+
+    # Ctrl-C reaches the whole process group: the parent alone answers it (it ends the pool);
+    # a worker interrupted mid-item would leave the pool broken and its shutdown waiting.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     # ``parent``: the pool's process id, given so that a parent dead before this line is seen
     threading.Thread(
@@ -106,9 +111,10 @@ def in_processes(
     # The platform's default: fork on Linux (no re-import of the caller's script), spawn
     # elsewhere (scripts then need the usual ``if __name__ == "__main__":`` guard).
     ctx = multiprocessing.get_context()
-    with ProcessPoolExecutor(
+    pool = ProcessPoolExecutor(
         workers, mp_context=ctx, initializer=_init_worker, initargs=(*init, os.getpid())
-    ) as pool:
+    )
+    try:
         pending: deque = deque()
         for item in items:
             pending.append(pool.submit(_solve_in_worker, *item))
@@ -116,3 +122,20 @@ def in_processes(
                 yield pending.popleft().result()
         while pending:
             yield pending.popleft().result()
+    except BaseException:
+        # Interrupted (Ctrl-C, an error, the caller stopped reading): the items in flight are
+        # dropped and the workers ended now, not waited for; a second Ctrl-C finds nothing
+        # left to hang on.
+        _end_now(pool)
+        raise
+    pool.shutdown(wait=True)
+
+
+def _end_now(pool) -> None:
+    """Cancel a process pool's queued items and terminate its workers."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        proc.terminate()
+    for proc in procs:
+        proc.join(timeout=5)
