@@ -273,6 +273,38 @@ def test_evaluate_cli_scores_the_tables_frame_range(tmp_path):
     assert "4 / 0 / 0" in res.output  # TP / FP / FN: the frames not localized are not missed
 
 
+def test_a_csv_table_of_part_of_the_movie_gets_a_caution_and_evaluate_takes_frames(tmp_path):
+    """The third walk-through: a CSV table (no recorded frame range) of frames 0:2 scored
+    against the whole truth, silently, at a fraction of its score."""
+    from typer.testing import CliRunner
+
+    from sparseloc.cli import app
+    from sparseloc.io.tables import complete_locs
+    from sparseloc.io.truth import write_truth_csv
+
+    truth = pd.DataFrame(
+        {
+            "frame": np.repeat(np.arange(8), 2),
+            "x_nm": np.tile([1000.0, 3000.0], 8),
+            "y_nm": 2000.0,
+            "z_nm": 0.0,
+            "photons": 2000.0,
+        }
+    )
+    truth_path = tmp_path / "truth.csv"
+    write_truth_csv(truth_path, truth)
+    table = tmp_path / "locs.csv"
+    complete_locs(truth[truth["frame"] < 2].reset_index(drop=True)).to_csv(table, index=False)
+    res = CliRunner().invoke(app, ["evaluate", str(table), str(truth_path)])
+    assert res.exit_code == 0, res.output
+    assert "scored with evaluate --frames START:STOP" in res.output
+    res = CliRunner().invoke(app, ["evaluate", str(table), str(truth_path), "--frames", "0:2"])
+    assert res.exit_code == 0, res.output
+    assert "scored against the truth of frames 0:2" in res.output
+    assert "4 / 0 / 0" in res.output
+    assert "START:STOP" not in res.output
+
+
 # --- cautions the new-user trial asked for -------------------------------------------------
 
 

@@ -1199,9 +1199,17 @@ def evaluate(
         Path | None, typer.Option("--json", help="Also write the figures as JSON.")
     ] = None,
     all_flags: Annotated[bool, typer.Option(help=_ALL_FLAGS_HELP)] = False,
+    frames: Annotated[
+        str | None,
+        typer.Option(
+            help="Score against the truth of frames START:STOP only (0-based, STOP excluded; "
+            "default: the table's recorded range, else all)."
+        ),
+    ] = None,
     overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Match localizations to the truth and print Jaccard, RMSE, bias and efficiency."""
+    from .config import frame_range
     from .evaluate import evaluate as run_evaluation
     from .evaluate import scoring_cautions, truth_in_frames
     from .io.tables import read_table_and_metadata
@@ -1216,10 +1224,17 @@ def evaluate(
     if pixel_size is not None:
         _run(check_pixel_size, pixel_size)
     truth_df = _run(read_truth_csv, truth, pixel_size=pixel_size)
-    frames = meta.get("frames") if isinstance(meta, dict) else None
+    recorded = meta.get("frames") if isinstance(meta, dict) else None
     if frames is not None:
-        truth_df = _run(truth_in_frames, truth_df, frames)
-        typer.echo(f"scored against the truth of frames {frames[0]}:{frames[1]}, the table's range")
+        n = int(truth_df["frame"].max()) + 1 if len(truth_df) else 0
+        start, stop = _run(frame_range, frames, max(n, _frames_stop(frames)))
+        truth_df = _run(truth_in_frames, truth_df, (start, stop))
+        typer.echo(f"scored against the truth of frames {start}:{stop}")
+    elif recorded is not None:
+        truth_df = _run(truth_in_frames, truth_df, recorded)
+        typer.echo(
+            f"scored against the truth of frames {recorded[0]}:{recorded[1]}, the table's range"
+        )
     from .postprocess import excluded_note, flagged_rows
 
     note = excluded_note(int(_run(flagged_rows, loc_df, all_flags=all_flags).sum()))
@@ -1240,6 +1255,13 @@ def evaluate(
         from .io.atomic import write_text_atomic
 
         _run(write_text_atomic, json_out, json.dumps(result.as_dict(), indent=2))
+
+
+def _frames_stop(frames: str) -> int:
+    """The STOP of ``START:STOP`` where it is a number (0 otherwise): ``evaluate --frames`` may
+    name frames past the truth's last emitter."""
+    stop = str(frames).partition(":")[2]
+    return int(stop) if stop.isdigit() else 0
 
 
 _FIGURE_SUFFIXES = (".png", ".pdf", ".svg")

@@ -465,6 +465,15 @@ def scoring_cautions(locs: pd.DataFrame, truth: pd.DataFrame) -> list[str]:
                 f"lie in frames {int(lf.min())}-{int(lf.max())} ({covered:.0%} of the table's "
                 "frames have truth): is it the truth of this movie?"
             )
+        else:
+            beyond = np.unique(tf[(tf < lf.min()) | (tf > lf.max())])
+            if beyond.size > np.unique(tf).size // 2:
+                out.append(
+                    f"the table's rows lie in frames {int(lf.min())}-{int(lf.max())} but the "
+                    f"truth holds frames {int(tf.min())}-{int(tf.max())}, whose emitters "
+                    "elsewhere count as missed: a table of part of the movie (localize "
+                    "--frames) is scored with evaluate --frames START:STOP"
+                )
     return out
 
 
