@@ -63,6 +63,8 @@ def test_a_long_run_leaves_the_unchunked_table_and_no_run_folder(tmp_path, movie
     plain = tmp_path / "plain.parquet"
     res = run("localize", movie, "-o", plain, *ARGS, "--workers", "1", "--chunk-frames", "6")
     assert res.exit_code == 0, res.output
+    # chunked on request but with no --run-dir: the folder was not asked for (walk-through 3)
+    assert not (tmp_path / "plain.parquet.parts").exists()
     out = tmp_path / "locs.parquet"
     res = run("localize", movie, "-o", out, *ARGS, "--workers", "1")
     assert res.exit_code == 0, res.output

@@ -871,8 +871,9 @@ def _localize_in_processes(mov, job, workers: int):
 def _localize_chunked(opts, out, mov, job, default_psf: bool = False, auto: bool = False) -> None:
     """The chunked path of ``localize``: run, save parts, join, or report what is missing.
 
-    ``auto``: chunked because the movie is long, not because the user asked; the run folder
-    beside the output is then removed once the table is written."""
+    ``auto``: chunked because the movie is long, not because the user asked (the workers
+    then default to the cores). The run folder beside the output (no ``--run-dir``) is
+    removed once the table is written."""
     from .distributed import CameraFrames, localize_chunked
     from .progress import Progress
 
@@ -919,7 +920,7 @@ def _localize_chunked(opts, out, mov, job, default_psf: bool = False, auto: bool
         )
         raise typer.Exit(code=1)
     _write_localized(res, out, opts, mov, job)
-    if auto:
+    if opts["run_dir"] is None:  # a folder the user did not ask for (docs/long_movies.md)
         _remove_run_dir(run_dir)
     _run_notes(res.metadata, opts["psf"] if default_psf else None)
     typer.echo(f"wrote {out}")
