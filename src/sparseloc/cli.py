@@ -1225,6 +1225,14 @@ def evaluate(
     if pixel_size is not None:
         _run(check_pixel_size, pixel_size)
     truth_df = _run(read_truth_csv, truth, pixel_size=pixel_size)
+    params = meta.get("params") if isinstance(meta, dict) else None
+    table_px = params.get("pixel_size") if isinstance(params, dict) else None
+    if pixel_size is not None and isinstance(table_px, int | float) and table_px > 0:
+        if abs(table_px - pixel_size) > 0.01 * pixel_size:
+            _note(
+                f"--pixel-size {pixel_size:g} nm differs from the table's {table_px:g} nm: truth "
+                "in pixels of the movie the table was localized from takes its pixel size"
+            )
     recorded = meta.get("frames") if isinstance(meta, dict) else None
     if frames is not None:
         n = int(truth_df["frame"].max()) + 1 if len(truth_df) else 0
