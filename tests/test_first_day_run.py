@@ -88,7 +88,7 @@ def test_a_failed_check_on_crowded_windows_names_the_model_then_the_crowding():
     )
     # the counts are this model's: a wrong PSF's localizations make the density (walk-through)
     assert "per frame with this model" in crowded.message
-    assert "a wrong PSF inflates both counts" in crowded.message
+    assert "a wrong PSF or camera setting inflates both counts" in crowded.message
     alone = check_fit(gof, np.full(gof.size, dof), emitters=np.ones(gof.size))
     assert alone.verdict == "misfit" and "crowded" not in alone.message
     # metadata of a run before the field existed still reads

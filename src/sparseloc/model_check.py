@@ -49,7 +49,7 @@ CROWDED_EMITTERS = 2
 _CROWDED = (
     "; or crowding: a median of {k:g} emitters per fitted window{density}, whose unresolved "
     "light raises the goodness of fit with any model (if the sample is that dense, the model "
-    "may be right; a wrong PSF inflates both counts)"
+    "may be right; a wrong PSF or camera setting inflates both counts)"
 )
 _CAUSES_HIGH = (
     "likely causes: the wrong PSF (a calibration or mask of another microscope, or the "
