@@ -243,6 +243,19 @@ def test_nan_coordinates_rejected():
         evaluate(locs, truth)
 
 
+def _two_per_frame(frames: int) -> pd.DataFrame:
+    """Truth of two emitters 2 um apart in each of ``frames`` frames."""
+    return pd.DataFrame(
+        {
+            "frame": np.repeat(np.arange(frames), 2),
+            "x_nm": np.tile([1000.0, 3000.0], frames),
+            "y_nm": 2000.0,
+            "z_nm": 0.0,
+            "photons": 2000.0,
+        }
+    )
+
+
 def test_evaluate_cli_scores_the_tables_frame_range(tmp_path):
     # A table localized over frames 0:2 is scored against the truth of those frames only.
     from typer.testing import CliRunner
@@ -251,15 +264,7 @@ def test_evaluate_cli_scores_the_tables_frame_range(tmp_path):
     from sparseloc.io.tables import write_table
     from sparseloc.io.truth import write_truth_csv
 
-    truth = pd.DataFrame(
-        {
-            "frame": np.repeat(np.arange(4), 2),
-            "x_nm": np.tile([1000.0, 3000.0], 4),
-            "y_nm": 2000.0,
-            "z_nm": 0.0,
-            "photons": 2000.0,
-        }
-    )
+    truth = _two_per_frame(4)
     truth_path = tmp_path / "truth.csv"
     write_truth_csv(truth_path, truth)
     from sparseloc.io.tables import complete_locs
@@ -282,15 +287,7 @@ def test_a_csv_table_of_part_of_the_movie_gets_a_caution_and_evaluate_takes_fram
     from sparseloc.io.tables import complete_locs
     from sparseloc.io.truth import write_truth_csv
 
-    truth = pd.DataFrame(
-        {
-            "frame": np.repeat(np.arange(8), 2),
-            "x_nm": np.tile([1000.0, 3000.0], 8),
-            "y_nm": 2000.0,
-            "z_nm": 0.0,
-            "photons": 2000.0,
-        }
-    )
+    truth = _two_per_frame(8)
     truth_path = tmp_path / "truth.csv"
     write_truth_csv(truth_path, truth)
     table = tmp_path / "locs.csv"

@@ -4,6 +4,7 @@ partial outputs, no stray workers and refusals that name their file or option (i
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -286,43 +287,10 @@ def _alive(pid: int) -> bool:
     return stat.rsplit(")", 1)[1].split()[0] != "Z"
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
-def test_pool_workers_die_with_a_killed_parent(tmp_path):
-    script = tmp_path / "pool_run.py"
-    script.write_text(textwrap.dedent(_POOL_SCRIPT))
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
-    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, env=env)
-    workers: list[int] = []
-    try:
-        deadline = time.monotonic() + 60
-        while len(workers) < 2 and time.monotonic() < deadline:
-            time.sleep(0.5)
-            # the pool's workers: the parent's children that are Python processes
-            workers = [p for p in _children(proc.pid) if _alive(p)]
-        assert len(workers) >= 2, workers
-        time.sleep(2.0)  # the workers are inside their (sleeping) items
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(10)
-        deadline = time.monotonic() + 15
-        while any(_alive(p) for p in workers) and time.monotonic() < deadline:
-            time.sleep(0.2)
-        left = [p for p in workers if _alive(p)]
-        assert not left, f"workers still alive after their parent was killed: {left}"
-    finally:
-        for p in workers:
-            try:
-                os.kill(p, signal.SIGKILL)
-            except OSError:
-                pass
-        if proc.poll() is None:
-            proc.kill()
-
-
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
-def test_ctrl_c_twice_to_the_process_group_ends_the_pool_at_once(tmp_path):
-    """The third walk-through: Ctrl-C sent twice to the whole group (or ``timeout -s INT``)
-    left the run hanging in the pool's shutdown with both workers alive. The workers now
-    leave Ctrl-C to the parent, which ends them without waiting for their items."""
+@contextlib.contextmanager
+def _pool_run(tmp_path: Path):
+    """The pool script running in its own session, its workers inside their (sleeping)
+    items: yields (process, worker pids); whatever is left is killed afterwards."""
     script = tmp_path / "pool_run.py"
     script.write_text(textwrap.dedent(_POOL_SCRIPT))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
@@ -335,17 +303,11 @@ def test_ctrl_c_twice_to_the_process_group_ends_the_pool_at_once(tmp_path):
         deadline = time.monotonic() + 60
         while len(workers) < 2 and time.monotonic() < deadline:
             time.sleep(0.5)
+            # the pool's workers: the parent's children that are Python processes
             workers = [p for p in _children(proc.pid) if _alive(p)]
         assert len(workers) >= 2, workers
         time.sleep(2.0)  # the workers are inside their (sleeping) items
-        os.killpg(proc.pid, signal.SIGINT)
-        time.sleep(0.3)
-        os.killpg(proc.pid, signal.SIGINT)
-        proc.wait(20)  # raises TimeoutExpired where it hangs
-        deadline = time.monotonic() + 10
-        while any(_alive(p) for p in workers) and time.monotonic() < deadline:
-            time.sleep(0.2)
-        assert not [p for p in workers if _alive(p)]
+        yield proc, workers
     finally:
         for p in workers:
             try:
@@ -354,6 +316,36 @@ def test_ctrl_c_twice_to_the_process_group_ends_the_pool_at_once(tmp_path):
                 pass
         if proc.poll() is None:
             proc.kill()
+
+
+def _left_alive(workers: list[int], seconds: float) -> list[int]:
+    """The workers still alive after waiting up to ``seconds`` for them to end."""
+    deadline = time.monotonic() + seconds
+    while any(_alive(p) for p in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    return [p for p in workers if _alive(p)]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_pool_workers_die_with_a_killed_parent(tmp_path):
+    with _pool_run(tmp_path) as (proc, workers):
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        left = _left_alive(workers, 15)
+        assert not left, f"workers still alive after their parent was killed: {left}"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_ctrl_c_twice_to_the_process_group_ends_the_pool_at_once(tmp_path):
+    """The third walk-through: Ctrl-C sent twice to the whole group (or ``timeout -s INT``)
+    left the run hanging in the pool's shutdown with both workers alive. The workers now
+    leave Ctrl-C to the parent, which ends them without waiting for their items."""
+    with _pool_run(tmp_path) as (proc, workers):
+        os.killpg(proc.pid, signal.SIGINT)
+        time.sleep(0.3)
+        os.killpg(proc.pid, signal.SIGINT)
+        proc.wait(20)  # raises TimeoutExpired where it hangs
+        assert not _left_alive(workers, 10)
 
 
 def test_refusal_of_a_bad_table_names_the_file(tmp_path):

@@ -951,11 +951,12 @@ def calibrate_file(
     ``z_file`` is a CSV of per-frame z (see :func:`read_z_file`). Other keyword arguments go
     to :func:`calibrate_beads`.
     """
+    from .config import pixel_sizes_differ
     from .io.movie import Movie
 
     with Movie.open(path) as movie:
         meta_px = movie.pixel_size
-        if meta_px is not None and abs(meta_px - pixel_size) > 0.01 * pixel_size:
+        if meta_px is not None and pixel_sizes_differ(pixel_size, meta_px):
             raise ValueError(
                 f"--pixel-size {pixel_size:g} nm disagrees with the {meta_px:g} nm in "
                 f"{Path(path).name}'s metadata; check the objective and camera"

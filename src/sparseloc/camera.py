@@ -871,6 +871,7 @@ class CameraEstimate:
         standard errors above zero); True where no bound was computed."""
         if not np.isfinite(self.read_noise_bound):
             return True
+        # read_noise^2 = rv g^2 and bound^2 = (rv + 2 se) g^2: rv > 2 se <=> this
         return self.read_noise > 0 and self.read_noise**2 > 0.5 * self.read_noise_bound**2
 
 

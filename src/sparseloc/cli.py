@@ -1210,7 +1210,7 @@ def evaluate(
     overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Match localizations to the truth and print Jaccard, RMSE, bias and efficiency."""
-    from .config import frame_range
+    from .config import frame_range, pixel_sizes_differ
     from .evaluate import evaluate as run_evaluation
     from .evaluate import scoring_cautions, truth_in_frames
     from .io.tables import read_table_and_metadata
@@ -1228,7 +1228,7 @@ def evaluate(
     params = meta.get("params") if isinstance(meta, dict) else None
     table_px = params.get("pixel_size") if isinstance(params, dict) else None
     if pixel_size is not None and isinstance(table_px, int | float) and table_px > 0:
-        if abs(table_px - pixel_size) > 0.01 * pixel_size:
+        if pixel_sizes_differ(pixel_size, table_px):
             _note(
                 f"--pixel-size {pixel_size:g} nm differs from the table's {table_px:g} nm: truth "
                 "in pixels of the movie the table was localized from takes its pixel size"

@@ -370,6 +370,15 @@ def build_camera(options: dict[str, Any], first: NDArray) -> Camera:
     return cam
 
 
+#: Two pixel sizes that differ by more than this fraction describe different images.
+PIXEL_SIZE_TOLERANCE = 0.01
+
+
+def pixel_sizes_differ(given: float, recorded: float) -> bool:
+    """Whether ``recorded`` (nm; a file's metadata) contradicts ``given`` (nm)."""
+    return abs(recorded - given) > PIXEL_SIZE_TOLERANCE * given
+
+
 def resolve_pixel_size(options: dict[str, Any], model: PSFModel, movie_pixel: float | None):
     """The pixel size (nm): the option, else the calibration's; checked against the movie's
     metadata (``movie_pixel``, nm or None)."""
@@ -385,7 +394,7 @@ def resolve_pixel_size(options: dict[str, Any], model: PSFModel, movie_pixel: fl
         )
     px = check_pixel_size(px, "--pixel-size" if options["pixel_size"] is not None else
                           "the calibration's pixel size")  # fmt: skip
-    if movie_pixel and abs(movie_pixel - px) > 0.01 * px:
+    if movie_pixel and pixel_sizes_differ(px, movie_pixel):
         raise ValueError(
             f"--pixel-size {px:g} nm differs from the movie's metadata ({movie_pixel:g} nm)"
         )
