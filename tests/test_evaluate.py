@@ -358,3 +358,24 @@ def test_a_truth_pixel_size_that_contradicts_the_tables_gets_a_note(tmp_path):
         )
         assert res.exit_code == 0, res.output
         assert ("differs from the table's 100 nm" in res.output) is noted
+
+
+def test_swapped_evaluate_arguments_say_the_truth_goes_second(tmp_path):
+    """The third walk-through: ``evaluate TRUTH LOCS`` answered with a UTF-8 decoding error."""
+    from typer.testing import CliRunner
+
+    from sparseloc.cli import app
+    from sparseloc.io.tables import complete_locs, write_table
+    from sparseloc.io.truth import write_truth_csv
+
+    truth = pd.DataFrame({"frame": [0], "x_nm": [1000.0], "y_nm": [2000.0], "z_nm": 0.0,
+                          "photons": 2000.0})  # fmt: skip
+    truth_path = tmp_path / "truth.csv"
+    write_truth_csv(truth_path, truth)
+    table = tmp_path / "locs.parquet"
+    write_table(complete_locs(truth.drop(columns="photons")), table, pixel_size=100.0)
+    res = CliRunner().invoke(app, ["evaluate", str(truth_path), str(table)])
+    assert res.exit_code == 2, res.output
+    assert "is a Parquet file, not a CSV truth table" in res.output
+    assert "the truth second" in res.output and "utf-8" not in res.output
+    assert "Traceback" not in res.output

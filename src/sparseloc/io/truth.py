@@ -105,6 +105,16 @@ def write_truth_csv(path: str | Path, df: pd.DataFrame) -> Path:
     return Path(path)
 
 
+_BINARY_MAGIC = {b"PAR1": "a Parquet", b"\x89HDF": "an HDF5"}
+
+
+def _binary_table_kind(path: Path) -> str | None:
+    """``"a Parquet"`` or ``"an HDF5"`` when the file starts with that format's magic bytes."""
+    with open(path, "rb") as fh:
+        head = fh.read(4)
+    return _BINARY_MAGIC.get(head)
+
+
 def read_truth_csv(
     path: str | Path, *, require_photons: bool = True, pixel_size: float | None = None
 ) -> pd.DataFrame:
@@ -141,6 +151,12 @@ def read_truth_csv(
         raise FileNotFoundError(f"the file {str(p)!r} does not exist")
     if p.is_dir():
         raise IsADirectoryError(f"{str(p)!r} is a folder, not a CSV file")
+    binary = _binary_table_kind(p)
+    if binary is not None:
+        raise ValueError(
+            f"{str(p)!r} is {binary} file, not a CSV truth table: is it a localization table "
+            "given in the truth's place? (the localizations go first, the truth second)"
+        )
     try:
         df = pd.read_csv(p)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
