@@ -773,3 +773,28 @@ def test_localize_from_given_starts_keeps_the_true_emitters():
 
 def analytic_model():
     return make_psf("dh-analytic")
+
+
+def test_groups_left_empty_by_removals_are_not_counted(monkeypatch):
+    """The third walk-through: a dense frame printed "1 frames, 492 groups, 294 localizations":
+    groups whose emitters were all removed were counted, and their ids left gaps."""
+    from types import SimpleNamespace
+
+    from sparseloc.pipeline import LocalizeParams, LocalizeResult, _FrameWork
+
+    k = 3
+    fit = SimpleNamespace(
+        emitters=Emitters(np.zeros(k), np.zeros(k), np.zeros(k), np.ones(k)),
+        background=np.zeros(k),
+        sigma=np.ones((k, 4)),
+        gof=np.ones(k),
+        flags=np.array(["ok"] * k),
+        group=np.array([0, 4, 4]),  # groups 1-3 lost all their emitters
+    )
+    work = _FrameWork.__new__(_FrameWork)
+    work.p = LocalizeParams(pixel_size=PX, method="frame")
+    work.solver = lambda frame, bg, start: fit
+    rows, n_groups = work(0, np.zeros((8, 8)), np.zeros((8, 8)))
+    assert n_groups == 2 and list(rows[0]["window_id"]) == [0, 1, 1]
+    res = LocalizeResult(pd.DataFrame({"x_nm": np.zeros(k)}), 1, n_groups, 1.0)
+    assert res.summary().startswith("1 frame, 2 groups, 3 localizations")

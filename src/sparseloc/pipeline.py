@@ -90,11 +90,16 @@ class LocalizeResult:
     def summary(self) -> str:
         """One line: frames, fitted groups (frame solver) or windows, localizations, speed."""
         method = self.metadata.get("params", {}).get("method", "frame")
-        units = "groups" if method == "frame" else "windows"
+        units = "group" if method == "frame" else "window"
         return (
-            f"{self.n_frames} frames, {self.n_windows} {units}, {len(self.table)} "
+            f"{_count(self.n_frames, 'frame')}, {_count(self.n_windows, units)}, {len(self.table)} "
             f"localizations in {self.seconds:.1f} s ({self.per_second:.1f} localizations/s)"
         )
+
+
+def _count(n: int, noun: str) -> str:
+    """``"1 frame"``, ``"2 frames"``."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
 class _Solver:
@@ -691,7 +696,9 @@ class _FrameWork:
         if p.method == "frame":
             fit = self.solver(frame, bg, start)
             # window ids: the group index here; localize() makes them unique over the movie
-            return [_frame_rows(fit, f, 0)], int(fit.group.max() + 1) if len(fit.group) else 0
+            rows = _frame_rows(fit, f, 0)
+            labels, rows["window_id"] = np.unique(rows["window_id"], return_inverse=True)
+            return [rows], len(labels)
         parts = []
         rv = self.read_variance
         cand = detect_candidates(
