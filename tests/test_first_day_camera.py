@@ -664,3 +664,28 @@ def test_an_unreadable_mask_names_the_psf_option(tmp_path):
         assert "--psf: cannot use the mask file: " in res.output
         assert "bad.tif' is not a TIFF file" in res.output
     assert not (tmp_path / "x.parquet").exists() and not (tmp_path / "s.tif").exists()
+
+
+def test_camera_suggests_scmos_only_for_a_measured_read_noise(tmp_path):
+    """The third walk-through: ``sparseloc camera beads.tif`` on a camera without read noise
+    suggested ``--camera scmos``. Without --camera the suggestion follows the measurement."""
+    from sparseloc.camera import Camera
+    from sparseloc.io.tiff import write_tiff
+
+    def suggestion(read_noise, *args):
+        cam = Camera(kind="scmos" if read_noise else "ideal", offset=200.0, gain=1.0,
+                     read_noise=read_noise)  # fmt: skip
+        tif = write_tiff(tmp_path / f"b{read_noise}.tif", _bead_stack(cam, seed=2),
+                         pixel_size=100.0)  # fmt: skip
+        res = run("camera", tif, "--frames", 25, *args)
+        assert res.exit_code == 0, res.output
+        return res.output, res.output.split("localize with:")[1]
+
+    out, flags = suggestion(0.0)  # no offset: the read noise is not measured
+    assert "--camera" not in flags and "read noise not measured without --offset" in out
+    out, flags = suggestion(0.0, "--offset", 200)
+    assert "--camera" not in flags and "--read-noise" not in flags
+    out, flags = suggestion(3.0, "--offset", 200)
+    assert "--camera scmos" in flags and "--read-noise" in flags
+    out, flags = suggestion(0.0, "--offset", 200, "--camera", "scmos")
+    assert "--camera scmos" in flags

@@ -1089,6 +1089,16 @@ def _plus_minus(error: float, spec: str) -> str:
     return f" +- {error:{spec}}" if np.isfinite(error) else ""
 
 
+def _suggested_camera(given: str | None, est) -> str:
+    """The ``--camera`` to suggest: the one given, else an sCMOS where the line measured a read
+    noise and localize's default (no read noise) where it did not."""
+    if given is not None:
+        return given
+    if est.offset_given and est.read_noise > 0 and est.read_noise_resolved:
+        return "scmos"
+    return _D["camera"]
+
+
 @app.command(name="camera", cls=_Command)
 def camera_cmd(
     movie: Annotated[
@@ -1170,11 +1180,18 @@ def camera_cmd(
         typer.echo(f"caution: {est.caution}")
     # an offset the line could not place is still needed: localize's default (100 ADU) is
     # not this camera's
-    flags = f"--camera {kind} --offset " + (f"{est.offset:.1f}" if placed else "DARK_LEVEL")
+    suggested = _suggested_camera(camera, est)
+    if camera is None and not est.offset_given:
+        typer.echo(
+            "read noise not measured without --offset: for a camera with read noise (an sCMOS) "
+            "add --camera scmos --read-noise R (e- rms, from its data sheet)"
+        )
+    flags = f"--camera {suggested} " if suggested != _D["camera"] else ""
+    flags += "--offset " + (f"{est.offset:.1f}" if placed else "DARK_LEVEL")
     flags += f" --gain {est.gain:.4g}"
     if kind == "emccd" and em_gain is not None:
         flags += f" --em-gain {em_gain:g}"
-    if est.read_noise > 0 and resolved and kind != "ideal":
+    if est.read_noise > 0 and resolved and suggested != "ideal":
         flags += f" --read-noise {est.read_noise:.3g}"
     typer.echo(f"localize with: {flags}")
 
