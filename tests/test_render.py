@@ -420,3 +420,16 @@ def test_a_spot_wider_than_the_image_is_left_out():
     r = R.render_gaussian(both, px_nm=5.0, extent=EXT)
     ref = R.render_gaussian(good, px_nm=5.0, extent=EXT)
     assert np.array_equal(r.density, ref.density)
+
+
+def test_an_frc_of_too_few_localizations_says_so():
+    """The third walk-through: 83 localizations from 5 frames printed "FRC resolution:
+    50.1 nm" with no caution. The report repeats the FRC over other splits of the frame
+    blocks and cautions where the value depends on the split."""
+    lines = _lines(10.0)
+    res, msg = R.frc_report(lines)
+    assert res is not None and len(res.extra["spread_nm"]) == 4
+    assert "other splits of the frame blocks" in msg and "caution" not in msg, msg
+    few = lines.sample(90, random_state=0).assign(frame=lambda t: t["frame"] % 5)
+    res, msg = R.frc_report(few)
+    assert "caution" in msg and "too few to measure the resolution" in msg, msg

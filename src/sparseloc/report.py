@@ -289,21 +289,13 @@ def _summary_rows(t: pd.DataFrame, n_frames: int, flag: pd.Series) -> list[tuple
 
 def _render_section(t: pd.DataFrame, render_px: float | None) -> tuple[str, str]:
     """The rendered image (base64 PNG) and the text of its FRC resolution."""
-    from .render import frc, plot_projections
+    from .render import frc_report, plot_projections
 
     with tempfile.TemporaryDirectory() as tmp:
         png = plot_projections(t, Path(tmp) / "render.png", px_nm=render_px, title="")
         render_b64 = _png_file(png)
-    try:
-        res = frc(t)
-        frc_text = (
-            f"FRC resolution (1/7 threshold, halves of alternating frame blocks): "
-            f"<b>{res.resolution_nm:.1f} nm</b>"
-            if np.isfinite(res.resolution_nm)
-            else "FRC: the curve never falls below 1/7 (too few localizations or no structure)."
-        )
-    except ValueError as exc:
-        frc_text = f"FRC not computed: {html.escape(str(exc))}"
+    _, message = frc_report(t)
+    frc_text = html.escape(message) + " (1/7 threshold, halves of alternating frame blocks)"
     return render_b64, frc_text
 
 
