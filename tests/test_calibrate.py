@@ -773,3 +773,34 @@ def test_calibration_too_far_from_its_beads_is_refused(monkeypatch, scan):
     monkeypatch.setattr(calibrate_module, "MAX_MODEL_ERROR", 0.001)
     with pytest.raises(ValueError, match=r"depart from their average by \d+ %"):
         calibrate_beads(scan["movie"], PX, Z_STEP, offset=OFFSET)
+
+
+@pytest.mark.parametrize(
+    ("scene", "density", "refusal"),
+    [
+        ("filament", 0.3, "none is usable"),
+        ("filament", 1.0, "only 1 usable bead"),
+        ("uniform", 1.0, "the beads depart from their average"),
+    ],
+)
+def test_a_single_molecule_movie_is_named_as_not_a_bead_scan(model, scene, density, refusal):
+    """The third walk-through: calibrating a blinking movie advised "image more beads in the
+    field". Each refusal that such a movie reaches now says the spots change from frame to
+    frame, and a bead scan's spots agree from frame to frame."""
+    sim = simulate(model, scene=scene, n_frames=30, shape=(64, 64), density=density, seed=3)
+    with pytest.raises(ValueError, match=refusal) as info:
+        calibrate_beads(sim.movie, PX, Z_STEP, offset=sim.camera.offset)
+    assert "is the file a single-molecule movie?" in str(info.value)
+    assert "image more beads" not in str(info.value)
+    assert "check the z step" not in str(info.value)
+
+
+def test_a_bead_scans_frames_agree_at_about_one(scan, cal):
+    from sparseloc.calibrate import SCAN_AGREEMENT, _frame_agreement, _whole_rois
+    from sparseloc.calibrate_scan import read_scan
+
+    data = read_scan(scan["movie"], PX, Z_STEP, None, None, None, OFFSET, 1.0, None)
+    centres = scan["positions"][:, ::-1] / PX - 0.5  # (row, col) px
+    rois = _whole_rois(data, centres, cal.params["roi_size_px"] // 2)
+    assert len(rois) >= 4
+    assert _frame_agreement(rois, data.background) > max(SCAN_AGREEMENT, 0.97)

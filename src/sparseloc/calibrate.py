@@ -373,6 +373,7 @@ def _calibrate_scan(
     core = profile.core if profile is not None else half / 2.0
     reason, used = _vet_beads(centres, half, 2.0 * max(core, 1.0), scan)
     nb = centres.shape[0]
+    _enough_beads(used, nb, min_beads, scan, centres, half)
     residual = dict.fromkeys(range(nb), np.nan)
     stacks = _BeadStacks(scan.data, centres, used, half, p, step)
     stacks.tick = tick
@@ -384,11 +385,7 @@ def _calibrate_scan(
     used, avg = _drop_outliers(
         stacks, used, avg, reason, residual, scan.zplanes, iterations, min_beads, name
     )
-    if len(used) < min_beads:
-        raise ValueError(
-            f"only {len(used)} usable bead(s) (of {nb} found); a calibration needs at least "
-            f"{min_beads} to average and cross-check: image more beads in the field"
-        )
+    _enough_beads(used, nb, min_beads, scan, centres, half)
     max_dz = max(abs(stacks.shifts[i][2]) for i in used)
     clean, zplanes, sl, zwin = _model_stack(avg, scan.zplanes, max_dz, step, z_smooth)
     bead_ncc = np.array([_ncc_planes(stacks.aligned(i)[sl], clean) for i in used])
@@ -446,10 +443,13 @@ def _model_error(psf: SplinePSF, stacks: _BeadStacks, used: list[int], scan: Bea
     psf.error_table = error.table
     log.info("model error: %.1f %% of the signal per pixel (rms over planes)", 100 * error.overall)
     if not error.overall <= MAX_MODEL_ERROR:
+        hint = _not_a_scan(scan, rois) or (
+            "check the z step or z file, the camera offset, and that the beads are single and "
+            "not drifting"
+        )
         raise ValueError(
             f"the beads depart from their average by {100 * error.overall:.0f} % of the signal "
-            f"(more than {100 * MAX_MODEL_ERROR:.0f} %), too much to trust the model: check the "
-            "z step or z file, the camera offset, and that the beads are single and not drifting"
+            f"(more than {100 * MAX_MODEL_ERROR:.0f} %), too much to trust the model: {hint}"
         )
     return error
 
@@ -624,8 +624,77 @@ def _vet_beads(
             if "saturated" in counts
             else "image a sparser bead sample or pass a smaller --roi-size"
         )
+        hint = _not_a_scan(scan, _whole_rois(scan, centres, half)) or hint
         raise ValueError(f"found {nb} bead(s) but none is usable ({detail}); {hint}")
     return reason, used
+
+
+def _enough_beads(
+    used: list[int],
+    nb: int,
+    min_beads: int,
+    scan: BeadScan,
+    centres: NDArray[np.float64],
+    half: int,
+) -> None:
+    """``ValueError`` when fewer than ``min_beads`` of the ``nb`` beads found are usable."""
+    if len(used) < min_beads:
+        hint = _not_a_scan(scan, _whole_rois(scan, centres, half)) or (
+            f"a calibration needs at least {min_beads} to average and cross-check: image more "
+            "beads in the field"
+        )
+        raise ValueError(f"only {len(used)} usable bead(s) (of {nb} found); {hint}")
+
+
+#: Agreement of consecutive frames (their correlation over the one the noise allows) below
+#: which a spot is not a fixed bead: a z-scan's beads agree at 0.98-1.0, a single-molecule
+#: movie's spots at 0.01-0.7 (measured on this project's and outside stacks and movies).
+SCAN_AGREEMENT: float = 0.9
+
+
+def _not_a_scan(scan: BeadScan, rois: list[NDArray[np.float64]]) -> str:
+    """A clause saying the file looks like a single-molecule movie, where the spots' ROIs
+    ``rois`` (each (Nz, n, n), photons less background) change from frame to frame more than
+    their noise explains; "" otherwise."""
+    agreement = _frame_agreement(rois, scan.background)
+    if not np.isfinite(agreement) or agreement >= SCAN_AGREEMENT:
+        return ""
+    return (
+        f"the spots found change from frame to frame (consecutive frames agree at "
+        f"{agreement:.2f} of what their noise allows; a bead z-scan's at about 1): is the file "
+        "a single-molecule movie? calibrate takes a z-stack of fixed beads"
+    )
+
+
+def _whole_rois(
+    scan: BeadScan, centres: NDArray[np.float64], half: int
+) -> list[NDArray[np.float64]]:
+    """The ROI stacks of the beads whose ROI lies inside the frame."""
+    h, w = scan.projection.shape
+    out = []
+    for r, c in centres:
+        ri, ci = int(np.round(r)), int(np.round(c))
+        if ri - half >= 0 and ci - half >= 0 and ri + half < h and ci + half < w:
+            out.append(_roi(scan.data, ri, ci, half))
+    return out
+
+
+def _frame_agreement(
+    rois: list[NDArray[np.float64]], background: NDArray[np.float64] | None
+) -> float:
+    """Median over the ROIs and consecutive frames of their correlation divided by the
+    correlation that Poisson noise leaves to an unchanged image; NaN without a ROI."""
+    values = []
+    for sub in rois:
+        a = sub.reshape(sub.shape[0], -1)
+        bg = np.zeros(a.shape[0]) if background is None else background
+        noise = np.clip(a + bg[:, None], 0.0, None).mean(axis=1)
+        a = a - a.mean(axis=1, keepdims=True)
+        power = (a**2).mean(axis=1)
+        ncc = (a[1:] * a[:-1]).mean(axis=1) / np.sqrt(np.maximum(power[1:] * power[:-1], 1e-300))
+        held = np.clip(1.0 - noise / np.maximum(power, 1e-300), 1e-9, None)
+        values.append(ncc / np.sqrt(held[1:] * held[:-1]))
+    return float(np.median(np.concatenate(values))) if values else float("nan")
 
 
 class _BeadStacks:
