@@ -689,3 +689,21 @@ def test_camera_suggests_scmos_only_for_a_measured_read_noise(tmp_path):
     assert "--camera scmos" in flags and "--read-noise" in flags
     out, flags = suggestion(0.0, "--offset", 200, "--camera", "scmos")
     assert "--camera scmos" in flags
+
+
+def test_calibrate_warns_where_the_stacks_noise_contradicts_the_gain(tmp_path):
+    """The third walk-through: ``calibrate --gain 10`` for a 1 e-/ADU camera gave a model error
+    of 16.3 % (7.2 % with the right gain) and no word; ``sparseloc camera`` on the same stack
+    measured 0.996. The stack's own noise now checks the gain."""
+    from sparseloc.camera import Camera
+    from sparseloc.io.tiff import write_tiff
+
+    cam = Camera(kind="scmos", offset=200.0, gain=1.0, read_noise=1.5)
+    tif = write_tiff(tmp_path / "beads.tif", _bead_stack(cam, seed=3), pixel_size=100.0)
+    for gain, warned in ((10.0, True), (1.0, False), (1.2, False)):
+        out = tmp_path / f"psf{gain:g}.h5"
+        res = run("calibrate", tif, "-o", out, "--pixel-size", 100, "--z-step", 50,
+                  "--offset", 200, "--gain", gain)  # fmt: skip
+        assert res.exit_code == 0, res.output
+        assert ("the stack's noise says the camera's gain is" in res.output) is warned, res.output
+        assert out.exists()

@@ -21,7 +21,7 @@ def calibration_path(path: str | Path) -> Path:
 def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
     """The key numbers of a calibration, one line each: beads used, planes, ROI, hash (and
     the time taken), the model error, the model's origin, the known bead positions' offset,
-    the rejected beads by reason and the pupil fit.
+    a camera gain the stack contradicts, the rejected beads by reason and the pupil fit.
 
     Parameters
     ----------
@@ -55,6 +55,8 @@ def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
             f"centroid lies {dx:+.1f}, {dy:+.1f} nm (x, y) from the emitter "
             f"(rms over beads {cal.params['bead_position_rms_nm']:.1f} nm)"
         )
+    if cal.params.get("camera_warning"):
+        lines.append(f"  warning: {cal.params['camera_warning']}")
     rejected = cal.beads[~cal.beads["used"]]
     for reason, n in rejected["reason"].value_counts().items():
         lines.append(f"  rejected {n}: {reason}")

@@ -1012,6 +1012,7 @@ def calibrate(
     from .calibrate import calibrate_file, read_bead_positions
     from .calibrate_output import calibration_path, calibration_summary, write_calibration
     from .calibrate_scan import scan_conversion
+    from .camera import camera_from_options
 
     out = _run(calibration_path, _output_path(output))
     if z_step is None and z_file is None:
@@ -1041,6 +1042,7 @@ def calibrate(
         },
     )
     adu_offset, photons_per_adu = _run(scan_conversion, cam_opts)
+    scan_camera = _run(camera_from_options, cam_opts)
     inputs = [stack, z_file, beads, Path(mask) if mask else None, config]
     out = _new_output(out, overwrite=overwrite, inputs=inputs)
     fig_path = _new_output(fig_path, overwrite=overwrite, inputs=[*inputs, out])
@@ -1077,6 +1079,7 @@ def calibrate(
         fit_pupil=fit_pupil,
         pupil_options=pupil_options,
         beads=known,
+        camera=scan_camera,
     )
     _run(write_calibration, cal, out, fig_path, model=model)
     for line in calibration_summary(cal, time.perf_counter() - t0):

@@ -70,10 +70,12 @@ def calibrate_layer(
     """
     from ..calibrate import calibrate_beads, calibrate_file, read_bead_positions, read_z_file
     from ..calibrate_scan import scan_conversion
+    from ..camera import camera_from_options
 
     offset, photons_per_adu = scan_conversion(camera)
     known = None if beads is None else read_bead_positions(beads, pixel_size)
-    kwargs.update(offset=offset, gain=photons_per_adu, beads=known)
+    scan_camera = camera_from_options(camera)
+    kwargs.update(offset=offset, gain=photons_per_adu, beads=known, camera=scan_camera)
     files = movie_files(layer) if layer is not None else []
     if len(files) == 1:
         return calibrate_file(files[0], pixel_size, z_step, z_file=z_file, **kwargs)
