@@ -274,3 +274,14 @@ def test_commands_check_their_outputs_before_working(table_file, tmp_path):
         res = CliRunner().invoke(app, args)
         assert res.exit_code == 2 and msg in res.output, res.output
     assert not list(tmp_path.glob("a.png")) and not list(tmp_path.glob("d.*"))
+
+
+def test_the_report_of_a_drift_corrected_table_speaks_of_residual_drift(scene):
+    """The third walk-through: the report of a table that ``sparseloc drift`` had corrected
+    said "(not applied here; see sparseloc drift)" beside metadata saying it was."""
+    locs, _ = scene
+    plain = build_report(locs, metadata={"psf": "dh"})
+    assert "not applied here" in plain and "already drift-corrected" not in plain
+    done = build_report(locs, metadata={"psf": "dh", "drift": {"method": "rcc", "reliable": True}})
+    assert "already drift-corrected" in done and "residual drift" in done
+    assert "not applied here" not in done

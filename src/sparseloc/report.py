@@ -110,8 +110,12 @@ def _per_frame_figure(t: pd.DataFrame, n_frames: int) -> str:
     return _png(fig)
 
 
-def _drift_section(t: pd.DataFrame, n_frames: int) -> tuple[str, str | None]:
-    """Text and figure of the drift estimate, or the reason there is none."""
+def _drift_section(
+    t: pd.DataFrame, n_frames: int, corrected: Mapping[str, Any] | None = None
+) -> tuple[str, str | None]:
+    """Text and figure of the drift estimate, or the reason there is none; ``corrected``: the
+    table's metadata of a drift correction already applied (``sparseloc drift``), which
+    makes the estimate the residual drift."""
     if n_frames < DRIFT_MIN_FRAMES or len(t) < DRIFT_MIN_LOCS:
         return (
             f"Not estimated: {n_frames} frames and {len(t):,} localizations (redundant "
@@ -130,10 +134,19 @@ def _drift_section(t: pd.DataFrame, n_frames: int) -> tuple[str, str | None]:
     with tempfile.TemporaryDirectory() as tmp:
         figure = _png_file(plot_drift(d, Path(tmp) / "drift.png"))
     span = np.ptp(d.drift, axis=0)
-    text = (
-        f"Redundant cross-correlation: drift range x {span[0]:.0f} nm, y {span[1]:.0f} nm, "
-        f"z {span[2]:.0f} nm over the movie (not applied here; see <code>sparseloc drift</code>)."
-    )
+    ranges = f"x {span[0]:.0f} nm, y {span[1]:.0f} nm, z {span[2]:.0f} nm over the movie"
+    if isinstance(corrected, Mapping):
+        method = html.escape(str(corrected.get("method", "")))
+        text = (
+            f"This table is already drift-corrected (<code>sparseloc drift</code>, {method}). "
+            f"Redundant cross-correlation of the corrected table, the residual drift: range "
+            f"{ranges} (at the estimate's noise where the correction worked)."
+        )
+    else:
+        text = (
+            f"Redundant cross-correlation: drift range {ranges} (not applied here; see "
+            "<code>sparseloc drift</code>)."
+        )
     if not d.reliable:
         text += " <b>Unreliable:</b> " + html.escape("; ".join(d.warnings))
     return text, figure
@@ -247,7 +260,7 @@ def build_report(
     sections.append(_table_html("Summary", summary))
     sections.append(_figure_html("Distributions", _hist_figure(t)))
     sections.append(_figure_html("Localizations per frame", _per_frame_figure(t, n_frames)))
-    text, fig = _drift_section(t, n_frames)
+    text, fig = _drift_section(t, n_frames, (metadata or {}).get("drift"))
     sections.append(_figure_html("Drift", fig, text))
     render_b64, frc_text = _render_section(t, render_px)
     sections.append(_figure_html("Rendered image (colour = z)", render_b64, frc_text))
