@@ -313,3 +313,28 @@ def test_sliding_percentile_matches_a_percentile_per_window(centres):
     assert np.array_equal(numba_bg, numpy_bg)
     for k, c in enumerate(centres):
         assert np.array_equal(numpy_bg[k], temporal_background(chunk[max(c - 5, 0) : c + 6]))
+
+
+def test_the_compiled_fit_loop_is_loaded_from_numbas_cache_in_a_new_process(tmp_path):
+    """The loop was a closure over the engine's operations; numba keys a closure's cache by its
+    pickled cells, which differ in every process, so each process compiled it again (2.4 s,
+    also in every pool worker) and added one more entry (490 kB) to the cache."""
+    import os
+    import subprocess
+    import sys
+
+    script = (
+        "from sparseloc.solvers import _fit_numba as F\n"
+        "F.warm_up()\n"
+        "s = F._levenberg_marquardt.stats\n"
+        "print(sum(s.cache_hits.values()), sum(s.cache_misses.values()))\n"
+    )
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    runs = [
+        subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
+        for _ in range(2)
+    ]
+    for run in runs:
+        assert run.returncode == 0, run.stderr
+    hits, misses = (int(v) for v in runs[1].stdout.split())
+    assert hits == 1 and misses == 0, runs[1].stdout

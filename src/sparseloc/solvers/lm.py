@@ -14,6 +14,7 @@ engine (:mod:`sparseloc.solvers.refine`, any PSF model) runs it as Python, the n
 
 from __future__ import annotations
 
+import types
 from collections.abc import Callable
 from typing import Any
 
@@ -69,6 +70,42 @@ def clamp(theta: np.ndarray, k: int, lo: np.ndarray, hi: np.ndarray, min_bg: flo
         theta[4 * k] = min_bg
 
 
+def _levenberg_marquardt(state, max_iter, tol):
+    """The loop of :func:`make_levenberg_marquardt`; ``evaluate``, ``score``, ``trial`` and
+    ``accept`` are globals of each copy that function makes."""
+    f = evaluate(state)  # noqa: F821
+    lam = LAMBDA_START
+    converged = False
+    n_iter = 0
+    scored = False  # whether the Fisher matrix is that of the current parameters
+    for it in range(1, max_iter + 1):
+        n_iter = it
+        score(state)  # noqa: F821
+        scored = True
+        improved = False
+        f_t = np.inf
+        for _ in range(DAMPING_TRIALS):
+            f_t = trial(state, lam)  # noqa: F821
+            if f_t < f:
+                improved = True
+                break
+            lam *= LAMBDA_FACTOR
+        if not improved:
+            converged = True  # no step lowers -log L: a (constrained) optimum
+            break
+        rel = (f - f_t) / max(abs(f), 1.0)
+        accept(state)  # noqa: F821
+        f = f_t
+        lam = max(lam / LAMBDA_FACTOR, LAMBDA_MIN)
+        scored = False
+        if rel < tol:
+            converged = True
+            break
+    if not scored:
+        score(state)  # noqa: F821  (the Fisher matrix at the result gives the standard errors)
+    return f, converged, n_iter
+
+
 def make_levenberg_marquardt(
     evaluate: Callable[[Any], float],
     score: Callable[[Any], None],
@@ -95,39 +132,17 @@ def make_levenberg_marquardt(
     callable
         ``loop(state, max_iter, tol) -> (f, converged, n_iter)``; ``state`` then holds the
         result and the Fisher matrix at it.
+
+    Notes
+    -----
+    The loop is a copy of one function with the four operations as its globals, not a
+    closure over them: numba's cache keys a closure by its pickled cells, which differ in
+    every process, so a compiled closure was compiled again (seconds) in every process and
+    added a new entry to the cache each time.
     """
-
-    def levenberg_marquardt(state, max_iter, tol):
-        f = evaluate(state)
-        lam = LAMBDA_START
-        converged = False
-        n_iter = 0
-        scored = False  # whether the Fisher matrix is that of the current parameters
-        for it in range(1, max_iter + 1):
-            n_iter = it
-            score(state)
-            scored = True
-            improved = False
-            f_t = np.inf
-            for _ in range(DAMPING_TRIALS):
-                f_t = trial(state, lam)
-                if f_t < f:
-                    improved = True
-                    break
-                lam *= LAMBDA_FACTOR
-            if not improved:
-                converged = True  # no step lowers -log L: a (constrained) optimum
-                break
-            rel = (f - f_t) / max(abs(f), 1.0)
-            accept(state)
-            f = f_t
-            lam = max(lam / LAMBDA_FACTOR, LAMBDA_MIN)
-            scored = False
-            if rel < tol:
-                converged = True
-                break
-        if not scored:
-            score(state)  # the Fisher matrix at the result gives the standard errors
-        return f, converged, n_iter
-
-    return levenberg_marquardt
+    namespace = dict(globals())
+    namespace.update(evaluate=evaluate, score=score, trial=trial, accept=accept)
+    code = _levenberg_marquardt.__code__
+    loop = types.FunctionType(code, namespace, "levenberg_marquardt")
+    loop.__doc__ = _levenberg_marquardt.__doc__
+    return loop
