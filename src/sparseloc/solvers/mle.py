@@ -425,7 +425,8 @@ def _numba_fit(prob: LikelihoodProblem, theta, lo, hi, max_iter: int, tol: float
 
     m = prob.model
     m._check_pixel(prob.px)
-    base = np.ascontiguousarray(np.broadcast_to(prob.offset, prob.shape), dtype=np.float64)
+    # a writable copy: a read-only array (a broadcast offset) is another signature to compile
+    base = np.array(np.broadcast_to(prob.offset, prob.shape), dtype=np.float64, order="C")
     theta, mu, f, fisher, converged, n_iter = lm_fit(
         m._coef,
         m.node_geometry(prob.origin, prob.px),
