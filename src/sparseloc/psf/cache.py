@@ -1,7 +1,7 @@
 """A disk cache of spline tables (:meth:`SplinePSF.from_model`).
 
-Tabulating a pupil model takes about a minute; the table depends only on the model's images
-and the table's parameters, so it is kept on disk under a key made of both and read back on
+Tabulating a pupil model takes seconds; the table depends only on the model's images and the
+table's parameters, so it is kept on disk under a key made of both and read back on
 later runs. Files are plain ``.npz`` arrays (read without pickle), written under a temporary
 name and renamed, so a reader never sees half a file; a damaged file is ignored and written
 again.

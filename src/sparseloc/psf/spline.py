@@ -213,7 +213,7 @@ class SplinePSF(PSFBase):
         then interpolates between planes and pixel shifts (errors of ~1 % of the peak at
         100 nm pixels for a double helix). Photon scale is the model's (no per-plane
         normalisation), so photon counts keep their meaning. Rendering a pupil model's table
-        takes about a minute: it is logged, and the table is kept in a disk cache keyed by the
+        takes seconds: it is logged, and the table is kept in a disk cache keyed by the
         model's content hash and the table's parameters (:mod:`sparseloc.psf.cache`), from
         which later calls read it.
 
@@ -441,8 +441,8 @@ def _table_planes(model, lo: float, hi: float, z_step: float):
 
 
 def _cached_table(model, render, zs: NDArray[np.float64], roi: int, px: float, s: int) -> NDArray:
-    """The table's stack from the disk cache, or rendered (logged: a pupil model takes about
-    a minute) and saved there."""
+    """The table's stack from the disk cache, or rendered (logged: a pupil model takes
+    seconds) and saved there."""
     from . import cache
 
     key = cache.table_key(model, px, zs, roi, s)
@@ -450,11 +450,11 @@ def _cached_table(model, render, zs: NDArray[np.float64], roi: int, px: float, s
     path = cache.table_path(key, name)
     stack = cache.load_table(path, key, zs, (zs.size, roi * s, roi * s))
     if stack is not None:
-        log.info("read the spline table of the PSF model %r from the cache: %s", name, path)
+        log.debug("read the spline table of the PSF model %r from the cache: %s", name, path)
         return stack
     log.info(
         "tabulating the PSF model %r as a spline table (%d planes of %dx%d px); this is done "
-        "once (about a minute for a pupil model) and kept in the cache folder %s",
+        "once (seconds for a pupil model) and kept in the cache folder %s",
         name,
         zs.size,
         roi,
