@@ -379,3 +379,29 @@ def test_swapped_evaluate_arguments_say_the_truth_goes_second(tmp_path):
     assert "is a Parquet file, not a CSV truth table" in res.output
     assert "the truth second" in res.output and "utf-8" not in res.output
     assert "Traceback" not in res.output
+
+
+def test_a_score_against_another_movies_truth_gets_a_caution_above_the_figures(tmp_path):
+    """The fourth walk-through: a table scored against another movie's truth gave Jaccard 4 %
+    and 0 % with exit 0 and no word; the notes that did exist came after the figures."""
+    from typer.testing import CliRunner
+
+    from sparseloc.cli import app
+    from sparseloc.io.tables import complete_locs, write_table
+    from sparseloc.io.truth import write_truth_csv
+
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(500.0, 6000.0, (40, 2))
+    truth = pd.DataFrame({"frame": np.repeat([0, 1], 20), "x_nm": pts[:, 0], "y_nm": pts[:, 1],
+                          "z_nm": 0.0, "photons": 2000.0})  # fmt: skip
+    other = truth.assign(x_nm=rng.uniform(500.0, 6000.0, 40), y_nm=rng.uniform(500.0, 6000.0, 40))
+    table = tmp_path / "locs.parquet"
+    write_table(complete_locs(truth.drop(columns="photons")), table, pixel_size=100.0)
+    for name, df, cautioned in (("right.csv", truth, False), ("other.csv", other, True)):
+        write_truth_csv(tmp_path / name, df)
+        res = CliRunner().invoke(app, ["evaluate", str(table), str(tmp_path / name)])
+        assert res.exit_code == 0, res.output
+        said = "is it the truth of this movie" in res.output
+        assert said is cautioned, res.output
+        if cautioned:
+            assert res.output.index("caution:") < res.output.index("Jaccard")

@@ -1232,7 +1232,7 @@ def evaluate(
     """Match localizations to the truth and print Jaccard, RMSE, bias and efficiency."""
     from .config import frame_range, pixel_sizes_differ
     from .evaluate import evaluate as run_evaluation
-    from .evaluate import scoring_cautions, truth_in_frames
+    from .evaluate import result_cautions, scoring_cautions, truth_in_frames
     from .io.tables import read_table_and_metadata
     from .io.truth import read_truth_csv
 
@@ -1247,9 +1247,10 @@ def evaluate(
     truth_df = _run(read_truth_csv, truth, pixel_size=pixel_size)
     params = meta.get("params") if isinstance(meta, dict) else None
     table_px = params.get("pixel_size") if isinstance(params, dict) else None
+    cautions = []
     if pixel_size is not None and isinstance(table_px, int | float) and table_px > 0:
         if pixel_sizes_differ(pixel_size, table_px):
-            _note(
+            cautions.append(
                 f"--pixel-size {pixel_size:g} nm differs from the table's {table_px:g} nm: truth "
                 "in pixels of the movie the table was localized from takes its pixel size"
             )
@@ -1269,8 +1270,7 @@ def evaluate(
     note = excluded_note(int(_run(flagged_rows, loc_df, all_flags=all_flags).sum()))
     if note:
         _note(note)
-    for caution in _run(scoring_cautions, loc_df, truth_df):
-        _note(caution)
+    cautions += _run(scoring_cautions, loc_df, truth_df)
     result = _run(
         run_evaluation,
         loc_df,
@@ -1279,6 +1279,11 @@ def evaluate(
         axial_tol=axial_tol,
         all_flags=all_flags,
     )
+    if not cautions:
+        cautions += result_cautions(result)
+    # above the figures, which they qualify
+    for caution in cautions:
+        typer.echo(f"caution: {caution}")
     typer.echo(result.summary())
     if json_out is not None:
         from .io.atomic import write_text_atomic

@@ -477,6 +477,28 @@ def scoring_cautions(locs: pd.DataFrame, truth: pd.DataFrame) -> list[str]:
     return out
 
 
+#: Below this recall and this precision together, a score more likely compares the table with
+#: another movie's truth (or in the wrong units) than measures the localization.
+WRONG_TRUTH_FRACTION: float = 0.5
+
+
+def result_cautions(result: Evaluation) -> list[str]:
+    """What a score itself says is likely wrong with the comparison: fewer than
+    :data:`WRONG_TRUTH_FRACTION` of the localizations match and as few of the truth is found
+    (another movie's truth, a wrong ``--pixel-size`` for truth in pixels, shifted
+    coordinates, or a wrong PSF or camera)."""
+    if result.n_locs == 0 or result.n_truth == 0:
+        return []
+    if result.recall < WRONG_TRUTH_FRACTION and result.precision < WRONG_TRUTH_FRACTION:
+        return [
+            f"only {result.precision:.0%} of the localizations match the truth and "
+            f"{result.recall:.0%} of the truth is found: is it the truth of this movie (and "
+            "the right --pixel-size for truth in pixels)? A wrong PSF or camera setting also "
+            "scores this low"
+        ]
+    return []
+
+
 def evaluate(
     locs: pd.DataFrame,
     truth: pd.DataFrame,
