@@ -21,7 +21,7 @@ from rich.markup import escape
 from typer.core import TyperArgument, TyperCommand, TyperGroup
 
 from .options import LOCALIZE_DEFAULTS as _D
-from .units import check_pixel_size
+from .units import TOLERANCE_RANGE_NM, check_length_nm, check_pixel_size, check_z_limits
 
 #: ``sparseloc --help`` lists the commands in the order of a day's work, not of definition.
 WORKFLOW_ORDER = (
@@ -546,6 +546,7 @@ def _check_scene_options(
             _fail(f"{flag} must be a number of nm, got {value:g}")
     if z_min is not None and z_max is not None and z_min > z_max:
         _fail(f"--z-min {z_min:g} is above --z-max {z_max:g}")
+    _run(check_z_limits, z_min, z_max)
     if cluster_size < 1:
         _fail(f"--cluster-size must be at least 1, got {cluster_size}")
 
@@ -622,10 +623,18 @@ def localize(
         int | None, typer.Option(help="Window margin outside its core (px); default likewise.")
     ] = None,
     z_min: Annotated[
-        float | None, typer.Option(help="Lowest z (nm) searched (sets a pupil model's range).")
+        float | None,
+        typer.Option(
+            help="Lowest z (nm) searched (sets a pupil model's range); fits may settle beyond "
+            "it within the model's range: filter --z-min cuts the table."
+        ),
     ] = None,
     z_max: Annotated[
-        float | None, typer.Option(help="Highest z (nm) searched (sets a pupil model's range).")
+        float | None,
+        typer.Option(
+            help="Highest z (nm) searched (sets a pupil model's range); fits may settle beyond "
+            "it within the model's range: filter --z-max cuts the table."
+        ),
     ] = None,
     min_snr: Annotated[
         float | None,
@@ -1239,6 +1248,8 @@ def evaluate(
     for p in (locs, truth):
         if not p.is_file():
             _fail(f"{str(p)!r} does not exist or is not a file")
+    for flag, value in (("--lateral-tol", lateral_tol), ("--axial-tol", axial_tol)):
+        _run(check_length_nm, value, flag, TOLERANCE_RANGE_NM)
     if json_out is not None:
         _new_output(json_out, overwrite=overwrite, inputs=[locs, truth])
     loc_df, meta = _run(read_table_and_metadata, locs)
@@ -1395,11 +1406,12 @@ def render(
         _new_output(volume, overwrite=overwrite, inputs=[locs, out, frc_plot])
     if not (np.all(np.isfinite(voxel)) and min(voxel) > 0):
         _fail(f"--voxel sizes must be > 0 nm, got {voxel[0]:g} and {voxel[1]:g}")
-    if px is not None and not (np.isfinite(px) and px > 0):
-        _fail(f"--px must be a positive number of nm, got {px:g}")
+    if px is not None:
+        _run(check_length_nm, px, "--px", TOLERANCE_RANGE_NM)
     for flag, value in (("--z-min", z_min), ("--z-max", z_max)):
         if value is not None and not np.isfinite(value):
             _fail(f"{flag} must be a number of nm, got {value:g}")
+    _run(check_z_limits, z_min, z_max)
     table, _ = _read_locs(locs)
     if len(table) == 0:
         _fail(f"{locs.name} holds no localizations")
@@ -1546,6 +1558,10 @@ def filter_cmd(
         table = _usable(table, True)
     if z_min is not None and z_max is not None and z_min > z_max:
         _fail(f"--z-min {z_min:g} is above --z-max {z_max:g}")
+    _run(check_z_limits, z_min, z_max)
+    for flag, value in (("--sigma-max", sigma_max), ("--sigma-z-max", sigma_z_max)):
+        if value is not None:
+            _run(check_length_nm, value, flag, TOLERANCE_RANGE_NM)
     zr = None
     if z_min is not None or z_max is not None:
         zr = (-np.inf if z_min is None else z_min, np.inf if z_max is None else z_max)

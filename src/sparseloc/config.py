@@ -26,7 +26,7 @@ from .psf import make_psf
 from .psf.base import PSFModel, light_radius
 from .solvers.frame import RELOCATE
 from .solvers.mle import check_qe
-from .units import check_pixel_size
+from .units import WAVELENGTH_RANGE_NM, check_length_nm, check_pixel_size, check_z_limits
 
 __all__ = [
     "LOCALIZE_DEFAULTS",
@@ -338,6 +338,8 @@ def build_model(options: dict[str, Any]) -> PSFModel:
             f"{flags} {'applies' if len(given) == 1 else 'apply'} to pupil models (dh, astig, "
             f"clear, mask files), not {spec!r}"
         )
+    if "wavelength" in pupil:
+        check_length_nm(pupil["wavelength"], "--wavelength", WAVELENGTH_RANGE_NM)
     model = psf_option(spec, **pupil)
     if optics and not isinstance(model, PupilPSF):
         raise ValueError(
@@ -346,6 +348,7 @@ def build_model(options: dict[str, Any]) -> PSFModel:
     if "focal_depth" in optics and "n_sample" not in optics:
         raise ValueError("--focal-depth needs --n-sample (the sample's refractive index)")
     zmin, zmax = options["z_min"], options["z_max"]
+    check_z_limits(zmin, zmax)
     if isinstance(model, PupilPSF) and (optics or zmin is not None or zmax is not None):
         lo, hi = model.z_range
         z_range = (lo if zmin is None else float(zmin), hi if zmax is None else float(zmax))

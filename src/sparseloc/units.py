@@ -12,9 +12,13 @@ import math
 
 __all__ = [
     "PIXEL_SIZE_RANGE_NM",
+    "TOLERANCE_RANGE_NM",
+    "WAVELENGTH_RANGE_NM",
+    "Z_SPAN_MIN_NM",
     "Z_STEP_RANGE_NM",
     "check_length_nm",
     "check_pixel_size",
+    "check_z_limits",
     "check_z_step",
 ]
 
@@ -24,6 +28,14 @@ PIXEL_SIZE_RANGE_NM = (10.0, 20_000.0)
 #: Stage steps of a bead z-scan (nm): piezo stages step down to a few nm, and a step above
 #: 5 um skips the whole depth of any PSF.
 Z_STEP_RANGE_NM = (1.0, 5_000.0)
+#: Emission wavelengths of fluorophores (nm), ultraviolet to infrared.
+WAVELENGTH_RANGE_NM = (200.0, 2_000.0)
+#: Distances that decide something about localizations (match tolerances, largest
+#: uncertainties kept, image pixels; nm): below a nm no localization is that precise.
+TOLERANCE_RANGE_NM = (1.0, 1_000_000.0)
+#: The narrowest z range (nm) worth searching or keeping: no 3D PSF resolves depth finer, and
+#: limits within +-10 of zero that span less are micrometres given for nm.
+Z_SPAN_MIN_NM = 10.0
 
 
 def check_length_nm(value: object, what: str, plausible: tuple[float, float]) -> float:
@@ -39,7 +51,7 @@ def check_length_nm(value: object, what: str, plausible: tuple[float, float]) ->
     lo, hi = plausible
     if v < lo:
         raise ValueError(
-            f"{what} {v:g} nm is below what microscopes make ({lo:g}-{hi:g} nm): is it in "
+            f"{what} {v:g} nm is below {lo:g} nm, less than any microscope's: is it in "
             f"micrometres? {v:g} um is {v * 1000:g} nm"
         )
     if v > hi:
@@ -55,3 +67,17 @@ def check_pixel_size(value: object, what: str = "--pixel-size") -> float:
 def check_z_step(value: object, what: str = "--z-step") -> float:
     """A bead scan's stage step (nm), checked (:data:`Z_STEP_RANGE_NM`)."""
     return check_length_nm(value, what, Z_STEP_RANGE_NM)
+
+
+def check_z_limits(lo: float | None, hi: float | None, what: str = "--z-min/--z-max") -> None:
+    """ValueError in one sentence when z limits (nm) given in micrometres: both within +-10
+    and spanning less than :data:`Z_SPAN_MIN_NM`; or the lower above the upper."""
+    if lo is None or hi is None:
+        return
+    if lo > hi:
+        raise ValueError(f"{what}: the lower limit {lo:g} nm is above the upper {hi:g} nm")
+    if hi - lo < Z_SPAN_MIN_NM and max(abs(lo), abs(hi)) <= Z_SPAN_MIN_NM:
+        raise ValueError(
+            f"{what} {lo:g}..{hi:g} nm spans {hi - lo:g} nm: are they in micrometres? "
+            f"{lo:g}..{hi:g} um is {lo * 1000:g}..{hi * 1000:g} nm"
+        )

@@ -29,6 +29,7 @@ import numpy as np
 import scipy.fft as sfft
 from numpy.typing import NDArray
 
+from ..units import WAVELENGTH_RANGE_NM, check_length_nm
 from .base import PSFBase, as_emitters, pixel_centres
 from .masks import Mask
 
@@ -52,8 +53,7 @@ def _check_args(
         raise ValueError(
             f"na must be in (0, {n_immersion:g}), below the immersion's refractive index, got {na}"
         )
-    if not wavelength > 0:
-        raise ValueError(f"wavelength must be > 0 nm, got {wavelength}")
+    check_length_nm(wavelength, "wavelength", WAVELENGTH_RANGE_NM)
     if pupil_samples < 16:
         raise ValueError(f"pupil_samples must be >= 16, got {pupil_samples}")
     if not z_range[0] < z_range[1]:
