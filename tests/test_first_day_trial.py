@@ -163,11 +163,10 @@ def locs_file(tmp_path_factory):
 
     rng = np.random.default_rng(1)
     n = 200
-    locs = complete_locs(
-        pd.DataFrame({"frame": rng.integers(0, 20, n), "x_nm": rng.uniform(0, 3000, n),
-                      "y_nm": rng.uniform(0, 3000, n), "z_nm": rng.uniform(-400, 400, n),
-                      "sigma_x_nm": 10.0, "sigma_y_nm": 10.0, "sigma_z_nm": 20.0})  # fmt: skip
-    )
+    cols = {"frame": rng.integers(0, 20, n), "x_nm": rng.uniform(0, 3000, n),
+            "y_nm": rng.uniform(0, 3000, n), "z_nm": rng.uniform(-400, 400, n),
+            "sigma_x_nm": 10.0, "sigma_y_nm": 10.0, "sigma_z_nm": 20.0}  # fmt: skip
+    locs = complete_locs(pd.DataFrame(cols))
     path = tmp_path_factory.mktemp("locs") / "locs.parquet"
     write_table(locs, path, pixel_size=100.0)
     truth = path.with_name("truth.csv")
