@@ -204,3 +204,24 @@ def test_other_lengths_in_micrometres_are_refused_as_such(
     res = run(*argv, *args)
     refused(res, flag, "micrometres")
     assert not any(tmp_path.iterdir())
+
+
+def test_report_and_overlay_check_that_the_movie_is_the_tables(movie, tmp_path):
+    """The fourth walk-through: `report --movie` drew a 64 x 64 px table over a 332 x 492 px
+    movie that `overlay` refused; a table recorded from another movie of the same size was
+    drawn without a word."""
+    from sparseloc.io.tables import complete_locs, write_table
+
+    locs = complete_locs(pd.DataFrame({"frame": [0, 1], "x_nm": 1000.0, "y_nm": 1000.0,
+                                       "z_nm": 0.0}))  # fmt: skip
+    other = tmp_path / "other_size.parquet"
+    write_table(locs, other, metadata={"shape": [64, 64], "movie": ["big.tif"]})
+    for argv in (["report", other, "-o", tmp_path / "r.html", "--movie", movie],
+                 ["overlay", movie, other, "-o", tmp_path / "o.png"]):  # fmt: skip
+        refused(run(*argv), "is it the right movie")
+    assert not (tmp_path / "r.html").exists() and not (tmp_path / "o.png").exists()
+    renamed = tmp_path / "same_size.parquet"
+    write_table(locs, renamed, metadata={"shape": [32, 32], "movie": ["elsewhere.tif"]})
+    res = run("overlay", movie, renamed, "-o", tmp_path / "o.png")
+    assert res.exit_code == 0, res.output
+    assert "records the movie elsewhere.tif" in res.output

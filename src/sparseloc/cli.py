@@ -1655,7 +1655,7 @@ def overlay(
 ) -> None:
     """Draw one frame with its localizations: circles coloured by z, flagged fits as grey x."""
     from .io.movie import Movie
-    from .overlay import plot_overlay
+    from .overlay import check_table_movie, plot_overlay
     from .report import _overlay_pixel_size
 
     out = _new_output(output, overwrite=overwrite, inputs=[movie, locs])
@@ -1672,13 +1672,9 @@ def overlay(
                 f"--frame {frame} is outside the movie {movie.name!r}, whose frames are "
                 f"0 to {mov.n_frames - 1}"
             )
-        shape = meta.get("shape") if isinstance(meta, dict) else None
-        if isinstance(shape, list | tuple) and tuple(shape) != tuple(mov.shape):
-            _fail(
-                f"the table {locs.name!r} was made from frames of {tuple(shape)} pixels, but "
-                f"those of the movie {movie.name!r} are {tuple(mov.shape)}: is it the right "
-                "movie?"
-            )
+        note = _run(check_table_movie, meta, mov.shape, locs.name, movie.name)
+        if note:
+            _note(note)
         px = _run(_overlay_pixel_size, pixel_size, meta, mov.pixel_size)
         image = _run(mov.__getitem__, frame)
     n = int((table["frame"] == frame).sum()) if "frame" in table else 0

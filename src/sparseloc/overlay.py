@@ -18,12 +18,46 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike
 
-__all__ = ["frame_locs", "overlay_figure", "plot_overlay"]
+__all__ = ["check_table_movie", "frame_locs", "overlay_figure", "plot_overlay"]
 
 log = logging.getLogger(__name__)
 
 #: Colour of the markers of flagged localizations.
 FLAGGED_COLOR = "0.6"
+
+
+def check_table_movie(
+    metadata: object, movie_shape: tuple[int, int], table_name: str, movie_name: str
+) -> str:
+    """ValueError where a table's recorded frame shape is not the movie's; else a note (or
+    "") where the table records a movie of another file name.
+
+    Parameters
+    ----------
+    metadata : dict or None
+        The table's metadata (``shape``: frame rows and columns; ``movie``: the file name(s)).
+    movie_shape : (int, int)
+        The movie's frame shape (rows, cols).
+    table_name, movie_name : str
+        The files' names, for the messages ("" for a table without one).
+    """
+    meta = metadata if isinstance(metadata, dict) else {}
+    table = f"the table {table_name!r}" if table_name else "the table"
+    shape = meta.get("shape")
+    if isinstance(shape, list | tuple) and tuple(shape) != tuple(movie_shape):
+        raise ValueError(
+            f"{table} was made from frames of {tuple(shape)} pixels, but "
+            f"those of the movie {movie_name!r} are {tuple(movie_shape)}: is it the right movie?"
+        )
+    recorded = meta.get("movie")
+    names = [Path(str(p)).name for p in (recorded if isinstance(recorded, list) else [recorded])]
+    names = [n for n in names if n and n != "None"]
+    if names and Path(movie_name).name not in names:
+        return (
+            f"{table} records the movie {', '.join(names)}, not "
+            f"{Path(movie_name).name!r}: is it the right movie?"
+        )
+    return ""
 
 
 def frame_locs(locs: pd.DataFrame, frame_index: int) -> pd.DataFrame:

@@ -320,9 +320,10 @@ def _overlay_section(
 ) -> tuple[str, str]:
     """Heading and figure of the overlay on the movie's frame with the most localizations."""
     from .io.movie import Movie
-    from .overlay import overlay_figure
+    from .overlay import check_table_movie, overlay_figure
 
     with Movie.open(movie) as m:
+        check_table_movie(metadata, m.shape, "", Path(movie).name)
         px = _overlay_pixel_size(pixel_size, metadata, m.pixel_size)
         frame = locs["frame"].to_numpy(np.int64)
         inside = frame[(frame >= 0) & (frame < m.n_frames)]
