@@ -225,3 +225,20 @@ def test_report_and_overlay_check_that_the_movie_is_the_tables(movie, tmp_path):
     res = run("overlay", movie, renamed, "-o", tmp_path / "o.png")
     assert res.exit_code == 0, res.output
     assert "records the movie elsewhere.tif" in res.output
+
+
+def test_frames_smaller_than_the_window_are_refused_up_front_with_the_fix(beads, tmp_path):
+    """The fourth walk-through: a 32 x 32 px movie with a calibration's 43 px window failed
+    chunk by chunk (8 warnings, exit 1, 'run the same command again') and left a run folder
+    that made the corrected command need --overwrite."""
+    psf = tmp_path / "psf.h5"
+    res = run("calibrate", beads, "-o", psf, "--pixel-size", 100, "--z-step", 50)
+    assert res.exit_code == 0, res.output
+    small = tmp_path / "small.tif"
+    res = run("simulate", "-o", small, "--psf", "dh-analytic", "--frames", 20, "--rows", 16,
+              "--cols", 16, "--pixel-size", 100, "--seed", 1)  # fmt: skip
+    assert res.exit_code == 0, res.output
+    out = tmp_path / "small.parquet"
+    res = run("localize", small, "-o", out, "--psf", psf, "--chunk-frames", 5)
+    refused(res, "smaller than one window", "--window 16 or less")
+    assert not out.exists() and not (tmp_path / "small.parquet.parts").exists()

@@ -404,6 +404,22 @@ def resolve_pixel_size(options: dict[str, Any], model: PSFModel, movie_pixel: fl
     return float(px)
 
 
+def _check_frames_hold_a_window(shape: tuple[int, int], window: int, given: bool) -> None:
+    """ValueError, with the fix, where the frames are smaller than one window."""
+    rows, cols = (int(v) for v in shape)
+    if rows >= window and cols >= window:
+        return
+    fix = (
+        "crop a larger region"
+        if given
+        else f"pass --window {min(rows, cols)} or less (the default is sized to hold the "
+        "PSF's light; a smaller window holds less of it), or crop a larger region"
+    )
+    raise ValueError(
+        f"the frames ({rows}x{cols} px) are smaller than one window ({window}x{window} px): {fix}"
+    )
+
+
 def build_job(options: dict[str, Any], movie: Any) -> LocalizeJob:
     """The run that ``options`` (:data:`LOCALIZE_DEFAULTS` keys) describe on ``movie`` (an
     object with ``len()``, ``frames(start, stop)`` in ADU and ``pixel_size``, nm or None).
@@ -416,6 +432,7 @@ def build_job(options: dict[str, Any], movie: Any) -> LocalizeJob:
     first = movie.frames(0, 1)
     cam = build_camera(opts, first)
     window, margin = window_for(model, px, opts["window"], opts["margin"])
+    _check_frames_hold_a_window(first.shape[-2:], window, opts["window"] is not None)
     read_var = read_variance_photons(cam, first.shape[-2:])
     lo, hi = model.z_range
     z_range = (
