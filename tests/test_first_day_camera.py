@@ -235,6 +235,8 @@ def test_camera_on_blinking_emitters_says_its_gain_is_not_to_be_trusted(tmp_path
     assert res.exit_code == 0, res.output
     assert "single-frame noise" in res.output and "caution:" in res.output
     assert _number(res.output, "gain") < 0.9  # the true gain is 1 e-/ADU
+    # the fourth walk-through: the flags line read as advice to copy, caution or not
+    assert "localize with (rough: see the caution):" in res.output
     from sparseloc.camera import estimate_camera
 
     steady = _scmos_movie(tmp_path, gain=1.0)[1]

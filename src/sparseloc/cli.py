@@ -1171,7 +1171,7 @@ def camera_cmd(
             "read noise dominates; give --offset (the median of a dark frame)"
         )
     typer.echo(f"gain {est.gain:.4g}{_plus_minus(est.gain_error, '.2g')} e-/ADU")
-    resolved = est.read_noise_resolved
+    resolved = est.read_noise_resolved and est.read_noise > 0
     if est.offset_given and not resolved:
         bound = est.read_noise_bound
         below = f": below about {bound:.3g} e- rms (two standard errors)" if bound > 0 else ""
@@ -1205,7 +1205,11 @@ def camera_cmd(
         flags += f" --em-gain {em_gain:g}"
     if est.read_noise > 0 and resolved and suggested != "ideal":
         flags += f" --read-noise {est.read_noise:.3g}"
-    typer.echo(f"localize with: {flags}")
+    # a line of flags reads as advice to copy: from single frames' noise (emitters' images
+    # bias it by up to 2x) it says that it is rough
+    rough = est.method != "temporal"
+    lead = "localize with (rough: see the caution)" if rough else "localize with"
+    typer.echo(f"{lead}: {flags}")
 
 
 @app.command(cls=_Command)
