@@ -405,3 +405,29 @@ def test_a_score_against_another_movies_truth_gets_a_caution_above_the_figures(t
         assert said is cautioned, res.output
         if cautioned:
             assert res.output.index("caution:") < res.output.index("Jaccard")
+
+
+def test_a_movie_in_the_truths_place_is_named_as_a_tiff(tmp_path):
+    """The fourth walk-through: `evaluate locs.parquet movie.tif` answered with a UTF-8 error."""
+    import tifffile
+
+    from sparseloc.io.truth import read_truth_csv
+
+    movie = tmp_path / "movie.tif"
+    tifffile.imwrite(movie, np.zeros((2, 8, 8), np.uint16))
+    with pytest.raises(ValueError, match="is a TIFF .* not a CSV truth table"):
+        read_truth_csv(movie)
+
+
+def test_a_table_given_as_a_csv_mask_is_named_as_a_table(tmp_path):
+    """The fourth walk-through: `--psf movie_truth.csv` said "could not convert string 'frame'
+    to float64"."""
+    from sparseloc.psf.masks import load_mask
+
+    table = tmp_path / "movie_truth.csv"
+    table.write_text("frame,x_nm,y_nm,z_nm,photons\n0,1.0,2.0,0.0,1000\n")
+    with pytest.raises(ValueError, match="has a header row .* a phase mask is a plain array"):
+        load_mask(table)
+    plain = tmp_path / "mask.csv"
+    np.savetxt(plain, np.full((8, 8), 1.5e-1), delimiter=",")
+    assert load_mask(plain, radius=3.0) is not None

@@ -242,3 +242,19 @@ def test_frames_smaller_than_the_window_are_refused_up_front_with_the_fix(beads,
     res = run("localize", small, "-o", out, "--psf", psf, "--chunk-frames", 5)
     refused(res, "smaller than one window", "--window 16 or less")
     assert not out.exists() and not (tmp_path / "small.parquet.parts").exists()
+
+
+def test_ctrl_c_in_any_command_says_so(beads, tmp_path, monkeypatch):
+    """The fourth walk-through: Ctrl-C during calibrate printed nothing (localize said what
+    happened)."""
+    import sparseloc.calibrate as calibrate_module
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(calibrate_module, "calibrate_file", interrupted)
+    out = tmp_path / "c.h5"
+    res = run("calibrate", beads, "-o", out, "--pixel-size", 100, "--z-step", 50)
+    assert res.exit_code == 130
+    assert "interrupted (Ctrl-C): calibrate stopped and wrote no output" in res.output
+    assert not out.exists()

@@ -74,6 +74,12 @@ class _Command(TyperCommand):
         _Command.running = ctx
         try:
             return super().invoke(ctx)
+        except KeyboardInterrupt:
+            # outputs are written under temporary names and renamed at the end: none is left
+            typer.echo(
+                f"interrupted (Ctrl-C): {ctx.info_name} stopped and wrote no output", err=True
+            )
+            raise typer.Exit(130) from None
         finally:
             _Command.running = None
 
@@ -369,9 +375,9 @@ def _main(
 
 @app.command(cls=_Command)
 def demo(
-    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the demo's outputs.")] = Path(
-        "sparseloc_demo"
-    ),
+    out: Annotated[
+        Path, typer.Option("--output", "--out", "-o", help="Folder for the demo's outputs.")
+    ] = Path("sparseloc_demo"),
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     frames: Annotated[int, typer.Option(help="Movie length.", min=1)] = 200,
     density: Annotated[float, typer.Option(help="Active emitters per um^2.")] = 0.5,
@@ -413,7 +419,7 @@ def simulate(
     cols: Annotated[int, typer.Option(help="Frame width (pixels).", min=4)] = 64,
     pixel_size: Annotated[float, typer.Option(help="Pixel size in sample space (nm).")] = 100.0,
     density: Annotated[
-        float, typer.Option(help="Emitters per um^2 per frame (uniform scene).")
+        float, typer.Option(help="Emitters per um^2 per frame (uniform and filament scenes).")
     ] = 1.0,
     photons_min: Annotated[float, typer.Option(help="Lowest photons per emitter.")] = 1000.0,
     photons_max: Annotated[float, typer.Option(help="Highest photons per emitter.")] = 5000.0,
@@ -644,7 +650,11 @@ def localize(
         ),
     ] = None,
     refine: Annotated[
-        bool | None, typer.Option("--refine/--no-refine", help="Maximum-likelihood stage.")
+        bool | None,
+        typer.Option(
+            "--refine/--no-refine",
+            help="Maximum-likelihood stage (default on; off: the pursuit's positions only).",
+        ),
     ] = None,
     frame_schedule: Annotated[
         str | None,
@@ -677,7 +687,9 @@ def localize(
             "spatial (snapshots, emitters always on)."
         ),
     ] = None,
-    frames: Annotated[str | None, typer.Option(help="Frame range START:STOP (0-based).")] = None,
+    frames: Annotated[
+        str | None, typer.Option(help="Frame range START:STOP (0-based, STOP excluded).")
+    ] = None,
     fmt: Annotated[
         str | None, typer.Option("--format", help="parquet, thunderstorm, picasso, smlm.")
     ] = None,
@@ -1222,7 +1234,10 @@ def evaluate(
     ],
     truth: Annotated[
         Path,
-        typer.Argument(help="Ground truth CSV ('simulate', or storm-analysis x_px/y_px/z_um)."),
+        typer.Argument(
+            help="Ground truth CSV: simulate's, storm-analysis's (x_px/y_px/z_um) or the SMLM "
+            "challenge's (xnano/ynano/znano, 1-based frames)."
+        ),
     ],
     pixel_size: Annotated[
         float | None, typer.Option(help="Pixel size (nm) for truth given in pixels.")

@@ -105,11 +105,16 @@ def write_truth_csv(path: str | Path, df: pd.DataFrame) -> Path:
     return Path(path)
 
 
-_BINARY_MAGIC = {b"PAR1": "a Parquet", b"\x89HDF": "an HDF5"}
+_BINARY_MAGIC = {
+    b"PAR1": "a Parquet",
+    b"\x89HDF": "an HDF5",
+    b"II*\x00": "a TIFF (a movie?)",
+    b"MM\x00*": "a TIFF (a movie?)",
+}
 
 
 def _binary_table_kind(path: Path) -> str | None:
-    """``"a Parquet"`` or ``"an HDF5"`` when the file starts with that format's magic bytes."""
+    """The kind of a binary file (Parquet, HDF5, TIFF) from its magic bytes, else None."""
     with open(path, "rb") as fh:
         head = fh.read(4)
     return _BINARY_MAGIC.get(head)
@@ -153,10 +158,13 @@ def read_truth_csv(
         raise IsADirectoryError(f"{str(p)!r} is a folder, not a CSV file")
     binary = _binary_table_kind(p)
     if binary is not None:
-        raise ValueError(
-            f"{str(p)!r} is {binary} file, not a CSV truth table: is it a localization table "
-            "given in the truth's place? (the localizations go first, the truth second)"
+        hint = (
+            "is it a localization table given in the truth's place? (the localizations go "
+            "first, the truth second)"
+            if "TIFF" not in binary
+            else "the truth is the CSV that simulate wrote beside the movie, or the data's own"
         )
+        raise ValueError(f"{str(p)!r} is {binary} file, not a CSV truth table: {hint}")
     try:
         df = pd.read_csv(p)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:

@@ -285,6 +285,13 @@ def _read_mask_array(p: Path, key: str | None) -> NDArray:
 
         return read_tiff(p)
     if suffix in (".csv", ".txt"):
+        with open(p, encoding="utf-8", errors="replace") as fh:
+            first = fh.readline()
+        if any(c.isalpha() and c not in "eE" for c in first):
+            raise ValueError(
+                f"the mask in {p.name} has a header row ({first.strip()[:40]}...): a phase mask is "
+                "a plain array of numbers; a table of localizations or truth goes elsewhere"
+            )
         return np.loadtxt(p, delimiter="," if suffix == ".csv" else None)
     raise ValueError(f"unknown mask file type {suffix!r}; use .mat, .npy, .tif or .csv")
 
