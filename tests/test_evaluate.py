@@ -415,7 +415,7 @@ def test_a_movie_in_the_truths_place_is_named_as_a_tiff(tmp_path):
 
     movie = tmp_path / "movie.tif"
     tifffile.imwrite(movie, np.zeros((2, 8, 8), np.uint16))
-    with pytest.raises(ValueError, match="is a TIFF .* not a CSV truth table"):
+    with pytest.raises(ValueError, match=r"is a TIFF .* not a CSV truth table"):
         read_truth_csv(movie)
 
 
@@ -426,7 +426,7 @@ def test_a_table_given_as_a_csv_mask_is_named_as_a_table(tmp_path):
 
     table = tmp_path / "movie_truth.csv"
     table.write_text("frame,x_nm,y_nm,z_nm,photons\n0,1.0,2.0,0.0,1000\n")
-    with pytest.raises(ValueError, match="has a header row .* a phase mask is a plain array"):
+    with pytest.raises(ValueError, match=r"has a header row .* a phase mask is a plain array"):
         load_mask(table)
     plain = tmp_path / "mask.csv"
     np.savetxt(plain, np.full((8, 8), 1.5e-1), delimiter=",")
