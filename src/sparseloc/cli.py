@@ -971,7 +971,13 @@ def calibrate(
     ],
     output: Annotated[Path, typer.Option("--output", "-o", help="Calibration file (.h5).")],
     pixel_size: Annotated[float, typer.Option(help="Pixel size in sample space (nm).")],
-    z_step: Annotated[float | None, typer.Option(help="Stage step between frames (nm).")] = None,
+    z_step: Annotated[
+        float | None,
+        typer.Option(
+            help="Stage step between frames (nm); with --z-file, the step of the planes the "
+            "frames are resampled to (default: the file's median step)."
+        ),
+    ] = None,
     z_file: Annotated[
         Path | None,
         typer.Option(help="CSV of each frame's z (z_um or z_nm column, optional valid)."),
