@@ -409,3 +409,28 @@ def test_warnings_name_the_dropped_rows(caplog):
         out = usable_locs(t)
     assert len(out) == len(t) - 3
     assert any("3 localizations" in r.getMessage() for r in caplog.records)
+
+
+def test_overlay_zooms_on_a_region(movie_and_locs, tmp_path):
+    """The fourth walk-through: the tetrapod overlay was too small to tell whether each PSF
+    image had one marker, and overlay had no zoom."""
+    from sparseloc.io.movie import Movie
+    from sparseloc.overlay import overlay_figure
+
+    movie, locs, df = movie_and_locs
+    with Movie.open(movie) as m:
+        frame = m[1]
+    fig = overlay_figure(frame, df, frame_index=1, pixel_size=PX, region=(0, 16, 0, 16))
+    ax = fig.axes[0]
+    assert ax.get_xlim() == pytest.approx((0.0, 1.6)) and ax.get_ylim() == pytest.approx((1.6, 0))
+    in_frame = df[df["frame"] == 1]
+    inside = ((in_frame["x_nm"] < 1600) & (in_frame["y_nm"] < 1600)).sum()
+    assert ax.get_title() == f"frame 1: {inside} localizations"
+    out = tmp_path / "zoom.png"
+    args = ["overlay", str(movie), str(locs), "--frame", "1", "--pixel-size", "100"]
+    r = runner.invoke(app, [*args, "-o", str(out), "--region", "8:24,8:24"])
+    assert r.exit_code == 0, r.output
+    for bad in ("8-24,8-24", "40:50,40:50"):
+        r = runner.invoke(app, [*args, "-o", str(tmp_path / "bad.png"), "--region", bad])
+        assert r.exit_code == 2 and "region" in r.output, r.output
+    assert not (tmp_path / "bad.png").exists()

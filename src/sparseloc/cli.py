@@ -1676,6 +1676,12 @@ def overlay(
         float | None,
         typer.Option(help="Camera pixel size (nm); default: the table's, else the movie's."),
     ] = None,
+    region: Annotated[
+        str | None,
+        typer.Option(
+            help="Zoom: pixel columns and rows X0:X1,Y0:Y1 of the frame (default: all of it)."
+        ),
+    ] = None,
     overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Draw one frame with its localizations: circles coloured by z, flagged fits as grey x."""
@@ -1703,8 +1709,20 @@ def overlay(
         px = _run(_overlay_pixel_size, pixel_size, meta, mov.pixel_size)
         image = _run(mov.__getitem__, frame)
     n = int((table["frame"] == frame).sum()) if "frame" in table else 0
-    _run(plot_overlay, image, table, frame_index=frame, pixel_size=px, path=out)
+    box = _region(region) if region is not None else None
+    _run(plot_overlay, image, table, frame_index=frame, pixel_size=px, path=out, region=box)
     typer.echo(f"wrote {out} (frame {frame}, {n} localizations)")
+
+
+def _region(text: str) -> tuple[int, int, int, int]:
+    """``X0:X1,Y0:Y1`` (pixels) as (x0, x1, y0, y1); refused in one sentence otherwise."""
+    try:
+        xs, ys = str(text).split(",")
+        x0, x1 = (int(v) for v in xs.split(":"))
+        y0, y1 = (int(v) for v in ys.split(":"))
+    except ValueError:
+        _fail(f"--region must look like X0:X1,Y0:Y1 (pixels), got {text!r}")
+    return x0, x1, y0, y1
 
 
 def main() -> None:

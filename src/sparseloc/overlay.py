@@ -24,6 +24,8 @@ log = logging.getLogger(__name__)
 
 #: Colour of the markers of flagged localizations.
 FLAGGED_COLOR = "0.6"
+#: Resolution (dpi) of the PNG that :func:`plot_overlay` writes by default.
+OVERLAY_DPI = 120
 
 
 def check_table_movie(
@@ -94,6 +96,7 @@ def overlay_figure(
     pixel_size: float,
     z_range: tuple[float, float] | None = None,
     title: str | None = None,
+    region: tuple[int, int, int, int] | None = None,
 ):
     """The overlay of the localizations of one frame on that frame (module docstring).
 
@@ -112,6 +115,9 @@ def overlay_figure(
         table's z (all frames, so that colours agree between frames), as in ``render``.
     title : str, optional
         Figure title; default names the frame and counts the markers.
+    region : (x0, x1, y0, y1), optional
+        Pixel columns ``x0:x1`` and rows ``y0:y1`` of the frame to draw (a zoom); the
+        figure is sized so that a frame pixel spans at least two of a PNG's at 120 dpi.
 
     Returns
     -------
@@ -131,7 +137,14 @@ def overlay_figure(
     px = float(pixel_size)
     if not (np.isfinite(px) and px > 0):
         raise ValueError(f"the pixel size must be a positive number of nm, got {pixel_size!r}")
+    c0, r0 = 0, 0
+    if region is not None:
+        c0, c1, r0, r1 = _checked_region(region, img.shape)
+        img = img[r0:r1, c0:c1]
     rows = frame_locs(locs, frame_index)
+    if region is not None:
+        xs, ys = rows["x_nm"].to_numpy(float) / px, rows["y_nm"].to_numpy(float) / px
+        rows = rows[(xs >= c0) & (xs < c1) & (ys >= r0) & (ys < r1)]
     ok = (rows["flag"].astype(str) == "ok").to_numpy() if "flag" in rows else np.ones(len(rows))
     ok = ok.astype(bool)
     z_all = locs["z_nm"].to_numpy(float) if "z_nm" in locs else np.zeros(0)
@@ -139,8 +152,10 @@ def overlay_figure(
     zr = _projection_z_range(locs, z_range, has_z) if has_z or z_range is not None else None
 
     h, w = img.shape
-    ext = (0.0, w * px / 1000.0, h * px / 1000.0, 0.0)  # µm: left, right, bottom, top
-    fig = Figure(figsize=(7.2, 6.0 * h / max(w, 1) + 0.6), layout="constrained")
+    # µm: left, right, bottom, top
+    ext = (c0 * px / 1000.0, (c0 + w) * px / 1000.0, (r0 + h) * px / 1000.0, r0 * px / 1000.0)
+    width = max(7.2, 2.0 * w / OVERLAY_DPI + 1.6)  # two PNG pixels per frame pixel, and a bar
+    fig = Figure(figsize=(width, (width - 1.2) * h / max(w, 1) + 0.6), layout="constrained")
     ax = fig.add_subplot()
     finite = img[np.isfinite(img)]
     lo, hi = np.percentile(finite, [0.5, 99.8]) if finite.size else (0.0, 1.0)
@@ -188,6 +203,19 @@ def overlay_figure(
     return fig
 
 
+def _checked_region(region, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """``region`` (x0, x1, y0, y1; pixels) as ints within the frame; ValueError if empty."""
+    c0, c1, r0, r1 = (int(v) for v in region)
+    rows, cols = shape
+    c0, c1, r0, r1 = max(c0, 0), min(c1, cols), max(r0, 0), min(r1, rows)
+    if not (c0 < c1 and r0 < r1):
+        raise ValueError(
+            f"the region x {region[0]}:{region[1]}, y {region[2]}:{region[3]} px holds no pixel "
+            f"of the {cols} x {rows} px frame"
+        )
+    return c0, c1, r0, r1
+
+
 def plot_overlay(
     image: ArrayLike,
     locs: pd.DataFrame,
@@ -197,13 +225,14 @@ def plot_overlay(
     path: str | Path,
     z_range: tuple[float, float] | None = None,
     title: str | None = None,
-    dpi: int = 120,
+    dpi: int = OVERLAY_DPI,
+    region: tuple[int, int, int, int] | None = None,
 ) -> Path:
     """Write :func:`overlay_figure` to ``path`` (PNG, PDF or SVG by its suffix) atomically.
 
     Parameters
     ----------
-    image, locs, frame_index, pixel_size, z_range, title
+    image, locs, frame_index, pixel_size, z_range, title, region
         As :func:`overlay_figure`.
     path : str or Path
         Output file; written under a temporary name, then renamed.
@@ -217,6 +246,12 @@ def plot_overlay(
     from .plotting import save_figure
 
     fig = overlay_figure(
-        image, locs, frame_index=frame_index, pixel_size=pixel_size, z_range=z_range, title=title
+        image,
+        locs,
+        frame_index=frame_index,
+        pixel_size=pixel_size,
+        z_range=z_range,
+        title=title,
+        region=region,
     )
     return save_figure(fig, path, dpi=dpi)
