@@ -401,3 +401,15 @@ def test_thunderstorm_uncertainty_columns_and_older_files(tmp_path):
     for col in ("sigma_x_nm", "sigma_y_nm", "sigma_photons"):
         np.testing.assert_array_equal(a[col].to_numpy(), b[col].to_numpy())
         np.testing.assert_allclose(a[col].to_numpy(), df[col].to_numpy(), rtol=1e-12)
+
+
+def test_a_format_that_contradicts_the_files_suffix_is_refused():
+    """The fourth walk-through: `-o out.csv --format parquet` wrote a Parquet file named .csv."""
+    from sparseloc.io.tables import format_for
+
+    assert format_for("t.csv", "smlm") == "smlm" and format_for("t.csv", None) == "thunderstorm"
+    assert format_for("t.txt", "parquet") == "parquet"  # a suffix of no format decides nothing
+    with pytest.raises(ValueError, match=r"writes a Parquet file, but 't\.csv' is named as a CSV"):
+        format_for("t.csv", "parquet")
+    with pytest.raises(ValueError, match="writes a HDF5 file"):
+        format_for("t.parquet", "picasso")

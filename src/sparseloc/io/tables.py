@@ -381,13 +381,25 @@ def write_table(
     )
 
 
+#: The file each format writes, by the suffixes that name it.
+_FORMAT_FILES = {"parquet": "Parquet", "thunderstorm": "CSV", "smlm": "CSV", "picasso": "HDF5"}
+
+
 def format_for(path: str | Path, format: str | None) -> str:
+    """The table format of ``path``: ``format`` where given (refused where the file's suffix
+    names another kind of file), else its suffix's."""
+    suffix = Path(path).suffix.lower()
     if format is not None:
         fmt = str(format).lower()
         if fmt not in FORMATS:
             raise ValueError(f"unknown table format {format!r} (choose from {', '.join(FORMATS)})")
+        implied = _SUFFIX_FORMATS.get(suffix)
+        if implied is not None and _FORMAT_FILES[implied] != _FORMAT_FILES[fmt]:
+            raise ValueError(
+                f"--format {fmt} writes a {_FORMAT_FILES[fmt]} file, but {Path(path).name!r} "
+                f"is named as a {_FORMAT_FILES[implied]} file: change the suffix or the format"
+            )
         return fmt
-    suffix = Path(path).suffix.lower()
     if suffix not in _SUFFIX_FORMATS:
         raise ValueError(
             f"cannot tell the table format from the suffix {suffix or '(none)'!r}; use "
