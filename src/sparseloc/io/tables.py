@@ -409,14 +409,22 @@ def format_for(path: str | Path, format: str | None) -> str:
 
 
 def read_table_and_metadata(path: str | Path) -> tuple[pd.DataFrame, dict[str, Any]]:
-    """:func:`read_table`, with the analysis metadata of a sparseloc Parquet table (``{}`` for
-    the other formats)."""
+    """:func:`read_table`, with the analysis metadata of a sparseloc Parquet table or of a
+    Picasso table that sparseloc wrote (its sidecar's ``sparseloc`` document); ``{}`` for the
+    other formats."""
     src = source_path(path)
     with open(src, "rb") as fh:
         head = fh.read(8)
     if head.startswith(_PARQUET_MAGIC):
         return read_parquet(src)
-    return read_table(src), {}
+    table = read_table(src)
+    if head.startswith(b"\x89HDF"):
+        _, docs = read_picasso_hdf5(src)
+        for doc in docs:
+            own = doc.get("sparseloc")
+            if isinstance(own, dict) and isinstance(own.get("metadata"), dict):
+                return table, own["metadata"]
+    return table, {}
 
 
 def read_table(path: str | Path) -> pd.DataFrame:
