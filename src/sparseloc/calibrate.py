@@ -655,8 +655,8 @@ def _enough_beads(
 
 
 #: Agreement of consecutive frames (their correlation over the one the noise allows) below
-#: which a spot is not a fixed bead: a z-scan's beads agree at 0.98-1.0, a single-molecule
-#: movie's spots at 0.01-0.7 (measured on this project's and outside stacks and movies).
+#: which a spot is not a fixed bead: a z-scan's beads agree near 1, a single-molecule movie's
+#: spots far less (docs/benchmarks/scan_agreement.txt).
 SCAN_AGREEMENT: float = 0.9
 
 
