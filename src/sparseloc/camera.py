@@ -869,9 +869,10 @@ class CameraEstimate:
     @property
     def read_noise_resolved(self) -> bool:
         """Whether the line measured the read noise (its read variance lies more than two
-        standard errors above zero); True where no bound was computed."""
+        standard errors above zero); where no bound was computed, whether it came out above
+        zero."""
         if not np.isfinite(self.read_noise_bound):
-            return True
+            return self.read_noise > 0
         # read_noise^2 = rv g^2 and bound^2 = (rv + 2 se) g^2: rv > 2 se <=> this
         return self.read_noise > 0 and self.read_noise**2 > 0.5 * self.read_noise_bound**2
 

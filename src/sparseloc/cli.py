@@ -1119,12 +1119,12 @@ def _plus_minus(error: float, spec: str) -> str:
     return f" +- {error:{spec}}" if np.isfinite(error) else ""
 
 
-def _suggested_camera(given: str | None, est) -> str:
+def _suggested_camera(given: str | None, est: Any) -> str:
     """The ``--camera`` to suggest: the one given, else an sCMOS where the line measured a read
     noise and localize's default (no read noise) where it did not."""
     if given is not None:
         return given
-    if est.offset_given and est.read_noise > 0 and est.read_noise_resolved:
+    if est.offset_given and est.read_noise_resolved:
         return "scmos"
     return _D["camera"]
 
@@ -1189,7 +1189,7 @@ def camera_cmd(
             "read noise dominates; give --offset (the median of a dark frame)"
         )
     typer.echo(f"gain {est.gain:.4g}{_plus_minus(est.gain_error, '.2g')} e-/ADU")
-    resolved = est.read_noise_resolved and est.read_noise > 0
+    resolved = est.read_noise_resolved
     if est.offset_given and not resolved:
         bound = est.read_noise_bound
         below = f": below about {bound:.3g} e- rms (two standard errors)" if bound > 0 else ""
@@ -1221,7 +1221,7 @@ def camera_cmd(
     flags += f" --gain {est.gain:.4g}"
     if kind == "emccd" and em_gain is not None:
         flags += f" --em-gain {em_gain:g}"
-    if est.read_noise > 0 and resolved and suggested != "ideal":
+    if resolved and suggested != "ideal":
         flags += f" --read-noise {est.read_noise:.3g}"
     # a line of flags reads as advice to copy: from single frames' noise (emitters' images
     # bias it by up to 2x) it says that it is rough
