@@ -142,7 +142,11 @@ def make_levenberg_marquardt(
     """
     namespace = dict(globals())
     namespace.update(evaluate=evaluate, score=score, trial=trial, accept=accept)
-    code = _levenberg_marquardt.__code__
-    loop = types.FunctionType(code, namespace, "levenberg_marquardt")
+    # each engine's copy its own name: numba files a cached function under its name, so two
+    # engines' copies would otherwise share (and load) each other's compiled code
+    engine = getattr(evaluate, "__module__", "engine").replace(".", "_")
+    name = f"levenberg_marquardt_{engine}"
+    code = _levenberg_marquardt.__code__.replace(co_name=name, co_qualname=name)
+    loop = types.FunctionType(code, namespace, name)
     loop.__doc__ = _levenberg_marquardt.__doc__
     return loop
