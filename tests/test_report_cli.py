@@ -285,3 +285,14 @@ def test_the_report_of_a_drift_corrected_table_speaks_of_residual_drift(scene):
     done = build_report(locs, metadata={"psf": "dh", "drift": {"method": "rcc", "reliable": True}})
     assert "already drift-corrected" in done and "residual drift" in done
     assert "not applied here" not in done
+
+
+def test_the_reports_truth_section_cautions_as_evaluate_does(scene):
+    """The fourth walk-through's wrong truth file: the report's evaluation gets the caution
+    that `evaluate` prints (the same functions)."""
+    locs, truth = scene
+    right = build_report(locs, truth=truth, metadata={"psf": "dh"})
+    assert "is it the truth of this movie" not in right
+    moved = truth.assign(x_nm=truth["x_nm"] + 3000.0, y_nm=truth["y_nm"] + 3000.0)
+    wrong = build_report(locs, truth=moved, metadata={"psf": "dh"})
+    assert "is it the truth of this movie" in wrong

@@ -155,11 +155,12 @@ def _drift_section(
 def _truth_section(t: pd.DataFrame, truth: pd.DataFrame) -> tuple[str, str]:
     from matplotlib.figure import Figure
 
-    from .evaluate import evaluate, match_localizations
+    from .evaluate import evaluate, match_localizations, result_cautions, scoring_cautions
 
     ev = evaluate(t, truth)
     m = match_localizations(t, truth, lateral_tol=ev.lateral_tol, axial_tol=ev.axial_tol)
-    rows = [
+    cautions = scoring_cautions(t, truth) or result_cautions(ev)
+    rows = [("caution", c) for c in cautions] + [
         ("truth / localizations", f"{ev.n_truth:,} / {ev.n_locs:,}"),
         ("true / false positives, false negatives", f"{ev.tp:,} / {ev.fp:,}, {ev.fn:,}"),
         ("Jaccard", f"{ev.jaccard:.1f} %"),
