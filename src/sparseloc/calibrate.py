@@ -606,12 +606,11 @@ def _vet_beads(
     """The rejection reason of each bead ("" when usable: not at the edge, not closer than
     ``min_distance`` px to another bead, not saturated) and the usable ones; ``ValueError``
     when none is."""
-    h, w = scan.projection.shape
     nb = centres.shape[0]
     reason = [""] * nb
     for i, (r, c) in enumerate(centres):
         ri, ci = int(np.round(r)), int(np.round(c))
-        if ri - half < 0 or ci - half < 0 or ri + half >= h or ci + half >= w:
+        if not _roi_inside(ri, ci, half, scan.projection.shape):
             reason[i] = "edge"
             continue
         d = np.hypot(*(centres - centres[i]).T)
@@ -678,13 +677,18 @@ def _whole_rois(
     scan: BeadScan, centres: NDArray[np.float64], half: int
 ) -> list[NDArray[np.float64]]:
     """The ROI stacks of the beads whose ROI lies inside the frame."""
-    h, w = scan.projection.shape
     out = []
     for r, c in centres:
         ri, ci = int(np.round(r)), int(np.round(c))
-        if ri - half >= 0 and ci - half >= 0 and ri + half < h and ci + half < w:
+        if _roi_inside(ri, ci, half, scan.projection.shape):
             out.append(_roi(scan.data, ri, ci, half))
     return out
+
+
+def _roi_inside(ri: int, ci: int, half: int, shape: tuple[int, int]) -> bool:
+    """Whether the ROI of half side ``half`` around pixel (ri, ci) lies inside the frame."""
+    h, w = shape
+    return ri - half >= 0 and ci - half >= 0 and ri + half < h and ci + half < w
 
 
 def _frame_agreement(

@@ -550,8 +550,6 @@ def _check_scene_options(
     for flag, value in (("--z-min", z_min), ("--z-max", z_max)):
         if value is not None and not np.isfinite(value):
             _fail(f"{flag} must be a number of nm, got {value:g}")
-    if z_min is not None and z_max is not None and z_min > z_max:
-        _fail(f"--z-min {z_min:g} is above --z-max {z_max:g}")
     _run(check_z_limits, z_min, z_max)
     if cluster_size < 1:
         _fail(f"--cluster-size must be at least 1, got {cluster_size}")
@@ -1581,8 +1579,6 @@ def filter_cmd(
     if len(table):
         # The coordinate part of the rule (select_usable); filter_locs counts the flags itself.
         table = _usable(table, True)
-    if z_min is not None and z_max is not None and z_min > z_max:
-        _fail(f"--z-min {z_min:g} is above --z-max {z_max:g}")
     _run(check_z_limits, z_min, z_max)
     for flag, value in (("--sigma-max", sigma_max), ("--sigma-z-max", sigma_z_max)):
         if value is not None:

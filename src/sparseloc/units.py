@@ -70,12 +70,13 @@ def check_z_step(value: object, what: str = "--z-step") -> float:
 
 
 def check_z_limits(lo: float | None, hi: float | None, what: str = "--z-min/--z-max") -> None:
-    """ValueError in one sentence when z limits (nm) given in micrometres: both within +-10
-    and spanning less than :data:`Z_SPAN_MIN_NM`; or the lower above the upper."""
+    """ValueError in one sentence when the lower z limit (nm) lies above the upper, or both
+    were given in micrometres: within +-10 and spanning less than :data:`Z_SPAN_MIN_NM`."""
     if lo is None or hi is None:
         return
     if lo > hi:
-        raise ValueError(f"{what}: the lower limit {lo:g} nm is above the upper {hi:g} nm")
+        low, high = what.split("/") if "/" in what else (what, what)
+        raise ValueError(f"{low} {lo:g} is above {high} {hi:g}")
     if hi - lo < Z_SPAN_MIN_NM and max(abs(lo), abs(hi)) <= Z_SPAN_MIN_NM:
         raise ValueError(
             f"{what} {lo:g}..{hi:g} nm spans {hi - lo:g} nm: are they in micrometres? "
