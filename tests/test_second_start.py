@@ -61,6 +61,22 @@ def test_the_convolver_is_the_dictionary_and_its_adjoint():
     assert np.isclose(out.sum(), 2.0 * t[1].sum(), rtol=1e-5)  # all inside the frame
 
 
+def test_the_convolver_is_exact_with_templates_nearly_as_wide_as_the_frame():
+    # its circular FFTs are shorter than the linear results: what wraps must fall outside
+    # the frame's pixels (direct sums as the reference)
+    from scipy.signal import convolve2d, correlate2d
+
+    rng = np.random.default_rng(2)
+    t = rng.random((2, 15, 15))
+    conv = Convolver(t, (12, 20))
+    assert conv.fshape[0] < 12 + 14  # shorter than the linear length
+    x, img = rng.random((2, 12, 20)), rng.random((12, 20))
+    want = sum(convolve2d(x[j], t[j], mode="same") for j in range(2))
+    assert np.allclose(conv.forward(x), want, rtol=1e-4, atol=1e-4)
+    want = np.stack([correlate2d(img, t[j], mode="same") for j in range(2)])
+    assert np.allclose(conv.adjoint(img), want, rtol=1e-4, atol=1e-4)
+
+
 def test_the_l1_dictionary_has_one_phase_and_planes_twice_as_far_apart(analytic, l1):
     pursuit = frame_templates(analytic, PX, dxy=50.0, dz=100.0)
     assert np.all(l1.dx == 0) and np.all(l1.dy == 0)

@@ -30,6 +30,7 @@ from .psf.base import PSFModel
 __all__ = [
     "Tile",
     "capped_bumps",
+    "circular_shape",
     "detect_candidates",
     "spatial_background",
     "temporal_background",
@@ -407,17 +408,26 @@ def snr_at(d: NDArray, noise: NDArray, template: NDArray, rc: NDArray) -> NDArra
     return np.max(corr / np.sqrt(np.maximum(var, 1e-12)), axis=1)
 
 
+def circular_shape(shape: tuple[int, ...], half: int) -> tuple[int, ...]:
+    """FFT lengths for the correlations (or convolutions) of an image of ``shape`` with
+    templates ``2 half + 1`` pixels wide whose outputs are kept at the image's own pixels.
+
+    The full linear result is ``n + 2 half`` long; a circular one of length ``>= n + half``
+    wraps its tail only onto the first ``half`` outputs, which are not kept (the image's
+    pixels start at ``half``). So ``n + half``, rounded up to a fast length, is exact and
+    needs fewer points: a 64 px crop with 41 px templates, 84 a side instead of 108.
+    """
+    return tuple(sfft.next_fast_len(int(n) + int(half), real=True) for n in shape)
+
+
 def _correlations(d: NDArray, stack: NDArray, cache: dict | None) -> NDArray[np.float64]:
     """Correlations (P, rows, cols) of ``d`` with each template of ``stack`` (P, T, T),
     centred as ``fftconvolve(..., mode="same")`` with the flipped template; the templates'
     spectra are kept in ``cache`` per frame shape. In single precision: a signal-to-noise
     needs a few digits, and the transforms take half the time."""
     rows, cols = d.shape
-    t = stack.shape[-1]
-    shape = (
-        sfft.next_fast_len(rows + t - 1, real=True),
-        sfft.next_fast_len(cols + t - 1, real=True),
-    )
+    h = (stack.shape[-1] - 1) // 2
+    shape = circular_shape(d.shape, h)
     key = d.shape
     spectra = None if cache is None else cache.get(key)
     if spectra is None:
@@ -425,7 +435,6 @@ def _correlations(d: NDArray, stack: NDArray, cache: dict | None) -> NDArray[np.
         if cache is not None:
             cache[key] = spectra
     full = sfft.irfft2(sfft.rfft2(d.astype(np.float32), shape)[None] * spectra, shape)
-    h = (t - 1) // 2
     return full[:, h : h + rows, h : h + cols]
 
 

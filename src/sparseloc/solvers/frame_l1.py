@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from scipy import fft as sfft
 from scipy import ndimage as ndi
 
+from ..detect import circular_shape
 from ..psf.base import PSFModel
 from .emitters import Emitters
 from .frame_mp import FrameTemplates, frame_templates, in_tiles
@@ -54,30 +55,32 @@ def l1_templates(model: PSFModel, templates: FrameTemplates) -> FrameTemplates:
 class Convolver:
     """The dictionary as an operator on one frame shape: ``forward`` renders atom amplitudes
     (J, rows, cols) into an image, ``adjoint`` correlates an image with every template. FFTs
-    in single precision; atoms are centred on every pixel of the frame and their light
-    outside it is lost."""
+    in single precision, of the circular length that is exact for outputs kept at the frame's
+    pixels (:func:`~sparseloc.detect.circular_shape`); atoms are centred on every pixel of
+    the frame and their light outside it is lost."""
 
     def __init__(self, templates: NDArray, shape: tuple[int, int]) -> None:
         self.h = templates.shape[-1] // 2
         self.shape = shape
-        self.fshape = tuple(sfft.next_fast_len(n + 2 * self.h, real=True) for n in shape)
+        self.fshape = circular_shape(shape, self.h)
         self.ft = sfft.rfft2(templates, s=self.fshape).astype(np.complex64)
-        rows, cols = shape
-        self._rows = (np.arange(rows) - self.h) % self.fshape[0]
-        self._cols = (np.arange(cols) - self.h) % self.fshape[1]
+        # the adjoint is the convolution with the flipped templates: its outputs then lie at
+        # the same offset as the forward's, a slice rather than a gather
+        self.ft_flipped = sfft.rfft2(templates[:, ::-1, ::-1], s=self.fshape).astype(np.complex64)
+
+    def _crop(self, full: NDArray) -> NDArray:
+        h, (rows, cols) = self.h, self.shape
+        return full[..., h : h + rows, h : h + cols]
 
     def forward(self, x: NDArray) -> NDArray:
         """(rows, cols): the sum of every atom's template times its amplitude."""
         fx = sfft.rfft2(x.astype(np.float32, copy=False), s=self.fshape)
-        full = sfft.irfft2((fx * self.ft).sum(axis=0), s=self.fshape)
-        h, (rows, cols) = self.h, self.shape
-        return full[h : h + rows, h : h + cols]
+        return self._crop(sfft.irfft2((fx * self.ft).sum(axis=0), s=self.fshape))
 
     def adjoint(self, img: NDArray) -> NDArray:
         """(J, rows, cols): the image's correlation with each template centred on each pixel."""
         f = sfft.rfft2(img.astype(np.float32, copy=False), s=self.fshape)
-        full = sfft.irfft2(f[None] * np.conj(self.ft), s=self.fshape)
-        return full[:, self._rows][:, :, self._cols]
+        return self._crop(sfft.irfft2(f[None] * self.ft_flipped, s=self.fshape))
 
 
 def _step(conv: Convolver, w: NDArray) -> float:
@@ -97,11 +100,18 @@ def _fista(conv: Convolver, y: NDArray, w: NDArray, lam: NDArray, iterations: in
     x = np.zeros((conv.ft.shape[0], *conv.shape), np.float32)
     z, t = x.copy(), 1.0
     for _ in range(iterations):
-        grad = conv.adjoint(w * (conv.forward(z) - y))
-        x_new = np.maximum(z - step * (grad + lam), 0.0)
+        # x_new = max(z - step (grad + lam), 0), in the gradient's own array
+        x_new = conv.adjoint(w * (conv.forward(z) - y))
+        x_new += lam
+        x_new *= -step
+        x_new += z
+        np.maximum(x_new, 0.0, out=x_new)
         t_new = (1.0 + np.sqrt(1.0 + 4.0 * t * t)) / 2.0
-        z = x_new + ((t - 1.0) / t_new) * (x_new - x)
-        x, t = x_new, t_new
+        # z = x_new + (t - 1) / t_new (x_new - x), in x's array (x is not needed after)
+        np.subtract(x_new, x, out=x)
+        x *= (t - 1.0) / t_new
+        x += x_new
+        z, x, t = x, x_new, t_new
     return x
 
 

@@ -18,6 +18,7 @@ from scipy import fft as sfft
 from scipy import ndimage as ndi
 from scipy.optimize import nnls
 
+from ..detect import circular_shape
 from ..engine import kernels
 from ..psf.base import PSFModel, energy_radius
 from .emitters import Emitters
@@ -137,10 +138,7 @@ class Correlator:
         self.h = t.shape[-1] // 2
         self.shape = shape
         self.batch = int(batch)
-        # Circular correlations of length >= n + h: the full linear one is n + 2h long, and
-        # its tail wraps only onto the first h outputs, which are not kept (a 128 px frame
-        # with 41 px templates: 150 points a side instead of 180, 1.4x fewer).
-        self.fshape = tuple(sfft.next_fast_len(n + self.h, real=True) for n in shape)
+        self.fshape = circular_shape(shape, self.h)
         self._flipped = t[:, ::-1, ::-1]
         self.ft = sfft.rfft2(self._flipped, s=self.fshape).astype(np.complex64)
         self.norm2 = np.empty((t.shape[0], *shape), dtype=np.float32)
