@@ -223,6 +223,18 @@ def test_camera_command_estimates_gain_and_read_noise(tmp_path):
     refused(run("camera", tmp_path / "none.tif"), "does not exist")
 
 
+def test_camera_frames_take_localizes_range_or_a_count(tmp_path):
+    """The fourth walk-through: --frames was a count here and START:STOP in localize."""
+    path, _ = _scmos_movie(tmp_path)
+    for frames, n in (("5:15", 10), ("10", 10), (":4", 4), ("500", 20)):
+        res = run("camera", path, "--offset", 100, "--frames", frames)
+        assert res.exit_code == 0, res.output
+        assert f"differences of {n} frame(s)" in res.output, res.output
+    refused(run("camera", path, "--frames", "5:5"), "holds no frame")
+    refused(run("camera", path, "--frames", "0:50"), "goes past the movie's 20 frames")
+    refused(run("camera", path, "--frames", "abc"), "START:STOP or a number")
+
+
 def test_camera_on_blinking_emitters_says_its_gain_is_not_to_be_trusted(tmp_path):
     """Single-molecule frames change from frame to frame, so the line comes from single-frame
     noise, which the emitters' images inflate: the gain comes out low and the command says

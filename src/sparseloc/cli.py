@@ -1127,6 +1127,28 @@ def _suggested_camera(given: str | None, est: Any) -> str:
     return _D["camera"]
 
 
+def _camera_frames(frames: str, n: int) -> tuple[int, int]:
+    """``camera --frames``: a range as localize's (START:STOP), or a count N from the first
+    frame (at most the movie's ``n``)."""
+    from .config import frame_range
+
+    if ":" in str(frames):
+        start, stop = frame_range(frames, n)
+    else:
+        try:
+            count = int(frames)
+        except ValueError:
+            raise ValueError(
+                f"--frames takes START:STOP or a number of frames, got {frames!r}"
+            ) from None
+        if count < 1:
+            raise ValueError(f"--frames takes at least 1 frame, got {frames!r}")
+        start, stop = 0, min(count, n)
+    if stop <= start:
+        raise ValueError(f"--frames {frames} holds no frame")
+    return start, stop
+
+
 @app.command(name="camera", cls=_Command)
 def camera_cmd(
     movie: Annotated[
@@ -1142,7 +1164,13 @@ def camera_cmd(
     ] = None,
     camera: _CameraFlag = None,
     em_gain: _EmGainFlag = None,
-    frames: Annotated[int, typer.Option(help="Frames read, from the first.", min=1)] = 20,
+    frames: Annotated[
+        str,
+        typer.Option(
+            help="Frames read: START:STOP (0-based, STOP excluded, as in localize), or N for "
+            "the first N."
+        ),
+    ] = "20",
 ) -> None:
     """Estimate the camera's offset, gain (e-/ADU) and read noise from the movie's
     mean-variance (photon transfer) relation, for localize's camera flags."""
@@ -1155,7 +1183,8 @@ def camera_cmd(
             _fail(f"{flag} must be a number >= 0, got {value:g}")
     mov = _run(Movie.open, [str(p) for p in movie] if len(movie) > 1 else str(movie[0]))
     with mov:
-        adu = _run(mov.frames, 0, min(frames, len(mov)))
+        start, stop = _run(_camera_frames, frames, len(mov))
+        adu = _run(mov.frames, start, stop)
     median = float(np.median(adu))
     if offset is not None and offset >= median:
         _fail(
