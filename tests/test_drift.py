@@ -308,3 +308,41 @@ def test_segment_messages_name_a_possible_count():
     few = pd.DataFrame({"frame": [0, 1, 2], "x_nm": 0.0, "y_nm": 0.0})
     with pytest.raises(ValueError, match="use between 2 and 3 segments"):
         rcc_drift(few, segments=5)
+
+
+def test_smooth_p_tells_a_drift_from_independent_noise():
+    """Von Neumann's ratio: independent shifts are called a drift about 1 % of the time (the
+    test's level), a slow drift under that noise always."""
+    from sparseloc.drift import NO_DRIFT_P, smooth_p
+
+    rng = np.random.default_rng(3)
+    noise = rng.normal(0.0, 3.0, (4000, 10, 1))
+    called = np.mean([smooth_p(s)[0] < NO_DRIFT_P for s in noise])
+    assert 0.002 < called < 0.03, called
+    trend = np.linspace(0.0, 30.0, 10)[:, None]
+    assert np.all([smooth_p(trend + s)[0] < NO_DRIFT_P for s in noise[:200]])
+    assert np.isnan(smooth_p(np.zeros((10, 1)))[0]) and np.isnan(smooth_p(noise[0, :3])[0])
+
+
+def test_a_drift_free_table_gets_a_caution_and_a_drifting_one_none(truth, locs, tmp_path):
+    """The fourth walk-through: the default 10 segments moved a drift-free simulation by a
+    few nm without a word."""
+    from typer.testing import CliRunner
+
+    from sparseloc.cli import app
+    from sparseloc.drift import no_drift_caution
+    from sparseloc.io.tables import read_table_and_metadata, write_table
+
+    assert no_drift_caution(rcc_drift(locs, log_warnings=False)) is None
+    rng = np.random.default_rng(8)
+    pos = truth[["x_nm", "y_nm", "z_nm"]].to_numpy() + rng.normal(0, NOISE_NM, (len(truth), 3))
+    still = pd.DataFrame({"frame": truth["frame"], "x_nm": pos[:, 0], "y_nm": pos[:, 1],
+                          "z_nm": pos[:, 2]})  # fmt: skip
+    assert "like noise" in no_drift_caution(rcc_drift(still, log_warnings=False))
+    src = tmp_path / "still.parquet"
+    write_table(complete_locs(still), src)
+    res = CliRunner().invoke(app, ["drift", str(src), "-o", str(tmp_path / "dc.parquet")])
+    assert res.exit_code == 0, res.output
+    assert "caution: the 10 segments' shifts vary" in res.output
+    _, meta = read_table_and_metadata(tmp_path / "dc.parquet")
+    assert "like noise" in meta["drift"]["caution"]

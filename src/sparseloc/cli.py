@@ -1521,7 +1521,14 @@ def drift(
     overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Estimate the drift (x, y, z) and write the table with it removed."""
-    from .drift import apply_drift, fiducial_drift, lateral_only, plot_drift, rcc_drift
+    from .drift import (
+        apply_drift,
+        fiducial_drift,
+        lateral_only,
+        no_drift_caution,
+        plot_drift,
+        rcc_drift,
+    )
 
     out = _table_output(output, overwrite=overwrite, inputs=[locs])
     if plot is not None:
@@ -1568,8 +1575,13 @@ def drift(
     typer.echo(
         f"drift ({est.method}): range x {span[0]:.1f} nm, y {span[1]:.1f} nm, z {span[2]:.1f} nm"
     )
+    caution = no_drift_caution(est)
+    if caution:
+        typer.echo(f"caution: {caution}; it was applied (compare with --plot)")
     corrected = apply_drift(table, est)
     meta = {**meta, "drift": {"method": est.method, "reliable": bool(est.reliable)}}
+    if caution:
+        meta["drift"]["caution"] = caution
     _write_locs(corrected, out, meta)
     typer.echo(f"wrote {out}")
 

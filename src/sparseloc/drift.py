@@ -62,6 +62,7 @@ __all__ = [
     "apply_drift",
     "fiducial_drift",
     "lateral_only",
+    "no_drift_caution",
     "plot_drift",
     "rcc_drift",
 ]
@@ -336,6 +337,50 @@ def _rcc_z(
         "pairs_used_z": int(sol.used.sum()),
     }
     return _Stage(d_z, contrast_z, sol.used, sol.residuals, sol.shifts, sol.scale, ok, details)
+
+
+#: One-sided significance of the successive-difference test in :func:`no_drift_caution`.
+NO_DRIFT_P = 0.01
+
+
+def smooth_p(shifts: NDArray) -> NDArray[np.float64]:
+    """(D,): for each axis, how likely segment shifts this smooth are as independent noise.
+
+    Von Neumann's ratio ``eta = sum (s[j+1] - s[j])^2 / sum (s[j] - mean)^2`` is about 2 for
+    independent values and small for a drift (a drift changes little from one segment to the
+    next); under independence it is about normal with mean 2 and variance
+    ``4 (S - 2) / (S^2 - 1)``. NaN with fewer than 4 segments or a constant axis."""
+    from scipy.stats import norm
+
+    s = np.asarray(shifts, dtype=np.float64)
+    n = s.shape[0]
+    if n < 4:
+        return np.full(s.shape[1], np.nan)
+    dev = np.sum((s - s.mean(axis=0)) ** 2, axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        eta = np.sum(np.diff(s, axis=0) ** 2, axis=0) / dev
+    z = (eta - 2.0) / np.sqrt(4.0 * (n - 2) / (n * n - 1.0))
+    return np.where(dev > 0, norm.cdf(z), np.nan)
+
+
+def no_drift_caution(result: DriftResult) -> str | None:
+    """A caution when an RCC estimate's segment shifts look like independent noise in every
+    axis, not like a drift (:func:`smooth_p` above :data:`NO_DRIFT_P`): the apparent shifts
+    of segments that hold different molecules; correcting then moves the table by them.
+    None otherwise, for fiducial estimates and for fewer than 4 segments."""
+    shifts = result.segment_shifts
+    if result.method != "rcc" or shifts is None:
+        return None
+    axes = 3 if result.details.get("z_estimated") else 2
+    p = smooth_p(shifts[:, :axes])
+    if np.any(~np.isfinite(p)) or np.any(p < NO_DRIFT_P):
+        return None
+    names = "x, y and z" if axes == 3 else "x and y"
+    return (
+        f"the {len(shifts)} segments' shifts vary from one segment to the next like noise in "
+        f"{names}, not like a drift: this table may not drift, and the correction moves it by "
+        "that noise"
+    )
 
 
 def lateral_only(result: DriftResult) -> DriftResult | None:

@@ -123,7 +123,7 @@ def _drift_section(
             f"{DRIFT_MIN_LOCS:,} localizations).",
             None,
         )
-    from .drift import plot_drift, rcc_drift
+    from .drift import no_drift_caution, plot_drift, rcc_drift
 
     try:
         # Unreliable: the section's text says why; logged too, the warnings would be printed on
@@ -149,6 +149,9 @@ def _drift_section(
         )
     if not d.reliable:
         text += " <b>Unreliable:</b> " + html.escape("; ".join(d.warnings))
+    caution = no_drift_caution(d)
+    if caution:
+        text += " <b>Caution:</b> " + html.escape(caution) + "."
     return text, figure
 
 
