@@ -114,23 +114,64 @@ class FitResult:
     """
 
     emitters: Emitters
-    sigma: NDArray[np.float64]
     background: NDArray[np.float64]
-    background_sigma: NDArray[np.float64]
     model_image: NDArray[np.float64]
     log_likelihood: float
     deviance_per_dof: float
-    flags: NDArray[np.str_]
     converged: bool
     n_iter: int
+    #: The Fisher matrix at the fit (P, P), the window's edges (x0, y0, x1, y1; nm) and the
+    #: model's z range (nm): the uncertainties and flags below come from them.
+    fisher: NDArray[np.float64] = field(repr=False, default_factory=lambda: np.zeros((0, 0)))
+    window: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    z_range: tuple[float, float] = (-np.inf, np.inf)
     history: list[str] = field(default_factory=list)
-    #: The Cramer-Rao standard errors (K, 4) before :func:`fit_flags` blanks a flagged row's:
-    #: the count selection's Wald statistic needs them for every emitter.
-    crlb: NDArray[np.float64] | None = None
+    _derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def n_params(self) -> int:
         return 4 * len(self.emitters) + self.background.size
+
+    # The uncertainties and flags are computed when first asked for: most trial fits of the
+    # count selection and the relocations are compared by their likelihood alone.
+    @property
+    def sigma(self) -> NDArray[np.float64]:
+        return self._uncertainties()["sigma"]
+
+    @property
+    def flags(self) -> NDArray[np.str_]:
+        return self._uncertainties()["flags"]
+
+    @property
+    def background_sigma(self) -> NDArray[np.float64]:
+        return self._uncertainties()["background_sigma"]
+
+    @property
+    def crlb(self) -> NDArray[np.float64]:
+        """The Cramer-Rao standard errors (K, 4) before :func:`fit_flags` blanks a flagged
+        row's: the count selection's Wald statistic needs them for every emitter."""
+        return self._uncertainties()["crlb"]
+
+    def _uncertainties(self) -> dict:
+        if not self._derived:
+            sd, fisher_ok = _standard_errors(self.fisher)
+            em = self.emitters.as_array().reshape(-1, 4)
+            k = len(em)
+            sigma, flags = fit_flags(
+                em,
+                sd[: 4 * k].reshape(k, 4),
+                z_range=self.z_range,
+                window=self.window,
+                converged=self.converged,
+                fisher_ok=fisher_ok,
+            )
+            self._derived.update(
+                sigma=sigma,
+                flags=flags,
+                background_sigma=sd[4 * k :],
+                crlb=sd[: 4 * k].reshape(k, 4),
+            )
+        return self._derived
 
 
 def check_qe(qe: float) -> float:
@@ -564,8 +605,6 @@ def _result(prob: LikelihoodProblem, theta, mu, f, fisher, converged, n_iter) ->
     """The :class:`FitResult` of a fit that ended at ``theta`` (``fisher``: its Fisher
     matrix, from which the standard errors come; flags by :func:`fit_flags`)."""
     em, b = prob.split(theta)
-    sd, fisher_ok = _standard_errors(fisher)
-    k = len(em)
     rows, cols = prob.shape
     window = (
         prob.origin[0],
@@ -573,25 +612,16 @@ def _result(prob: LikelihoodProblem, theta, mu, f, fisher, converged, n_iter) ->
         prob.origin[0] + cols * prob.px,
         prob.origin[1] + rows * prob.px,
     )
-    sigma, flags = fit_flags(
-        em,
-        sd[: 4 * k].reshape(k, 4),
-        z_range=(prob.zlo, prob.zhi),
-        window=window,
-        converged=converged,
-        fisher_ok=fisher_ok,
-    )
     dof = max(prob.y.size - theta.size, 1)
     return FitResult(
         emitters=Emitters.from_array(em),
-        sigma=sigma,
         background=b.copy(),
-        background_sigma=sd[4 * k :],
         model_image=mu,
         log_likelihood=-f,
         deviance_per_dof=prob.deviance(mu) / dof,
-        flags=flags,
         converged=converged,
         n_iter=n_iter,
-        crlb=sd[: 4 * k].reshape(k, 4),
+        fisher=np.asarray(fisher, dtype=np.float64).copy(),
+        window=window,
+        z_range=(prob.zlo, prob.zhi),
     )
