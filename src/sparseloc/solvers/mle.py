@@ -111,6 +111,13 @@ class FitResult:
         ``"ok"`` or the reason the emitter is doubtful.
     converged : bool
     n_iter : int
+    fisher : ndarray, shape (P, P)
+        The Fisher matrix at the fit; ``sigma``, ``background_sigma``, ``flags`` and ``crlb``
+        are computed from it (with ``window`` and ``z_range``) when first asked for.
+    window : (x0, y0, x1, y1)
+        Edges of the fitted window (nm).
+    z_range : (float, float)
+        The model's z range (nm).
     """
 
     emitters: Emitters
