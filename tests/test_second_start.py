@@ -268,3 +268,20 @@ def test_the_second_start_is_a_parameter_of_the_run():
     on = _FrameSolver(model, LocalizeParams(pixel_size=PX), (48, 48))
     off = _FrameSolver(model, LocalizeParams(pixel_size=PX, second_start=False), (48, 48))
     assert on.l1 is not None and off.l1 is None
+
+
+def test_tied_maxima_give_one_start():
+    """A lone atom's 3 x 3 sum is flat: every pixel of it tied as a maximum, and rounding
+    decided how many starts came from one place."""
+    from sparseloc.solvers.frame_l1 import _separated_maxima
+
+    total = np.zeros((20, 20))
+    total[4:7, 4:7] = 500.0  # a flat plateau: one peak, its first pixel
+    total[14, 14] = total[14, 16] = 300.0  # two equal maxima 2 px apart: one
+    total[15, 4] = 50.0  # below the floor
+    peaks = _separated_maxima(total, 5, 100.0)
+    assert peaks.tolist() == [[4, 4], [14, 14]]
+    total[14, 16] += 1e-9  # rounding: the other of the two, still one
+    assert _separated_maxima(total, 5, 100.0).tolist() == [[4, 4], [14, 16]]
+    total[14, 19] = 200.0  # outside the window of both: a peak of its own
+    assert len(_separated_maxima(total, 5, 100.0)) == 3

@@ -115,19 +115,40 @@ def _fista(conv: Convolver, y: NDArray, w: NDArray, lam: NDArray, iterations: in
     return x
 
 
+def _separated_maxima(total: NDArray, size: int, floor: float) -> NDArray[np.intp]:
+    """Pixels (K, 2) of the local maxima of ``total`` over ``size`` x ``size`` pixels above
+    ``floor``, strongest first, none within ``size // 2`` pixels (per axis) of a stronger one.
+
+    Maxima that tie are one peak, the first in raster order: a lone atom's 3 x 3 sum is flat,
+    and which of its pixels equal the local maximum depends on the last bits of the sums, so
+    without this rule rounding alone gave one start or several at one place.
+    """
+    top = np.argwhere((total == ndi.maximum_filter(total, size=size)) & (total > floor))
+    order = np.lexsort((np.arange(len(top)), -total[top[:, 0], top[:, 1]]))
+    half = size // 2
+    taken = np.zeros(total.shape, dtype=bool)  # within half of a kept peak
+    kept = []
+    for r, c in top[order]:
+        if not taken[r, c]:
+            kept.append((r, c))
+            taken[max(r - half, 0) : r + half + 1, max(c - half, 0) : c + half + 1] = True
+    return np.array(kept, dtype=np.intp).reshape(-1, 2)
+
+
 def _peaks(x: NDArray, templates: FrameTemplates, size: int, min_photons: float) -> NDArray:
     """Emitters (K, 4) at the peaks of the amplitudes summed over templates and 3 x 3 pixels
-    (local maxima over ``size`` x ``size`` pixels with at least ``min_photons``): each the
+    (:func:`_separated_maxima` over ``size`` x ``size`` pixels with at least
+    ``min_photons``): each the
     amplitude-weighted mean position of the atoms of its 3 x 3 pixels on the planes within
     one plane of its strongest atom, with their summed amplitude."""
     px = templates.pixel_size
     total = ndi.uniform_filter(x.sum(axis=0).astype(np.float64), 3) * 9.0
-    peaks = (total == ndi.maximum_filter(total, size=size)) & (total > min_photons)
+    peaks = _separated_maxima(total, size, min_photons)
     zs = np.unique(templates.z)
     dz = float(np.min(np.diff(zs))) if zs.size > 1 else 0.0
     rows, cols = total.shape
     out = []
-    for r, c in np.argwhere(peaks):
+    for r, c in peaks.reshape(-1, 2):
         r0, r1, c0, c1 = max(r - 1, 0), min(r + 2, rows), max(c - 1, 0), min(c + 2, cols)
         a = x[:, r0:r1, c0:c1]
         strongest = int(np.argmax(a.reshape(len(a), -1).max(axis=1)))
