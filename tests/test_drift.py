@@ -322,6 +322,11 @@ def test_smooth_p_tells_a_drift_from_independent_noise():
     trend = np.linspace(0.0, 30.0, 10)[:, None]
     assert np.all([smooth_p(trend + s)[0] < NO_DRIFT_P for s in noise[:200]])
     assert np.isnan(smooth_p(np.zeros((10, 1)))[0]) and np.isnan(smooth_p(noise[0, :3])[0])
+    # the fifth walk-through: 4 segments of a straight drift were called noise; below 6
+    # segments even a straight line is not told apart from noise at 1 %, and none is said
+    line = np.linspace(0.0, 100.0, 10)[:, None]
+    assert np.isnan(smooth_p(line[:4])[0]) and np.isnan(smooth_p(line[:5])[0])
+    assert smooth_p(line[:6])[0] < NO_DRIFT_P
 
 
 def test_a_drift_free_table_gets_a_caution_and_a_drifting_one_none(truth, locs, tmp_path):

@@ -349,25 +349,31 @@ def smooth_p(shifts: NDArray) -> NDArray[np.float64]:
     Von Neumann's ratio ``eta = sum (s[j+1] - s[j])^2 / sum (s[j] - mean)^2`` is about 2 for
     independent values and small for a drift (a drift changes little from one segment to the
     next); under independence it is about normal with mean 2 and variance
-    ``4 (S - 2) / (S^2 - 1)``. NaN with fewer than 4 segments or a constant axis."""
+    ``4 (S - 2) / (S^2 - 1)``. Its smallest possible value, ``4 sin^2(pi / 2S)``, is that of
+    the smoothest series: with few segments even a straight line is not told apart from noise
+    (at :data:`NO_DRIFT_P`, fewer than 6 segments), and the answer is NaN, as for a constant
+    axis."""
     from scipy.stats import norm
 
     s = np.asarray(shifts, dtype=np.float64)
     n = s.shape[0]
-    if n < 4:
+    if n < 3:
+        return np.full(s.shape[1], np.nan)
+    sd = np.sqrt(4.0 * (n - 2) / (n * n - 1.0))
+    if norm.cdf((4.0 * np.sin(np.pi / (2 * n)) ** 2 - 2.0) / sd) >= NO_DRIFT_P:
         return np.full(s.shape[1], np.nan)
     dev = np.sum((s - s.mean(axis=0)) ** 2, axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
         eta = np.sum(np.diff(s, axis=0) ** 2, axis=0) / dev
-    z = (eta - 2.0) / np.sqrt(4.0 * (n - 2) / (n * n - 1.0))
-    return np.where(dev > 0, norm.cdf(z), np.nan)
+    return np.where(dev > 0, norm.cdf((eta - 2.0) / sd), np.nan)
 
 
 def no_drift_caution(result: DriftResult) -> str | None:
     """A caution when an RCC estimate's segment shifts look like independent noise in every
     axis, not like a drift (:func:`smooth_p` above :data:`NO_DRIFT_P`): the apparent shifts
     of segments that hold different molecules; correcting then moves the table by them.
-    None otherwise, for fiducial estimates and for fewer than 4 segments."""
+    None otherwise, for fiducial estimates and where the segments are too few to tell
+    (:func:`smooth_p`)."""
     shifts = result.segment_shifts
     if result.method != "rcc" or shifts is None:
         return None
