@@ -721,3 +721,23 @@ def test_calibrate_warns_where_the_stacks_noise_contradicts_the_gain(tmp_path):
         assert res.exit_code == 0, res.output
         assert ("the stack's noise says the camera's gain is" in res.output) is warned, res.output
         assert out.exists()
+
+
+def test_calibrate_warns_where_the_stacks_noise_says_the_offset_is_missing(tmp_path):
+    """The fifth walk-through: ``calibrate --offset 0`` (the offset forgotten) stored a model
+    error of 0.0 % (7.2 % with the right offset) and said nothing."""
+    from sparseloc.camera import Camera, offset_mismatch
+    from sparseloc.io.tiff import write_tiff
+
+    cam = Camera(kind="scmos", offset=200.0, gain=1.0, read_noise=1.5)
+    stack = _bead_stack(cam, seed=4)
+    tif = write_tiff(tmp_path / "beads.tif", stack, pixel_size=100.0)
+    for offset, warned in ((0, True), (190, True), (200, False), (199, False)):
+        out = tmp_path / f"psf{offset}.h5"
+        res = run("calibrate", tif, "-o", out, "--pixel-size", 100, "--z-step", 50,
+                  "--offset", offset)  # fmt: skip
+        assert res.exit_code == 0, res.output
+        said = "the stack's noise says the camera's offset is at least" in res.output
+        assert said is warned, res.output
+    # a higher offset than the camera's is not what the line can tell (it bounds from below)
+    assert offset_mismatch(stack, Camera(kind="scmos", offset=210.0, gain=1.0)) == ""

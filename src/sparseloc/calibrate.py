@@ -42,7 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 from .calibrate_crowd import LightProfile, light_profile, neighbour_light, plane_photons
 from .calibrate_error import MAX_MODEL_ERROR, bead_model_error
 from .calibrate_scan import BeadScan, read_bead_positions, read_scan, read_z_file
-from .camera import Camera, gain_mismatch
+from .camera import Camera, camera_mismatch
 from .psf.spline import SplinePSF
 
 __all__ = [
@@ -321,7 +321,7 @@ def calibrate_beads(
         registration); an exception it raises stops the calibration (a viewer's Cancel).
     camera : Camera, optional
         The camera that ``offset`` and ``gain`` describe: its gain is checked against the
-        stack's own noise (:func:`sparseloc.camera.gain_mismatch`), a disagreement kept in
+        stack's own noise (:func:`sparseloc.camera.camera_mismatch`), a disagreement kept in
         ``params["camera_warning"]`` ("" where they agree).
 
     Returns
@@ -350,7 +350,7 @@ def calibrate_beads(
     if fit_pupil:
         cal.pupil = _fit_pupil_in_frame(cal.psf, cal.z, cal.pixel_size, pupil_options)
     if camera is not None:
-        cal.params["camera_warning"] = gain_mismatch(stack, camera)
+        cal.params["camera_warning"] = camera_mismatch(stack, camera)
     log.info("calibrated from %d of %d beads, %d planes", cal.n_used, len(cal.beads), cal.z.size)
     return cal
 

@@ -40,9 +40,11 @@ __all__ = [
     "CameraEstimate",
     "apply_noise",
     "camera_from_options",
+    "camera_mismatch",
     "estimate_camera",
     "gain_mismatch",
     "noise_variance",
+    "offset_mismatch",
     "photon_transfer",
     "to_photons",
 ]
@@ -996,6 +998,48 @@ def estimate_camera(
 #: frames is a few percent, so a factor of 1.5 is a mistake (photons for electrons, a missed
 #: EM gain), not the estimate's scatter.
 GAIN_MISMATCH: float = 1.5
+
+
+def offset_mismatch(frames: ArrayLike, camera: Camera) -> str:
+    """A warning where a steady series (a bead z-stack) says the camera's offset is higher
+    than the one given.
+
+    The mean-variance line places the offset no lower than where the variance would reach
+    zero (:func:`estimate_camera` without an offset: a lower bound, low by the read
+    variance over the slope). An offset given below that bound by more than three of its
+    standard errors and more than one electron cannot be the camera's: a forgotten
+    ``--offset`` leaves the dark level in every photon count.
+
+    Returns
+    -------
+    str
+        "" where the offset given is not below the bound, or the line cannot place it;
+        else one sentence naming both.
+    """
+    try:
+        est = estimate_camera(frames, kind=camera.kind, em_gain=camera.em_gain)
+    except ValueError:
+        return ""
+    given = float(np.mean(camera.offset))
+    if est.method != "temporal" or est.caution or not np.isfinite(est.offset_error):
+        return ""
+    gap = est.offset - given
+    if gap <= 3.0 * est.offset_error or gap * est.gain <= 1.0:
+        return ""
+    return (
+        f"the stack's noise says the camera's offset is at least {est.offset:.1f} ADU (as "
+        f"sparseloc camera measures it), not the {given:g} given: the dark level left in the "
+        "counts skews the model error and every photon count; give --offset (the median of a "
+        "dark frame)"
+    )
+
+
+def camera_mismatch(frames: ArrayLike, camera: Camera) -> str:
+    """What a steady series' noise says against the camera described: the warnings of
+    :func:`offset_mismatch` and :func:`gain_mismatch` ("" for none)."""
+    return "; ".join(
+        w for w in (offset_mismatch(frames, camera), gain_mismatch(frames, camera)) if w
+    )
 
 
 def gain_mismatch(frames: ArrayLike, camera: Camera) -> str:
