@@ -248,7 +248,9 @@ def test_camera_on_blinking_emitters_says_its_gain_is_not_to_be_trusted(tmp_path
     assert "single-frame noise" in res.output and "caution:" in res.output
     assert _number(res.output, "gain") < 0.9  # the true gain is 1 e-/ADU
     # the fourth walk-through: the flags line read as advice to copy, caution or not
-    assert "localize with (rough: see the caution):" in res.output
+    assert "localize with (GAIN from the camera's data sheet" in res.output
+    # the fifth walk-through: the line to copy carried a gain 2.6x too low
+    assert "--gain GAIN" in res.output
     from sparseloc.camera import estimate_camera
 
     steady = _scmos_movie(tmp_path, gain=1.0)[1]
@@ -639,7 +641,7 @@ def test_camera_command_never_suggests_a_negative_offset(tmp_path, monkeypatch):
     path = tmp_path / "m.tif"
     rng = np.random.default_rng(0)
     tifffile.imwrite(path, rng.poisson(200.0, (6, 32, 32)).astype(np.uint16))
-    fake = camera_module.CameraEstimate(-25.0, 0.6, 0.0, False, 1.7, 42.0)
+    fake = camera_module.CameraEstimate(-25.0, 0.6, 0.0, False, 1.7, 42.0, method="temporal")
     monkeypatch.setattr(camera_module, "estimate_camera", lambda *a, **k: fake)
     res = run("camera", path)
     assert res.exit_code == 0, res.output

@@ -663,9 +663,9 @@ _TEMPORAL_BINS = 30
 #: What the spatial line says about its own bias (printed with its estimate).
 SPATIAL_CAUTION = (
     "the estimate comes from the pixel-to-pixel noise of single frames, and the curvature of "
-    "the emitters' images adds to it (on simulated single-molecule frames the gain came out "
-    "low by a factor of up to 2); for a trustworthy value run it on a steady series from the "
-    "same camera (a bead z-stack, flat or dark frames) or take the camera's data sheet"
+    "the emitters' images adds to it, so the gain comes out low, by a factor of 2 or more on "
+    "simulated single-molecule frames; for a trustworthy value run it on a steady series from "
+    "the same camera (a bead z-stack, flat or dark frames) or take the camera's data sheet"
 )
 
 

@@ -1245,15 +1245,19 @@ def camera_cmd(
         )
     flags = f"--camera {suggested} " if suggested != _D["camera"] else ""
     flags += "--offset " + (f"{est.offset:.1f}" if placed else "DARK_LEVEL")
-    flags += f" --gain {est.gain:.4g}"
+    # a line of flags reads as advice to copy: single frames' noise biases the gain low by a
+    # factor of 2 or more (the emitters' images), so that line leaves the gain to the user
+    rough = est.method != "temporal"
+    flags += " --gain GAIN" if rough else f" --gain {est.gain:.4g}"
     if kind == "emccd" and em_gain is not None:
         flags += f" --em-gain {em_gain:g}"
     if resolved and suggested != "ideal":
         flags += f" --read-noise {est.read_noise:.3g}"
-    # a line of flags reads as advice to copy: from single frames' noise (emitters' images
-    # bias it by up to 2x) it says that it is rough
-    rough = est.method != "temporal"
-    lead = "localize with (rough: see the caution)" if rough else "localize with"
+    lead = (
+        "localize with (GAIN from the camera's data sheet or a steady series: see the caution)"
+        if rough
+        else "localize with"
+    )
     typer.echo(f"{lead}: {flags}")
 
 
