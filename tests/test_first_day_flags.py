@@ -434,3 +434,16 @@ def test_overlay_zooms_on_a_region(movie_and_locs, tmp_path):
         r = runner.invoke(app, [*args, "-o", str(tmp_path / "bad.png"), "--region", bad])
         assert r.exit_code == 2 and "region" in r.output, r.output
     assert not (tmp_path / "bad.png").exists()
+
+
+def test_overlay_names_swapped_arguments_and_frames_say_their_form(movie_and_locs, tmp_path):
+    """The fifth walk-through: swapped overlay arguments said only that the TIFF is not a
+    table; ``--frames 5`` said only that it must look like START:STOP."""
+    movie, locs, _ = movie_and_locs
+    res = runner.invoke(app, ["overlay", str(locs), str(movie), "-o", str(tmp_path / "o.png")])
+    assert res.exit_code == 2 and "the movie goes first" in res.output, res.output
+    assert not (tmp_path / "o.png").exists()
+    from sparseloc.config import frame_range
+
+    with pytest.raises(ValueError, match="0:5 for the first five frames, 5:6 for frame 5"):
+        frame_range("5", 10)

@@ -1736,6 +1736,11 @@ def overlay(
         _run(check_pixel_size, pixel_size)
     if not movie.is_file():
         _fail(f"{str(movie)!r} does not exist or is not a file")
+    if locs.suffix.lower() in (".tif", ".tiff") and movie.suffix.lower() not in (".tif", ".tiff"):
+        _fail(
+            f"{locs.name!r} looks like the movie and {movie.name!r} like the localizations: the "
+            "movie goes first (sparseloc overlay MOVIE LOCS)"
+        )
     table, meta = _read_locs(locs)
     mov = _run(Movie.open, movie)
     with mov:

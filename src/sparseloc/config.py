@@ -266,7 +266,10 @@ def frame_range(frames: str | None, n: int) -> tuple[int, int]:
         a, b = str(frames).split(":")
         start, stop = int(a or 0), int(b) if b else n
     except ValueError:
-        raise ValueError(f"--frames must look like START:STOP, got {frames!r}") from None
+        raise ValueError(
+            f"--frames takes START:STOP (0-based, STOP excluded: 0:5 for the first five "
+            f"frames, 5:6 for frame 5), got {frames!r}"
+        ) from None
     if start < 0 or stop < 0:
         raise ValueError(
             f"--frames takes 0-based frame numbers >= 0 (START:STOP, STOP excluded); got {frames!r}"
