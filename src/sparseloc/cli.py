@@ -816,6 +816,9 @@ def localize(
         if default_psf:
             # said before the work too: with the wrong PSF a run is long and its result void
             typer.echo(f"using the built-in PSF '{opts['psf']}' as --psf was not given", err=True)
+        wide = _wide_window_note(job.params)
+        if wide:  # said before the work: it is the work that takes long
+            typer.echo(f"note: {wide}", err=True)
         asked = any(opts[k] is not None for k in ("run_dir", "chunk_frames", "scheduler"))
         if asked or resumable_by_default(job.stop - job.start):
             _localize_chunked(opts, out, mov, job, default_psf, auto=not asked)
@@ -854,6 +857,22 @@ def _run_notes(meta: dict, default_psf: str | None) -> None:
             f"PSF: the built-in '{default_psf}' (the default, as --psf was not given; pass "
             "--psf for a calibration, another built-in model or a mask file)"
         )
+
+
+def _wide_window_note(params) -> str:
+    """A note before a window method's run on windows wider than the paper's 11 px (sized
+    to hold a measured PSF's light): its dictionary and convex problems grow with the
+    window's area, so such runs take minutes per frame."""
+    from .config import LocalizeParams
+
+    paper = LocalizeParams.__dataclass_fields__["window"].default
+    if params.method == "frame" or params.window <= paper:
+        return ""
+    return (
+        f"--method {params.method} solves windows of {params.window} px (sized to hold this "
+        f"PSF's light; the paper's are {paper} px): expect minutes per frame; the default "
+        "--method frame solves whole frames in seconds"
+    )
 
 
 def _localize_in_processes(mov, job, workers: int):
