@@ -379,6 +379,12 @@ def test_swapped_evaluate_arguments_say_the_truth_goes_second(tmp_path):
     assert "is a Parquet file, not a CSV truth table" in res.output
     assert "the truth second" in res.output and "utf-8" not in res.output
     assert "Traceback" not in res.output
+    # the fifth walk-through: two CSV files swapped were scored as given
+    csv = tmp_path / "locs.csv"
+    write_table(complete_locs(truth.drop(columns="photons")), csv, pixel_size=100.0)
+    res = CliRunner().invoke(app, ["evaluate", str(truth_path), str(csv)])
+    assert res.exit_code == 2 and "columns of fitted localizations" in res.output, res.output
+    assert "the truth second" in res.output
 
 
 def test_a_score_against_another_movies_truth_gets_a_caution_above_the_figures(tmp_path):

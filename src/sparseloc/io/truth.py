@@ -113,6 +113,11 @@ _BINARY_MAGIC = {
 }
 
 
+#: Columns that only fitted localizations carry (uncertainties, fit quality): a truth table
+#: with them is a localization table in the truth's place.
+_FIT_COLUMNS = frozenset({"sigma_x_nm", "sigma_y_nm", "sigma_z_nm", "gof", "flag", "group"})
+
+
 def _binary_table_kind(path: Path) -> str | None:
     """The kind of a binary file (Parquet, HDF5, TIFF) from its magic bytes, else None."""
     with open(path, "rb") as fh:
@@ -170,6 +175,13 @@ def read_truth_csv(
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
         raise ValueError(f"{str(p)!r} is not a readable CSV table ({exc})") from exc
     df.columns = [str(c).strip() for c in df.columns]
+    fitted = [c for c in df.columns if c in _FIT_COLUMNS or c.startswith("uncertainty")]
+    if fitted:
+        raise ValueError(
+            f"{p.name} has the columns of fitted localizations ({', '.join(fitted[:3])}), not "
+            "of a ground truth: is it the localization table given in the truth's place? (the "
+            "localizations go first, the truth second)"
+        )
     if {"x_px", "y_px"} <= set(df.columns) and "x_nm" not in df.columns:
         if pixel_size is None:
             raise ValueError(
