@@ -437,3 +437,27 @@ def test_a_table_given_as_a_csv_mask_is_named_as_a_table(tmp_path):
     plain = tmp_path / "mask.csv"
     np.savetxt(plain, np.full((8, 8), 1.5e-1), delimiter=",")
     assert load_mask(plain, radius=3.0) is not None
+
+
+def test_pixel_truth_takes_the_tables_pixel_size_and_nm_truth_says_it_needs_none(tmp_path):
+    """The fifth walk-through: truth in pixels needed --pixel-size though the table knows it;
+    with truth in nm the option was taken silently, its caution implying it was used."""
+    from typer.testing import CliRunner
+
+    from sparseloc.cli import app
+    from sparseloc.io.tables import complete_locs, write_table
+
+    locs = pd.DataFrame({"frame": [0, 0], "x_nm": [1050.0, 3050.0], "y_nm": [2050.0, 550.0],
+                         "z_nm": [0.0, 100.0]})  # fmt: skip
+    table = tmp_path / "locs.parquet"
+    write_table(complete_locs(locs), table, metadata={"params": {"pixel_size": 100.0}})
+    px = tmp_path / "truth_px.csv"
+    px.write_text("frame_0based,x_px,y_px,z_um,photons_sum\n0,10,20,0,1000\n0,30,5,0.1,1000\n")
+    res = CliRunner().invoke(app, ["evaluate", str(table), str(px)])
+    assert res.exit_code == 0, res.output
+    assert "at the table's pixel size of 100 nm" in res.output and "100.00" in res.output
+    nm = tmp_path / "truth_nm.csv"
+    nm.write_text("frame,x_nm,y_nm,z_nm,photons\n0,1050,2050,0,1000\n0,3050,550,100,1000\n")
+    res = CliRunner().invoke(app, ["evaluate", str(table), str(nm), "--pixel-size", "110"])
+    assert res.exit_code == 0 and "--pixel-size is not used" in res.output, res.output
+    assert "differs from the table's" not in res.output

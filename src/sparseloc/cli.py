@@ -859,6 +859,14 @@ def _run_notes(meta: dict, default_psf: str | None) -> None:
         )
 
 
+def _truth_in_pixels(path: Path) -> bool:
+    """Whether a truth CSV (already read without error) gives positions in pixels."""
+    import pandas as pd
+
+    cols = {str(c).strip() for c in pd.read_csv(path, nrows=0).columns}
+    return {"x_px", "y_px"} <= cols and "x_nm" not in cols
+
+
 def _wide_window_note(params) -> str:
     """A note before a window method's run on windows wider than the paper's 11 px (sized
     to hold a measured PSF's light): its dictionary and convex problems grow with the
@@ -1330,11 +1338,20 @@ def evaluate(
     loc_df, meta = _run(read_table_and_metadata, locs)
     if pixel_size is not None:
         _run(check_pixel_size, pixel_size)
-    truth_df = _run(read_truth_csv, truth, pixel_size=pixel_size)
     params = meta.get("params") if isinstance(meta, dict) else None
     table_px = params.get("pixel_size") if isinstance(params, dict) else None
+    if not (isinstance(table_px, int | float) and np.isfinite(table_px) and table_px > 0):
+        table_px = None
+    # truth in pixels is of the movie the table was localized from: its pixel size by default
+    truth_px = table_px if pixel_size is None else pixel_size
+    truth_df = _run(read_truth_csv, truth, pixel_size=truth_px)
+    in_px = _truth_in_pixels(truth)
     cautions = []
-    if pixel_size is not None and isinstance(table_px, int | float) and table_px > 0:
+    if in_px and pixel_size is None:
+        typer.echo(f"truth in pixels, at the table's pixel size of {table_px:g} nm")
+    elif pixel_size is not None and not in_px:
+        _note(f"--pixel-size is not used: {truth.name} gives positions in nm")
+    elif pixel_size is not None and table_px is not None:
         if pixel_sizes_differ(pixel_size, table_px):
             cautions.append(
                 f"--pixel-size {pixel_size:g} nm differs from the table's {table_px:g} nm: truth "
