@@ -343,3 +343,20 @@ def test_ctrl_c_says_what_happened_and_writes_nothing(tmp_path, movie, monkeypat
     assert "interrupted" in res.output and "no output was written" in res.output
     assert "1 of 2 frames" in res.output
     assert "Traceback" not in res.output and not out.exists()
+
+
+def test_a_built_in_psf_takes_the_movies_recorded_pixel_size(tmp_path, caplog):
+    """The fifth walk-through: ``--psf dh`` asked for --pixel-size though the movie records
+    it (and localize already refused a --pixel-size contradicting that record)."""
+    movie = tmp_path / "m.tif"
+    res = run("simulate", "-o", movie, "--psf", "dh-analytic", "--frames", 1, "--rows", 32,
+              "--cols", 32, "--pixel-size", 110, "--density", 0.5, "--seed", 1)  # fmt: skip
+    assert res.exit_code == 0, res.output
+    out = tmp_path / "l.parquet"
+    with caplog.at_level(logging.WARNING):
+        res = run("localize", movie, "--psf", "dh-analytic", "-o", out, "--workers", 1)
+    assert res.exit_code == 0, res.output
+    assert "pixel size 110 nm, from the movie's metadata" in caplog.text
+    from sparseloc.io.tables import read_table_and_metadata
+
+    assert read_table_and_metadata(out)[1]["params"]["pixel_size"] == 110.0

@@ -12,6 +12,7 @@ writes; the Python API builds :class:`LocalizeParams` directly.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,8 @@ from .psf.base import PSFModel, light_radius
 from .solvers.frame import RELOCATE
 from .solvers.mle import check_qe
 from .units import WAVELENGTH_RANGE_NM, check_length_nm, check_pixel_size, check_z_limits
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "LOCALIZE_DEFAULTS",
@@ -392,11 +395,15 @@ def resolve_pixel_size(options: dict[str, Any], model: PSFModel, movie_pixel: fl
     cal_px = getattr(model, "pixel_size", None)
     if px is None and cal_px is not None:
         px = float(cal_px)
+    if px is None and movie_pixel:
+        # a movie that records its pixel size (sparseloc's simulate, OME, ImageJ metadata)
+        px = float(movie_pixel)
+        log.warning("pixel size %g nm, from the movie's metadata (--pixel-size overrides it)", px)
     if px is None:
         raise ValueError(
             "give the pixel size in sample space with --pixel-size NM: the PSF "
             f"{str(options.get('psf'))!r} does not carry one (a calibration from "
-            "sparseloc calibrate does)"
+            "sparseloc calibrate does), nor does the movie's metadata"
         )
     px = check_pixel_size(px, "--pixel-size" if options["pixel_size"] is not None else
                           "the calibration's pixel size")  # fmt: skip
