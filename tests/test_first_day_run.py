@@ -91,6 +91,15 @@ def test_a_failed_check_on_crowded_windows_names_the_model_then_the_crowding():
     assert "a wrong PSF or camera setting inflates both counts" in crowded.message
     alone = check_fit(gof, np.full(gof.size, dof), emitters=np.ones(gof.size))
     assert alone.verdict == "misfit" and "crowded" not in alone.message
+    # the fifth walk-through: at a goodness of fit of 6.3 the crowding still softened a wrong
+    # model; unresolved emitters (each below the count selection's ratio of 80) can add at
+    # most 7 x 80 / 400 = 1.4 here
+    near = check_fit(gof, np.full(gof.size, dof), emitters=np.full(gof.size, 7),
+                     unresolved_ratio=80.0)  # fmt: skip
+    assert near.verdict == "misfit" and "crowding" in near.message
+    far = check_fit(4.8 * gof, np.full(gof.size, dof), emitters=np.full(gof.size, 7),
+                    unresolved_ratio=80.0)  # fmt: skip
+    assert far.verdict == "misfit" and "crowding" not in far.message
     # metadata of a run before the field existed still reads
     old = {k: v for k, v in crowded.to_dict().items() if k != "emitters"}
     assert ModelCheck(**old).summary().startswith("model check: misfit")

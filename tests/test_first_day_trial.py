@@ -67,8 +67,13 @@ def test_localize_pixel_size_refusals_name_the_cause(movie, tmp_path):
     res = run("localize", movie, "-o", out, "--psf", "dh-analytic", "--pixel-size", 0)
     refused(res, "--pixel-size must be a positive number")
     assert "metadata" not in res.output
-    res = run("localize", movie, "-o", out)  # no --psf: the built-in model has no pixel size
-    refused(res, "--pixel-size", "'dh'", "sparseloc calibrate")
+    # no --psf: the built-in model has no pixel size, and this movie records none
+    import tifffile
+
+    plain = tmp_path / "plain.tif"
+    tifffile.imwrite(plain, tifffile.imread(movie))
+    res = run("localize", plain, "-o", out)
+    refused(res, "--pixel-size", "'dh'", "sparseloc calibrate", "nor does the movie's metadata")
     assert not out.exists()
 
 

@@ -125,6 +125,7 @@ def check_fit(
     *,
     density: float | None = None,
     alpha: float = ALPHA,
+    unresolved_ratio: float | None = None,
 ) -> ModelCheck:
     """Judge a run by the median goodness of fit of its windows (see the module notes).
 
@@ -145,6 +146,12 @@ def check_fit(
         Localizations per um^2 per frame, stated with the crowding.
     alpha : float
         Level of the per-window test.
+    unresolved_ratio : float, optional
+        The count selection's addition threshold (a likelihood ratio): an emitter left
+        unresolved adds less than this to its window's deviance, or it would have been
+        added. Crowding is named as a cause only where the median ``gof`` lies within what
+        as many unresolved emitters as fitted ones add (``upper + k * ratio / dof``); beyond
+        it, only the model is.
 
     Returns
     -------
@@ -172,7 +179,9 @@ def check_fit(
         else float(np.median(np.asarray(emitters, dtype=np.float64).ravel()[keep]))
     )
     dens = f" ({density:.2g} localizations per um^2 per frame with this model)" if density else ""
-    crowded = _CROWDED.format(k=k_med, density=dens) if k_med > CROWDED_EMITTERS else ""
+    reach = np.inf if unresolved_ratio is None else upper + k_med * unresolved_ratio / k
+    crowding = k_med > CROWDED_EMITTERS and med <= reach
+    crowded = _CROWDED.format(k=k_med, density=dens) if crowding else ""
     said = (
         f"the median goodness of fit (deviance per degree of freedom) of {g.size} fits is {med:.2f}"
     )
