@@ -67,14 +67,19 @@ def test_the_convolver_is_exact_with_templates_nearly_as_wide_as_the_frame():
     from scipy.signal import convolve2d, correlate2d
 
     rng = np.random.default_rng(2)
-    t = rng.random((2, 15, 15))
-    conv = Convolver(t, (12, 20))
-    assert conv.fshape[0] < 12 + 14  # shorter than the linear length
-    x, img = rng.random((2, 12, 20)), rng.random((12, 20))
-    want = sum(convolve2d(x[j], t[j], mode="same") for j in range(2))
-    assert np.allclose(conv.forward(x), want, rtol=1e-4, atol=1e-4)
-    want = np.stack([correlate2d(img, t[j], mode="same") for j in range(2)])
-    assert np.allclose(conv.adjoint(img), want, rtol=1e-4, atol=1e-4)
+    for width in (15, 14):  # odd and even
+        t = rng.random((2, width, width))
+        conv = Convolver(t, (12, 20))
+        assert conv.fshape[0] < 12 + width - 1  # shorter than the linear length
+        x, img = rng.random((2, 12, 20)), rng.random((12, 20))
+        fwd = conv.forward(x)
+        if width % 2:
+            want = sum(convolve2d(x[j], t[j], mode="same") for j in range(2))
+            assert np.allclose(fwd, want, rtol=1e-4, atol=1e-4)
+            want = np.stack([correlate2d(img, t[j], mode="same") for j in range(2)])
+            assert np.allclose(conv.adjoint(img), want, rtol=1e-4, atol=1e-4)
+        # the adjoint is the forward's, whatever the width
+        assert np.isclose(np.sum(fwd * img), np.sum(x * conv.adjoint(img)), rtol=1e-5)
 
 
 def test_the_l1_dictionary_has_one_phase_and_planes_twice_as_far_apart(analytic, l1):

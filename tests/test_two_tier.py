@@ -202,11 +202,13 @@ def test_a_unit_is_refitted_only_where_the_frame_solvers_rule_says_it_would_move
 def test_the_detections_correlations_are_exact_with_templates_nearly_as_wide_as_the_frame():
     # shorter circular FFTs than the linear results (detect.circular_shape): direct sums
     # as the reference
-    from scipy.signal import correlate2d
+    from scipy.signal import fftconvolve
 
     from sparseloc.detect import _correlations
 
     rng = np.random.default_rng(4)
-    stack, d = rng.random((2, 13, 13)), rng.random((10, 17))
-    want = np.stack([correlate2d(d, stack[j], mode="same") for j in range(2)])
-    assert np.allclose(_correlations(d, stack, {}), want, rtol=1e-4, atol=1e-4)
+    for width in (13, 12):  # odd and even
+        stack, d = rng.random((2, width, width)), rng.random((10, 17))
+        # the documented centring: fftconvolve's "same" with the flipped template
+        want = np.stack([fftconvolve(d, stack[j, ::-1, ::-1], mode="same") for j in range(2)])
+        assert np.allclose(_correlations(d, stack, {}), want, rtol=1e-4, atol=1e-4)

@@ -408,16 +408,17 @@ def snr_at(d: NDArray, noise: NDArray, template: NDArray, rc: NDArray) -> NDArra
     return np.max(corr / np.sqrt(np.maximum(var, 1e-12)), axis=1)
 
 
-def circular_shape(shape: tuple[int, ...], half: int) -> tuple[int, ...]:
+def circular_shape(shape: tuple[int, ...], width: int) -> tuple[int, ...]:
     """FFT lengths for the correlations (or convolutions) of an image of ``shape`` with
-    templates ``2 half + 1`` pixels wide whose outputs are kept at the image's own pixels.
+    templates ``width`` pixels wide whose outputs are kept at the image's own pixels.
 
-    The full linear result is ``n + 2 half`` long; a circular one of length ``>= n + half``
-    wraps its tail only onto the first ``half`` outputs, which are not kept (the image's
-    pixels start at ``half``). So ``n + half``, rounded up to a fast length, is exact and
-    needs fewer points: a 64 px crop with 41 px templates, 84 a side instead of 108.
+    The full linear result is ``n + width - 1`` long and the image's pixels start at the
+    template's centre offset ``(width - 1) // 2`` or ``width // 2``; a circular result of
+    length ``>= n + width // 2`` wraps its tail only onto outputs before that offset, which
+    are not kept. So that length, rounded up to a fast one, is exact and needs fewer points:
+    a 64 px crop with 41 px templates, 84 a side instead of 108.
     """
-    return tuple(sfft.next_fast_len(int(n) + int(half), real=True) for n in shape)
+    return tuple(sfft.next_fast_len(int(n) + int(width) // 2, real=True) for n in shape)
 
 
 def _correlations(d: NDArray, stack: NDArray, cache: dict | None) -> NDArray[np.float64]:
@@ -427,7 +428,7 @@ def _correlations(d: NDArray, stack: NDArray, cache: dict | None) -> NDArray[np.
     needs a few digits, and the transforms take half the time."""
     rows, cols = d.shape
     h = (stack.shape[-1] - 1) // 2
-    shape = circular_shape(d.shape, h)
+    shape = circular_shape(d.shape, stack.shape[-1])
     key = d.shape
     spectra = None if cache is None else cache.get(key)
     if spectra is None:

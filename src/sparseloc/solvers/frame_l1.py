@@ -60,27 +60,30 @@ class Convolver:
     the frame and their light outside it is lost."""
 
     def __init__(self, templates: NDArray, shape: tuple[int, int]) -> None:
-        self.h = templates.shape[-1] // 2
+        self.width = templates.shape[-1]
+        self.h = self.width // 2
         self.shape = shape
-        self.fshape = circular_shape(shape, self.h)
+        self.fshape = circular_shape(shape, self.width)
         self.ft = sfft.rfft2(templates, s=self.fshape).astype(np.complex64)
         # the adjoint is the convolution with the flipped templates: its outputs then lie at
         # the same offset as the forward's, a slice rather than a gather
         self.ft_flipped = sfft.rfft2(templates[:, ::-1, ::-1], s=self.fshape).astype(np.complex64)
 
-    def _crop(self, full: NDArray) -> NDArray:
-        h, (rows, cols) = self.h, self.shape
-        return full[..., h : h + rows, h : h + cols]
+    def _crop(self, full: NDArray, offset: int) -> NDArray:
+        rows, cols = self.shape
+        return full[..., offset : offset + rows, offset : offset + cols]
 
     def forward(self, x: NDArray) -> NDArray:
         """(rows, cols): the sum of every atom's template times its amplitude."""
         fx = sfft.rfft2(x.astype(np.float32, copy=False), s=self.fshape)
-        return self._crop(sfft.irfft2((fx * self.ft).sum(axis=0), s=self.fshape))
+        return self._crop(sfft.irfft2((fx * self.ft).sum(axis=0), s=self.fshape), self.h)
 
     def adjoint(self, img: NDArray) -> NDArray:
         """(J, rows, cols): the image's correlation with each template centred on each pixel."""
         f = sfft.rfft2(img.astype(np.float32, copy=False), s=self.fshape)
-        return self._crop(sfft.irfft2(f[None] * self.ft_flipped, s=self.fshape))
+        # the flipped template's centre lies at width - 1 - h (h itself for an odd width)
+        offset = self.width - 1 - self.h
+        return self._crop(sfft.irfft2(f[None] * self.ft_flipped, s=self.fshape), offset)
 
 
 def _step(conv: Convolver, w: NDArray) -> float:

@@ -138,7 +138,7 @@ class Correlator:
         self.h = t.shape[-1] // 2
         self.shape = shape
         self.batch = int(batch)
-        self.fshape = circular_shape(shape, self.h)
+        self.fshape = circular_shape(shape, t.shape[-1])
         self._flipped = t[:, ::-1, ::-1]
         self.ft = sfft.rfft2(self._flipped, s=self.fshape).astype(np.complex64)
         self.norm2 = np.empty((t.shape[0], *shape), dtype=np.float32)
