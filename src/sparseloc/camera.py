@@ -1000,7 +1000,19 @@ def estimate_camera(
 GAIN_MISMATCH: float = 1.5
 
 
-def offset_mismatch(frames: ArrayLike, camera: Camera) -> str:
+def _steady_line(frames: ArrayLike, camera: Camera) -> CameraEstimate | None:
+    """The estimate of :func:`estimate_camera` (offset not given: its bound) where it comes
+    from a steady series without a caution, else None."""
+    try:
+        est = estimate_camera(frames, kind=camera.kind, em_gain=camera.em_gain)
+    except ValueError:
+        return None
+    if est.method != "temporal" or est.caution or not (np.isfinite(est.gain) and est.gain > 0):
+        return None
+    return est
+
+
+def offset_mismatch(frames: ArrayLike, camera: Camera, est: CameraEstimate | None = None) -> str:
     """A warning where a steady series (a bead z-stack) says the camera's offset is higher
     than the one given.
 
@@ -1010,19 +1022,25 @@ def offset_mismatch(frames: ArrayLike, camera: Camera) -> str:
     standard errors and more than one electron cannot be the camera's: a forgotten
     ``--offset`` leaves the dark level in every photon count.
 
+    Parameters
+    ----------
+    frames : array_like, shape (frames, rows, cols)
+        Camera counts (ADU) of a steady series.
+    camera : Camera
+        The camera the user described (scalar offset and gain).
+    est : CameraEstimate, optional
+        The series' line (:func:`_steady_line`), where already computed.
+
     Returns
     -------
     str
         "" where the offset given is not below the bound, or the line cannot place it;
         else one sentence naming both.
     """
-    try:
-        est = estimate_camera(frames, kind=camera.kind, em_gain=camera.em_gain)
-    except ValueError:
+    est = _steady_line(frames, camera) if est is None else est
+    if est is None or not np.isfinite(est.offset_error):
         return ""
     given = float(np.mean(camera.offset))
-    if est.method != "temporal" or est.caution or not np.isfinite(est.offset_error):
-        return ""
     gap = est.offset - given
     if gap <= 3.0 * est.offset_error or gap * est.gain <= 1.0:
         return ""
@@ -1036,13 +1054,15 @@ def offset_mismatch(frames: ArrayLike, camera: Camera) -> str:
 
 def camera_mismatch(frames: ArrayLike, camera: Camera) -> str:
     """What a steady series' noise says against the camera described: the warnings of
-    :func:`offset_mismatch` and :func:`gain_mismatch` ("" for none)."""
-    return "; ".join(
-        w for w in (offset_mismatch(frames, camera), gain_mismatch(frames, camera)) if w
-    )
+    :func:`offset_mismatch` and :func:`gain_mismatch` from one line ("" for none)."""
+    est = _steady_line(frames, camera)
+    if est is None:
+        return ""
+    warnings = (offset_mismatch(frames, camera, est), gain_mismatch(frames, camera, est))
+    return "; ".join(w for w in warnings if w)
 
 
-def gain_mismatch(frames: ArrayLike, camera: Camera) -> str:
+def gain_mismatch(frames: ArrayLike, camera: Camera, est: CameraEstimate | None = None) -> str:
     """A warning where a steady series (a bead z-stack) contradicts the camera's gain.
 
     Parameters
@@ -1051,6 +1071,9 @@ def gain_mismatch(frames: ArrayLike, camera: Camera) -> str:
         Camera counts (ADU) of a steady series.
     camera : Camera
         The camera the user described (scalar offset and gain).
+    est : CameraEstimate, optional
+        The series' line (:func:`_steady_line`), where already computed: the gain does not
+        depend on the offset.
 
     Returns
     -------
@@ -1059,15 +1082,10 @@ def gain_mismatch(frames: ArrayLike, camera: Camera) -> str:
         :data:`GAIN_MISMATCH` or three standard errors, or cannot measure it without a caution;
         else one sentence naming both gains.
     """
-    try:
-        est = estimate_camera(
-            frames, offset=float(np.mean(camera.offset)), kind=camera.kind, em_gain=camera.em_gain
-        )
-    except ValueError:
+    est = _steady_line(frames, camera) if est is None else est
+    if est is None:
         return ""
     given = float(np.mean(camera.gain))
-    if est.method != "temporal" or est.caution or not (np.isfinite(est.gain) and est.gain > 0):
-        return ""
     ratio = given / est.gain
     if 1.0 / GAIN_MISMATCH <= ratio <= GAIN_MISMATCH or abs(given - est.gain) <= 3 * est.gain_error:
         return ""
