@@ -804,3 +804,14 @@ def test_a_bead_scans_frames_agree_at_about_one(scan, cal):
     rois = _whole_rois(data, centres, cal.params["roi_size_px"] // 2)
     assert len(rois) >= 4
     assert _frame_agreement(rois, data.background) > max(SCAN_AGREEMENT, 0.97)
+
+
+def test_the_figures_model_panels_are_half_a_step_off_every_plane(cal):
+    """The fifth walk-through: the last plane's "change over half a step" panel was blank (half
+    a step above it was clipped back onto it)."""
+    from sparseloc.plotting import _calibration_model
+
+    idx = np.array([0, len(cal.z) // 2, len(cal.z) - 1])
+    _, _, zs = _calibration_model(cal, idx)
+    assert np.allclose(np.abs(zs - cal.z[idx]), cal.psf.z_step / 2)
+    assert np.all(zs >= cal.psf.z_range[0]) and np.all(zs <= cal.psf.z_range[1])

@@ -519,7 +519,7 @@ def plot_calibration(cal, path: str | Path, *, n_planes: int = 7) -> Path:
 def _calibration_model(cal, idx: NDArray) -> tuple[str, NDArray, NDArray]:
     """The model shown against the average at planes ``idx``: its name, its images and their
     z (nm). The fitted pupil at the planes when there is one, else the spline half a step off
-    them."""
+    them (above, or below the last plane)."""
     psf = cal.psf
     z = cal.z
     nr, nc = cal.average.shape[1:]
@@ -531,7 +531,9 @@ def _calibration_model(cal, idx: NDArray) -> tuple[str, NDArray, NDArray]:
             np.full(idx.size, x0), np.full(idx.size, y0), z[idx], (nr, nc), p
         )
         return "pupil fit", mod / mod.sum(axis=(1, 2), keepdims=True), z[idx]
-    zs_mod = np.clip(z[idx] + psf.z_step / 2, *psf.z_range)
+    # half a step above each plane, below the last one (above it lies outside the model)
+    up = z[idx] + psf.z_step / 2
+    zs_mod = np.where(up <= psf.z_range[1], up, z[idx] - psf.z_step / 2)
     mod = psf.images(np.full(idx.size, x0), np.full(idx.size, y0), zs_mod, (nr, nc), p)
     return "spline (half step)", mod, zs_mod
 
