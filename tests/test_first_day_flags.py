@@ -461,3 +461,21 @@ def test_a_window_method_on_wide_windows_is_announced_as_slow():
         LocalizeParams(pixel_size=100.0, method="hybrid", window=43, margin=17)
     )
     assert "windows of 43 px" in note and "minutes per frame" in note
+
+
+def test_the_scale_bar_grows_with_the_image():
+    """The fifth walk-through: on the tetrapod's whole 54 um frame the bar was 1 um long."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sparseloc.plotting import _scale_bar
+
+    said = {}
+    for width in (1.3, 6.4, 54.1):
+        fig, ax = plt.subplots()
+        _scale_bar(ax, (0.0, width, width, 0.0), "white")
+        said[width] = ax.texts[0].get_text()
+        plt.close(fig)
+    assert said == {1.3: "0.2 µm", 6.4: "1 µm", 54.1: "10 µm"}

@@ -157,10 +157,12 @@ _METHOD_LABELS = {"mp": "MP", "omp": "OMP", "co": "CO", "hybrid": "MP+CO"}
 
 
 def _scale_bar(ax, extent_um: tuple[float, float, float, float], color: str) -> None:
-    """A horizontal scale bar (1 um, or the largest of 0.5/0.2/0.1 um that fits) bottom left."""
+    """A horizontal scale bar bottom left: the longest of 1, 2 or 5 times a power of ten um
+    within a fifth of the image's width (at least 0.1 um)."""
     x0, x1, y_bottom, y_top = extent_um
     width, height = x1 - x0, y_bottom - y_top
-    length = next((v for v in (1.0, 0.5, 0.2, 0.1) if v <= 0.8 * width), 0.1)
+    nice = [m * 10.0**k for k in range(-1, 4) for m in (1.0, 2.0, 5.0)]
+    length = max([v for v in nice if v <= width / 5] or [0.1])
     xs = x0 + 0.06 * width
     ys = y_bottom - 0.07 * height
     from matplotlib import patheffects
