@@ -65,6 +65,7 @@ __all__ = [
     "no_drift_caution",
     "plot_drift",
     "rcc_drift",
+    "smooth_p",
 ]
 
 log = logging.getLogger(__name__)
