@@ -385,6 +385,12 @@ def test_swapped_evaluate_arguments_say_the_truth_goes_second(tmp_path):
     res = CliRunner().invoke(app, ["evaluate", str(truth_path), str(csv)])
     assert res.exit_code == 2 and "columns of fitted localizations" in res.output, res.output
     assert "the truth second" in res.output
+    # a truth with a column of its own (a cluster's group) is still a truth
+    from sparseloc.io.truth import read_truth_csv
+
+    grouped = tmp_path / "grouped.csv"
+    truth.assign(group=[3]).to_csv(grouped, index=False)
+    assert len(read_truth_csv(grouped)) == 1
 
 
 def test_a_score_against_another_movies_truth_gets_a_caution_above_the_figures(tmp_path):

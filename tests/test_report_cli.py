@@ -292,8 +292,10 @@ def test_the_report_of_a_drift_corrected_table_speaks_of_residual_drift(scene):
     done = build_report(locs, metadata={"psf": "dh", "drift": {"method": "rcc", "reliable": True}})
     assert "already drift-corrected" in done and "residual drift" in done
     assert "not applied here" not in done
-    # the scene does not drift: the report says so, as the drift command does
-    assert "like noise" in plain and "like noise" in done
+    # the scene does not drift: the report says so, as the drift command does; on a corrected
+    # table the same finding says the correction left no drift (not a caution against it)
+    assert "like noise" in plain and "Caution:" in plain
+    assert "the correction left none" in done and "Caution:" not in done
 
 
 def test_the_reports_truth_section_cautions_as_evaluate_does(scene):

@@ -1304,7 +1304,8 @@ def evaluate(
         ),
     ],
     pixel_size: Annotated[
-        float | None, typer.Option(help="Pixel size (nm) for truth given in pixels.")
+        float | None,
+        typer.Option(help="Pixel size (nm) for truth given in pixels; default: the table's."),
     ] = None,
     lateral_tol: Annotated[float, typer.Option(help="Lateral match tolerance (nm).")] = 250.0,
     axial_tol: Annotated[float, typer.Option(help="Axial match tolerance (nm).")] = 500.0,

@@ -389,8 +389,8 @@ def pixel_sizes_differ(given: float, recorded: float) -> bool:
 
 
 def resolve_pixel_size(options: dict[str, Any], model: PSFModel, movie_pixel: float | None):
-    """The pixel size (nm): the option, else the calibration's; checked against the movie's
-    metadata (``movie_pixel``, nm or None)."""
+    """The pixel size (nm): the option, else the calibration's, else the movie's metadata
+    (``movie_pixel``, nm or None), which also checks the other two."""
     px = options["pixel_size"]
     cal_px = getattr(model, "pixel_size", None)
     if px is None and cal_px is not None:
@@ -405,8 +405,8 @@ def resolve_pixel_size(options: dict[str, Any], model: PSFModel, movie_pixel: fl
             f"{str(options.get('psf'))!r} does not carry one (a calibration from "
             "sparseloc calibrate does), nor does the movie's metadata"
         )
-    px = check_pixel_size(px, "--pixel-size" if options["pixel_size"] is not None else
-                          "the calibration's pixel size")  # fmt: skip
+    source = "the calibration's pixel size" if cal_px is not None else "the movie's pixel size"
+    px = check_pixel_size(px, "--pixel-size" if options["pixel_size"] is not None else source)
     if movie_pixel and pixel_sizes_differ(px, movie_pixel):
         raise ValueError(
             f"--pixel-size {px:g} nm differs from the movie's metadata ({movie_pixel:g} nm)"

@@ -148,10 +148,11 @@ def check_fit(
         Level of the per-window test.
     unresolved_ratio : float, optional
         The count selection's addition threshold (a likelihood ratio): an emitter left
-        unresolved adds less than this to its window's deviance, or it would have been
-        added. Crowding is named as a cause only where the median ``gof`` lies within what
-        as many unresolved emitters as fitted ones add (``upper + k * ratio / dof``); beyond
-        it, only the model is.
+        unresolved for its ratio adds less than this to its window's deviance (one rejected
+        for too few photons or by the model error's allowance may add more). Crowding is
+        named as a cause only where the median ``gof`` lies within what as many unresolved
+        emitters as fitted ones add, ``upper + k * ratio / dof``: a rough bound (the unresolved
+        are not counted), far beyond which crowding is not a plausible cause.
 
     Returns
     -------

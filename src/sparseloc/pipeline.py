@@ -527,14 +527,10 @@ def check_model(
     area_um2 = shape[0] * shape[1] * (px * 1e-3) ** 2
     density = len(table) / (area_um2 * max(table["frame"].nunique(), 1))
     bg = params.qe * wins["background"].to_numpy()
-    res = check_fit(
-        wins["gof"],
-        dof,
-        bg,
-        wins["k"],
-        density=density,
-        unresolved_ratio=add_threshold(None, params.qe),
-    )
+    # the frame solver's addition threshold bounds what an unresolved emitter adds (the
+    # windowed methods' count selection has its own; there crowding is named unbounded)
+    ratio = add_threshold(None, params.qe) if params.method == "frame" else None
+    res = check_fit(wins["gof"], dof, bg, wins["k"], density=density, unresolved_ratio=ratio)
     if warn and not res.ok:
         log.warning("%s", res.message)
     return res

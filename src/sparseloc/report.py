@@ -142,9 +142,14 @@ def _drift_section(
         )
     if not d.reliable:
         text += " <b>Unreliable:</b> " + html.escape("; ".join(d.warnings))
-    caution = no_drift_caution(d)
-    if caution:
-        text += " <b>Caution:</b> " + html.escape(caution) + "."
+    # shifts that vary like noise: on a corrected table the correction left no drift; on an
+    # uncorrected one there may be none to correct
+    if no_drift_caution(d):
+        text += (
+            " The residual shifts vary like noise, not like a drift: the correction left none."
+            if done
+            else " <b>Caution:</b> " + html.escape(no_drift_caution(d)) + "."
+        )
     return text, figure
 
 

@@ -113,9 +113,9 @@ _BINARY_MAGIC = {
 }
 
 
-#: Columns that only fitted localizations carry (uncertainties, fit quality): a truth table
-#: with them is a localization table in the truth's place.
-_FIT_COLUMNS = frozenset({"sigma_x_nm", "sigma_y_nm", "sigma_z_nm", "gof", "flag", "group"})
+#: Columns that only fitted localizations carry (uncertainties, goodness of fit): a truth
+#: table with them is a localization table in the truth's place.
+_FIT_COLUMNS = frozenset({"sigma_x_nm", "sigma_y_nm", "sigma_z_nm", "gof"})
 
 
 def _binary_table_kind(path: Path) -> str | None:

@@ -129,7 +129,7 @@ class FitResult:
     n_iter: int
     #: The Fisher matrix at the fit (P, P), the window's edges (x0, y0, x1, y1; nm) and the
     #: model's z range (nm): the uncertainties and flags below come from them.
-    fisher: NDArray[np.float64] = field(repr=False, default_factory=lambda: np.zeros((0, 0)))
+    fisher: NDArray[np.float64] = field(repr=False)
     window: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     z_range: tuple[float, float] = (-np.inf, np.inf)
     history: list[str] = field(default_factory=list)

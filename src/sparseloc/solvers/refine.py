@@ -276,9 +276,8 @@ def weakest_removed(
     # (weighted) likelihood ratio; the model error raises the bar of both
     bar = removal_threshold(k, lr_threshold, single_threshold)
     bar += _error_allowance(best, model, kw)
-    crlb = best.sigma if best.crlb is None else best.crlb
     with np.errstate(divide="ignore", invalid="ignore"):
-        walds = (arr[:, 3] / crlb[:, 3]) ** 2
+        walds = (arr[:, 3] / best.crlb[:, 3]) ** 2
     dim = arr[:, 3].min() < min_photons
     order = arr[:, 3] if dim else np.nan_to_num(walds, nan=0.0)
     weakest = int(np.argmin(order))
