@@ -1054,7 +1054,20 @@ def offset_mismatch(frames: ArrayLike, camera: Camera, est: CameraEstimate | Non
 
 def camera_mismatch(frames: ArrayLike, camera: Camera) -> str:
     """What a steady series' noise says against the camera described: the warnings of
-    :func:`offset_mismatch` and :func:`gain_mismatch` from one line ("" for none)."""
+    :func:`offset_mismatch` and :func:`gain_mismatch` from one line.
+
+    Parameters
+    ----------
+    frames : array_like, shape (frames, rows, cols)
+        Camera counts (ADU) of a steady series (a bead z-stack).
+    camera : Camera
+        The camera the user described.
+
+    Returns
+    -------
+    str
+        The warnings joined by "; ", or "" for none.
+    """
     est = _steady_line(frames, camera)
     if est is None:
         return ""

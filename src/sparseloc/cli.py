@@ -859,12 +859,39 @@ def _run_notes(meta: dict, default_psf: str | None) -> None:
         )
 
 
-def _truth_in_pixels(path: Path) -> bool:
-    """Whether a truth CSV (already read without error) gives positions in pixels."""
-    import pandas as pd
+def _table_pixel_size(meta: Any) -> float | None:
+    """The pixel size (nm) a table's metadata records, or None."""
+    params = meta.get("params") if isinstance(meta, dict) else None
+    value = params.get("pixel_size") if isinstance(params, dict) else None
+    ok = isinstance(value, int | float) and not isinstance(value, bool)
+    return float(value) if ok and np.isfinite(value) and value > 0 else None
 
-    cols = {str(c).strip() for c in pd.read_csv(path, nrows=0).columns}
-    return {"x_px", "y_px"} <= cols and "x_nm" not in cols
+
+def _read_truth(truth: Path, pixel_size: float | None, meta: Any) -> tuple[Any, list[str]]:
+    """The truth table and what to say of its pixel size: truth in pixels is of the movie the
+    table was localized from, so its pixel size is the table's unless given (evaluate and
+    report --truth)."""
+    from .config import pixel_sizes_differ
+    from .io.truth import read_truth_csv, truth_gives_pixels
+
+    table_px = _table_pixel_size(meta)
+    truth_df = _run(
+        read_truth_csv, truth, pixel_size=table_px if pixel_size is None else pixel_size
+    )
+    in_px = truth_gives_pixels(truth)
+    said = []
+    if in_px and pixel_size is None:
+        typer.echo(f"truth in pixels, at the table's pixel size of {table_px:g} nm")
+    elif pixel_size is not None and not in_px:
+        _note(f"--pixel-size is not used: {truth.name} gives positions in nm")
+    elif (
+        pixel_size is not None and table_px is not None and pixel_sizes_differ(pixel_size, table_px)
+    ):
+        said.append(
+            f"--pixel-size {pixel_size:g} nm differs from the table's {table_px:g} nm: truth "
+            "in pixels of the movie the table was localized from takes its pixel size"
+        )
+    return truth_df, said
 
 
 def _wide_window_note(params) -> str:
@@ -1323,11 +1350,10 @@ def evaluate(
     overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Match localizations to the truth and print Jaccard, RMSE, bias and efficiency."""
-    from .config import frame_range, pixel_sizes_differ
+    from .config import frame_range
     from .evaluate import evaluate as run_evaluation
     from .evaluate import result_cautions, scoring_cautions, truth_in_frames
     from .io.tables import read_table_and_metadata
-    from .io.truth import read_truth_csv
 
     for p in (locs, truth):
         if not p.is_file():
@@ -1339,25 +1365,7 @@ def evaluate(
     loc_df, meta = _run(read_table_and_metadata, locs)
     if pixel_size is not None:
         _run(check_pixel_size, pixel_size)
-    params = meta.get("params") if isinstance(meta, dict) else None
-    table_px = params.get("pixel_size") if isinstance(params, dict) else None
-    if not (isinstance(table_px, int | float) and np.isfinite(table_px) and table_px > 0):
-        table_px = None
-    # truth in pixels is of the movie the table was localized from: its pixel size by default
-    truth_px = table_px if pixel_size is None else pixel_size
-    truth_df = _run(read_truth_csv, truth, pixel_size=truth_px)
-    in_px = _truth_in_pixels(truth)
-    cautions = []
-    if in_px and pixel_size is None:
-        typer.echo(f"truth in pixels, at the table's pixel size of {table_px:g} nm")
-    elif pixel_size is not None and not in_px:
-        _note(f"--pixel-size is not used: {truth.name} gives positions in nm")
-    elif pixel_size is not None and table_px is not None:
-        if pixel_sizes_differ(pixel_size, table_px):
-            cautions.append(
-                f"--pixel-size {pixel_size:g} nm differs from the table's {table_px:g} nm: truth "
-                "in pixels of the movie the table was localized from takes its pixel size"
-            )
+    truth_df, cautions = _read_truth(truth, pixel_size, meta)
     recorded = meta.get("frames") if isinstance(meta, dict) else None
     if frames is not None:
         n = int(truth_df["frame"].max()) + 1 if len(truth_df) else 0
@@ -1714,7 +1722,6 @@ def report(
     overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Write a one-page HTML quality report (histograms, drift, image, FRC, evaluation)."""
-    from .io.truth import read_truth_csv
     from .report import write_report
 
     out = _new_output(output, overwrite=overwrite, inputs=[locs, truth, movie])
@@ -1727,7 +1734,9 @@ def report(
     if truth is not None:
         if not truth.is_file():
             _fail(f"{str(truth)!r} does not exist or is not a file")
-        truth_df = _run(read_truth_csv, truth, pixel_size=pixel_size)
+        truth_df, said = _read_truth(truth, pixel_size, meta)
+        for line in said:
+            typer.echo(f"caution: {line}")
     _run(
         write_report,
         table,

@@ -417,6 +417,18 @@ def circular_shape(shape: tuple[int, ...], width: int) -> tuple[int, ...]:
     length ``>= n + width // 2`` wraps its tail only onto outputs before that offset, which
     are not kept. So that length, rounded up to a fast one, is exact and needs fewer points:
     a 64 px crop with 41 px templates, 84 a side instead of 108.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        The image's shape (pixels).
+    width : int
+        The templates' width (pixels).
+
+    Returns
+    -------
+    tuple of int
+        The FFT length per axis.
     """
     return tuple(sfft.next_fast_len(int(n) + int(width) // 2, real=True) for n in shape)
 

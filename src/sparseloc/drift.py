@@ -353,7 +353,18 @@ def smooth_p(shifts: NDArray) -> NDArray[np.float64]:
     ``4 (S - 2) / (S^2 - 1)``. Its smallest possible value, ``4 sin^2(pi / 2S)``, is that of
     the smoothest series: with few segments even a straight line is not told apart from noise
     (at :data:`NO_DRIFT_P`, fewer than 6 segments), and the answer is NaN, as for a constant
-    axis."""
+    axis.
+
+    Parameters
+    ----------
+    shifts : ndarray, shape (S, D)
+        Segment shifts (nm), in time order.
+
+    Returns
+    -------
+    ndarray, shape (D,)
+        The one-sided chance of a ratio this small under independence, per axis.
+    """
     from scipy.stats import norm
 
     s = np.asarray(shifts, dtype=np.float64)
@@ -374,7 +385,18 @@ def no_drift_caution(result: DriftResult) -> str | None:
     axis, not like a drift (:func:`smooth_p` above :data:`NO_DRIFT_P`): the apparent shifts
     of segments that hold different molecules; correcting then moves the table by them.
     None otherwise, for fiducial estimates and where the segments are too few to tell
-    (:func:`smooth_p`)."""
+    (:func:`smooth_p`).
+
+    Parameters
+    ----------
+    result : DriftResult
+        A drift estimate.
+
+    Returns
+    -------
+    str or None
+        One sentence, or None.
+    """
     shifts = result.segment_shifts
     if result.method != "rcc" or shifts is None:
         return None

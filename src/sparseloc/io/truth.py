@@ -14,7 +14,14 @@ import pandas as pd
 
 from .atomic import atomic_path
 
-__all__ = ["TRUTH_COLUMNS", "check_truth_table", "read_truth_csv", "write_truth_csv"]
+__all__ = [
+    "TRUTH_COLUMNS",
+    "check_truth_table",
+    "gives_pixels",
+    "read_truth_csv",
+    "truth_gives_pixels",
+    "write_truth_csv",
+]
 
 log = logging.getLogger(__name__)
 
@@ -125,6 +132,18 @@ def _binary_table_kind(path: Path) -> str | None:
     return _BINARY_MAGIC.get(head)
 
 
+def gives_pixels(columns) -> bool:
+    """Whether a truth table with these column names gives positions in pixels
+    (storm-analysis's ``x_px, y_px``) rather than nm."""
+    cols = {str(c).strip() for c in columns}
+    return {"x_px", "y_px"} <= cols and "x_nm" not in cols
+
+
+def truth_gives_pixels(path: str | Path) -> bool:
+    """:func:`gives_pixels` of a truth CSV's header (a file :func:`read_truth_csv` read)."""
+    return gives_pixels(pd.read_csv(path, nrows=0).columns)
+
+
 def read_truth_csv(
     path: str | Path, *, require_photons: bool = True, pixel_size: float | None = None
 ) -> pd.DataFrame:
@@ -182,7 +201,7 @@ def read_truth_csv(
             "of a ground truth: is it the localization table given in the truth's place? (the "
             "localizations go first, the truth second)"
         )
-    if {"x_px", "y_px"} <= set(df.columns) and "x_nm" not in df.columns:
+    if gives_pixels(df.columns):
         if pixel_size is None:
             raise ValueError(
                 f"{p.name} gives positions in pixels (x_px, y_px); pass the pixel size "
