@@ -307,3 +307,21 @@ def test_the_reports_truth_section_cautions_as_evaluate_does(scene):
     moved = truth.assign(x_nm=truth["x_nm"] + 3000.0, y_nm=truth["y_nm"] + 3000.0)
     wrong = build_report(locs, truth=moved, metadata={"psf": "dh"})
     assert "is it the truth of this movie" in wrong
+
+
+def test_report_truth_in_pixels_takes_the_tables_pixel_size(scene, tmp_path):
+    """The review of the fifth walk-through's fix: evaluate took the table's pixel size for
+    truth in pixels, report --truth still refused without --pixel-size (one rule now)."""
+    from sparseloc.io.tables import write_table
+
+    locs, truth = scene
+    path = tmp_path / "locs.parquet"
+    write_table(locs, path, metadata={"params": {"pixel_size": 100.0}})
+    px = tmp_path / "truth_px.csv"
+    pd.DataFrame({"frame_0based": truth["frame"], "x_px": truth["x_nm"] / 100.0 - 0.5,
+                  "y_px": truth["y_nm"] / 100.0 - 0.5, "z_um": truth["z_nm"] / 1000.0,
+                  "photons_sum": 1000.0}).to_csv(px, index=False)  # fmt: skip
+    out = tmp_path / "r.html"
+    res = CliRunner().invoke(app, ["report", str(path), "-o", str(out), "--truth", str(px)])
+    assert res.exit_code == 0, res.output
+    assert "at the table's pixel size of 100 nm" in res.output and "Jaccard" in out.read_text()
