@@ -859,22 +859,15 @@ def _run_notes(meta: dict, default_psf: str | None) -> None:
         )
 
 
-def _table_pixel_size(meta: Any) -> float | None:
-    """The pixel size (nm) a table's metadata records, or None."""
-    params = meta.get("params") if isinstance(meta, dict) else None
-    value = params.get("pixel_size") if isinstance(params, dict) else None
-    ok = isinstance(value, int | float) and not isinstance(value, bool)
-    return float(value) if ok and np.isfinite(value) and value > 0 else None
-
-
 def _read_truth(truth: Path, pixel_size: float | None, meta: Any) -> tuple[Any, list[str]]:
     """The truth table and what to say of its pixel size: truth in pixels is of the movie the
     table was localized from, so its pixel size is the table's unless given (evaluate and
     report --truth)."""
     from .config import pixel_sizes_differ
+    from .io.tables import recorded_pixel_size
     from .io.truth import read_truth_csv, truth_gives_pixels
 
-    table_px = _table_pixel_size(meta)
+    table_px = recorded_pixel_size(meta)
     truth_df = _run(
         read_truth_csv, truth, pixel_size=table_px if pixel_size is None else pixel_size
     )

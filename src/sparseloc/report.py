@@ -144,11 +144,12 @@ def _drift_section(
         text += " <b>Unreliable:</b> " + html.escape("; ".join(d.warnings))
     # shifts that vary like noise: on a corrected table the correction left no drift; on an
     # uncorrected one there may be none to correct
-    if no_drift_caution(d):
+    caution = no_drift_caution(d)
+    if caution:
         text += (
             " The residual shifts vary like noise, not like a drift: the correction left none."
             if done
-            else " <b>Caution:</b> " + html.escape(no_drift_caution(d)) + "."
+            else " <b>Caution:</b> " + html.escape(caution) + "."
         )
     return text, figure
 
@@ -344,12 +345,13 @@ def _overlay_pixel_size(
     given: float | None, metadata: Mapping[str, Any] | None, movie_px: float | None
 ) -> float:
     """The camera pixel size (nm): given, else the analysis' (metadata), else the movie's."""
+    from .io.tables import recorded_pixel_size
+
     if given is not None:
         return float(given)
-    params = metadata.get("params") if isinstance(metadata, Mapping) else None
-    value = params.get("pixel_size") if isinstance(params, Mapping) else None
-    if isinstance(value, int | float) and not isinstance(value, bool) and value > 0:
-        return float(value)
+    recorded = recorded_pixel_size(metadata)
+    if recorded is not None:
+        return recorded
     if movie_px is not None:
         return float(movie_px)
     raise ValueError(

@@ -408,6 +408,15 @@ def format_for(path: str | Path, format: str | None) -> str:
     return _SUFFIX_FORMATS[suffix]
 
 
+def recorded_pixel_size(metadata: Any) -> float | None:
+    """The camera pixel size (nm) a table's analysis metadata records (``params``), or None."""
+    params = metadata.get("params") if isinstance(metadata, Mapping) else None
+    value = params.get("pixel_size") if isinstance(params, Mapping) else None
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value) if np.isfinite(value) and value > 0 else None
+
+
 def read_table_and_metadata(path: str | Path) -> tuple[pd.DataFrame, dict[str, Any]]:
     """:func:`read_table`, with the analysis metadata of a sparseloc Parquet table or of a
     Picasso table that sparseloc wrote (its sidecar's ``sparseloc`` document); ``{}`` for the
