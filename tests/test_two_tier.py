@@ -147,6 +147,39 @@ def test_two_tier_matches_the_whole_frame_schedule_on_a_sparse_movie(astig):
     assert np.max(np.abs(a[:, :2] - b[:, :2])) < 3.0 and np.max(np.abs(a[:, 2] - b[:, 2])) < 8.0
 
 
+def _crowd(centre, n, spread, seed):
+    """``n`` emitters within ``spread`` nm of ``centre`` (nm), 3000 photons, z in +-300 nm."""
+    rng = np.random.default_rng(seed)
+    xy = np.asarray(centre, float) + rng.uniform(-spread, spread, (n, 2))
+    return np.column_stack([xy, rng.uniform(-300, 300, n), np.full(n, 3000.0)])
+
+
+def test_auto_solves_a_frame_with_a_large_crowd_whole_and_a_sparse_one_in_tiers(astig):
+    """``auto``: two tiers where every crowd is small, the whole-frame solver where one holds
+    more than SMALL_CROWD starts (the same tables as each schedule alone)."""
+    work, p, _ = astig
+    sparse = [[1500.0, 1600.0, -200.0, 3000.0], [4800.0, 4500.0, 250.0, 2500.0]]
+    crowded = np.vstack([sparse, _crowd((3200.0, 3200.0), 8, 450.0, seed=4)])
+    for truth, expected, whole in ((sparse, "two-tier", 0), (crowded, "whole-frame", 1)):
+        frames = _frame(work, truth, seed=1)[None]
+        counts = TierCounts()
+        p_auto = replace(p, frame_schedule="auto", background="spatial")
+        solver = _FrameSolver(work, p_auto, SHAPE)
+        auto = solve_two_tier(
+            frames[0], np.full(SHAPE, 10.0), work, solver.templates, pursuit=solver.start,
+            fit_options=solver.fit_kwargs(), min_snr=p.min_snr, noise_factor=1.0,
+            counts=counts, whole_when_crowded=True,
+        )  # fmt: skip
+        assert (auto is None) == bool(whole) and counts.frames_whole == whole
+        a = localize(frames, work, p_auto).table
+        b = localize(frames, work, replace(p_auto, frame_schedule=expected)).table
+        cols = ["x_nm", "y_nm", "z_nm", "photons"]
+        assert len(a) == len(b) >= 2
+        np.testing.assert_allclose(
+            a.sort_values("x_nm")[cols].to_numpy(), b.sort_values("x_nm")[cols].to_numpy()
+        )
+
+
 def test_an_unknown_schedule_is_refused(tmp_path):
     with pytest.raises(ValueError, match="frame_schedule"):
         LocalizeParams(pixel_size=PX, frame_schedule="fast")

@@ -657,9 +657,9 @@ def localize(
     frame_schedule: Annotated[
         str | None,
         typer.Option(
-            help="How the frame solver spends its work: whole-frame (default) or two-tier "
-            "(experimental: emitters alone fitted singly, the full solver only on crowds; "
-            "1.3-2x faster on sparse movies).",
+            help="How the frame solver spends its work: auto (default: emitters alone fitted "
+            "singly and the full solver on small crowds, frames with large crowds solved "
+            "whole; about 2x faster on sparse movies), whole-frame, or two-tier (never whole).",
         ),
     ] = None,
     second_start: Annotated[

@@ -46,7 +46,7 @@ __all__ = [
 
 METHODS = ("frame", "hybrid", "mp", "co")
 #: How the frame solver spends its work (see ``LocalizeParams.frame_schedule``).
-SCHEDULES = ("two-tier", "whole-frame")
+SCHEDULES = ("auto", "two-tier", "whole-frame")
 
 
 @dataclass(frozen=True)
@@ -118,14 +118,15 @@ class LocalizeParams:
         each emitter in turn replaced by the best PSF position of what its neighbours leave
         unexplained, kept where the likelihood rises; each pass costs time and finds emitters
         that crowds hide. 0 disables.
-    frame_schedule : {"whole-frame", "two-tier"}
-        How the ``frame`` solver spends its work. ``whole-frame`` (default): the pursuit and
-        the fits over every emitter of the frame. ``two-tier`` (experimental): emitters whose
-        images overlap no other's are fitted alone, and the pursuit and the fits with count
-        selection run only where the light crowds or one emitter does not explain it
-        (:mod:`sparseloc.solvers.two_tier`): 1.3-2x faster at 0.05 emitters/um^2 with the
-        same Jaccard on simulations; on storm-analysis's 1 /um^2 double-helix frame 1.8
-        points lower (``docs/benchmarks/two_tier.txt``).
+    frame_schedule : {"auto", "whole-frame", "two-tier"}
+        How the ``frame`` solver spends its work. ``whole-frame``: the pursuit and the fits
+        over every emitter of the frame. ``two-tier``: emitters whose images overlap no
+        other's are fitted alone, and the fits with count selection run only where the light
+        crowds or one emitter does not explain it (:mod:`sparseloc.solvers.two_tier`).
+        ``auto`` (default): two tiers, but a frame whose crowds are large or hold more
+        emitters than the singles is solved whole: on sparse simulated movies about twice as
+        fast as ``whole-frame`` with the same Jaccard, on dense ones the same tables
+        (``docs/benchmarks/auto_schedule.txt``).
     second_start : bool
         The whole-frame solver also fits the frame from a second start, the peaks of its
         non-negative L1 deconvolution (:mod:`sparseloc.solvers.frame_l1`), and keeps, region
@@ -154,7 +155,7 @@ class LocalizeParams:
     engine: str = "auto"
     qe: float = 1.0
     relocate: int = RELOCATE
-    frame_schedule: str = "whole-frame"
+    frame_schedule: str = "auto"
     second_start: bool = True
 
     def __post_init__(self) -> None:

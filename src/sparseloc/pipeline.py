@@ -245,8 +245,8 @@ class _FrameSolver:
             return frame_fit(
                 frame, self.model, emitters, background=background, **self.fit_kwargs()
             )
-        if self.p.frame_schedule == "two-tier":
-            return solve_two_tier(
+        if self.p.frame_schedule in ("two-tier", "auto"):
+            fit = solve_two_tier(
                 frame,
                 background,
                 self.model,
@@ -257,7 +257,10 @@ class _FrameSolver:
                 noise_factor=_variance_factor(self.p),
                 read_variance=self.noise_kw.get("read_variance", 0.0),
                 cache=self.detection_cache,
+                whole_when_crowded=self.p.frame_schedule == "auto",
             )
+            if fit is not None:
+                return fit
         start = self.start(frame, background)
         first = frame_fit(frame, self.model, start, background=background, **self.fit_kwargs())
         return first if self.l1 is None else self.second(frame, background, first)

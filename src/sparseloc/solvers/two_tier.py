@@ -32,6 +32,13 @@ tiers:
    frame solver's pursuit on a crop around it (:func:`crowd_boxes`). Units that see the
    crowds' light are refitted with it.
 
+Under the ``auto`` schedule (``whole_when_crowded``) a frame is solved whole instead, by the
+frame solver's pursuit, fits and second start, where after the promotion the crowds hold
+more starts than the kept units hold emitters, where one crowd holds more than
+:data:`SMALL_CROWD` starts, or where the crowds' fits grow one beyond that: two tiers only
+pay where most emitters are alone, and the whole-frame solver finds more where many images
+overlap.
+
 The fits, the z flips and the crowds' count selection are the frame solver's own
 (:func:`~sparseloc.solvers.mle.fit_emitters`, :func:`~sparseloc.solvers.frame.frame_fit`).
 Measurements: ``docs/benchmarks/two_tier.txt``.
@@ -112,6 +119,7 @@ class TierCounts:
     promoted: int = 0
     crowded: int = 0
     frames_with_crowds: int = 0
+    frames_whole: int = 0
 
 
 def crowd_distance(templates: FrameTemplates) -> float:
@@ -315,7 +323,8 @@ def solve_two_tier(
     z_flip: float = 0.15,
     counts: TierCounts | None = None,
     cache: dict | None = None,
-) -> FrameFit:
+    whole_when_crowded: bool = False,
+) -> FrameFit | None:
     """Solve one frame in two tiers (see the module notes).
 
     Parameters
@@ -345,10 +354,15 @@ def solve_two_tier(
         Incremented with this frame's counts.
     cache : dict, optional
         Kept between frames: the detection's planes and their spectra.
+    whole_when_crowded : bool
+        Return None where the crowds hold more starts than the kept units hold emitters,
+        where a crowd holds more than :data:`SMALL_CROWD` starts, or where its fit holds
+        more than that many emitters: the caller then solves the frame whole (its pursuit
+        and second start find more where images overlap than the crowds' fits).
 
     Returns
     -------
-    FrameFit
+    FrameFit or None
     """
     f = np.asarray(frame, dtype=np.float64)
     bg = np.broadcast_to(np.asarray(background, dtype=np.float64), f.shape)
@@ -414,8 +428,14 @@ def solve_two_tier(
     promoted = [k for k, u in enumerate(units) if u.doubtful() or near_resid[k] or close[k]]
     crowd_pts = np.vstack([resid, *(_unit_points([units[k]], px) for k in promoted)])
     kept = [k for k in range(len(units)) if k not in set(promoted)]
+    n_kept = sum(len(units[k].rows) for k in kept)
+    start = np.vstack([*(units[k].rows for k in promoted), z_starts(f, bg, resid, templates)])
+    if whole_when_crowded and (len(start) > n_kept or _large_crowd(start, px, opts["reach"])):
+        if counts is not None:
+            counts.frames_whole += 1
+        return None
     if counts is not None:
-        counts.singles += sum(len(units[k].rows) for k in kept)
+        counts.singles += n_kept
         counts.promoted += len(promoted)
         counts.crowded += len(crowd_pts)
         counts.frames_with_crowds += int(len(crowd_pts) > 0)
@@ -425,10 +445,14 @@ def solve_two_tier(
     crowd_fit = None
     if len(crowd_pts):
         known = [units[k].rows for k in kept]
-        start = np.vstack([*(units[k].rows for k in promoted), z_starts(f, bg, resid, templates)])
         crowd_fit, crowd_em = _solve_crowds(
             f, bg, model, start, known, light, pursuit, opts, crowd, rv
         )
+        # the count selection may have grown a small crowd into a large one
+        if whole_when_crowded and _large_crowd(crowd_em, px, opts["reach"]):
+            if counts is not None:
+                counts.frames_whole += 1
+            return None
         if len(crowd_em) and kept:
             tree = cKDTree(crowd_em[:, :2])
             for k in kept:
@@ -558,15 +582,25 @@ def _snapped(b, rows: int, cols: int) -> tuple[int, int, int, int]:
 SMALL_CROWD = 3
 
 
+def _crowd_groups(start: NDArray, px: float, reach: float) -> tuple[NDArray, list[list[int]]]:
+    """The crowds' starts (K, 4 nm) as pixels (K, 2) and their clusters: starts closer than
+    half a template's width (``reach``, nm) to another."""
+    pts = np.column_stack([start[:, 1] / px - 0.5, start[:, 0] / px - 0.5])
+    return pts, _clusters(pts, int(np.ceil(reach / px)))
+
+
+def _large_crowd(start: NDArray, px: float, reach: float) -> bool:
+    """Whether a crowd of more than :data:`SMALL_CROWD` starts is among ``start`` (K, 4)."""
+    return any(len(g) > SMALL_CROWD for g in _crowd_groups(start, px, reach)[1])
+
+
 def _solve_crowds(f, bg, model, start, known_rows, light, pursuit, opts, crowd, rv):
     """The frame solver on the crowds, with the units' light known: a small crowd
     (:data:`SMALL_CROWD`) from its starts ``start`` (K, 4), a larger one from the pursuit on
     a crop around it (:func:`_pursuit_crop`). Returns the FrameFit (frame coordinates) and
     its emitters (K, 4)."""
     px = opts["pixel_size"]
-    h = int(np.ceil(opts["reach"] / px))  # half a template's width
-    pts = np.column_stack([start[:, 1] / px - 0.5, start[:, 0] / px - 0.5])
-    groups = _clusters(pts, h)
+    pts, groups = _crowd_groups(start, px, opts["reach"])
     big = [i for g in groups if len(g) > SMALL_CROWD for i in g]
     small = [i for g in groups if len(g) <= SMALL_CROWD for i in g]
     fits = []
