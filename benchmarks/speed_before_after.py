@@ -1,8 +1,10 @@
 """The same frames through whichever sparseloc is imported: compare two versions of the code.
 
 Localizes ``N`` simulated 128 x 128 double-helix frames (``DENSITY`` emitters/um^2, default 1;
-seed 3) in one process and prints one JSON line (seconds, localizations, Jaccard, RMSE). Run
-it once with this checkout and once with an older one first on the path, back to back::
+seed 3) in one process and prints one JSON line (seconds, localizations, Jaccard, RMSE), with
+each checkout's default schedule (``auto`` from commit ef7f001 on, ``whole-frame`` before it:
+compare checkouts on one side of that change). Run it once with this checkout and once with an
+older one first on the path, back to back::
 
     git worktree add /tmp/old 633c58a
     PYTHONPATH=/tmp/old/src python benchmarks/speed_before_after.py 4

@@ -4,7 +4,8 @@ another's: a refactoring must leave them unchanged.
 Inputs: the density benchmark's movies (``density.py``'s simulation: double-helix pupil model,
 64 x 64 px of 100 nm, 20 frames at 0.5, 1 and 2 emitters/um^2, seeds 0, 1, 2) and storm-analysis's
 double-helix frames in ``../shared/data/storm_analysis_sim/dh`` (calibrated from its bead scan),
-all with the default frame solver and one process.
+all with the default frame solver and one process (each checkout's default schedule: ``auto``
+from commit ef7f001 on, ``whole-frame`` before it; compare checkouts on one side of that change).
 
 Usage::
 

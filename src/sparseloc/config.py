@@ -121,12 +121,13 @@ class LocalizeParams:
     frame_schedule : {"auto", "whole-frame", "two-tier"}
         How the ``frame`` solver spends its work. ``whole-frame``: the pursuit and the fits
         over every emitter of the frame. ``two-tier``: emitters whose images overlap no
-        other's are fitted alone, and the fits with count selection run only where the light
-        crowds or one emitter does not explain it (:mod:`sparseloc.solvers.two_tier`).
-        ``auto`` (default): two tiers, but a frame whose crowds are large or hold more
-        emitters than the singles is solved whole: on sparse simulated movies about twice as
-        fast as ``whole-frame`` with the same Jaccard, on dense ones the same tables
-        (``docs/benchmarks/auto_schedule.txt``).
+        other's are fitted alone, and the fits with count selection (from the pursuit on a
+        crop where a crowd is large) run only where the light crowds or one emitter does not
+        explain it (:mod:`sparseloc.solvers.two_tier`). ``auto`` (default): two tiers, but a
+        frame whose crowds hold more emitters than its singles, or whose crowds are large, is
+        solved whole (:func:`~sparseloc.solvers.two_tier.crowded`): on sparse simulated movies
+        1.2-1.9x as fast as ``whole-frame`` with the same Jaccard, on dense ones the same
+        tables, a few per cent slower (``docs/benchmarks/auto_schedule.txt``).
     second_start : bool
         The whole-frame solver also fits the frame from a second start, the peaks of its
         non-negative L1 deconvolution (:mod:`sparseloc.solvers.frame_l1`), and keeps, region

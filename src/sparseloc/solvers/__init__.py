@@ -1,9 +1,11 @@
-"""Solvers: the whole-frame solver (the default) and the paper's window solvers.
+"""Solvers: the frame solver (the default) and the paper's window solvers.
 
 - :func:`frame_fit` (:mod:`sparseloc.solvers.frame`) is the default: the pipeline
-  (:func:`sparseloc.pipeline.localize`) runs :func:`frame_pursuit` on each frame (through
-  :func:`tiled_pursuit`) and hands its emitters to :func:`frame_fit`, which fits groups of
-  overlapping emitters by maximum likelihood with their neighbours' light held fixed.
+  (:func:`sparseloc.pipeline.localize`) fits a frame's lone emitters singly and its small
+  crowds with :func:`frame_fit` (:mod:`sparseloc.solvers.two_tier`), and where the frame is
+  crowded runs :func:`frame_pursuit` on it (through :func:`tiled_pursuit`) and hands its
+  emitters to :func:`frame_fit`, which fits groups of overlapping emitters by maximum
+  likelihood with their neighbours' light held fixed.
 - Window solvers (``method`` ``hybrid``, ``mp``, ``co``): :func:`matching_pursuit`,
   :func:`convex_solve` and :func:`hybrid_solve` take one window (photons) and return a
   :class:`WindowSolution`; :func:`refine_solution` adds the maximum-likelihood stage.

@@ -41,7 +41,7 @@ overlap.
 
 The fits, the z flips and the crowds' count selection are the frame solver's own
 (:func:`~sparseloc.solvers.mle.fit_emitters`, :func:`~sparseloc.solvers.frame.frame_fit`).
-Measurements: ``docs/benchmarks/two_tier.txt``.
+Measurements: ``docs/benchmarks/two_tier.txt``, ``docs/benchmarks/auto_schedule.txt``.
 """
 
 from __future__ import annotations
@@ -83,6 +83,7 @@ __all__ = [
     "TierCounts",
     "crowd_boxes",
     "crowd_distance",
+    "crowded",
     "detection_match",
     "detection_planes",
     "misfit",
@@ -430,15 +431,8 @@ def solve_two_tier(
     kept = [k for k in range(len(units)) if k not in set(promoted)]
     n_kept = sum(len(units[k].rows) for k in kept)
     start = np.vstack([*(units[k].rows for k in promoted), z_starts(f, bg, resid, templates)])
-    if whole_when_crowded and (len(start) > n_kept or _large_crowd(start, px, opts["reach"])):
-        if counts is not None:
-            counts.frames_whole += 1
-        return None
-    if counts is not None:
-        counts.singles += n_kept
-        counts.promoted += len(promoted)
-        counts.crowded += len(crowd_pts)
-        counts.frames_with_crowds += int(len(crowd_pts) > 0)
+    if whole_when_crowded and crowded(start, n_kept, px, reach):
+        return _whole(counts)
 
     # 4. crowds: the frame solver with the units' light known; then units that see the
     # crowds' light once more with it
@@ -449,16 +443,34 @@ def solve_two_tier(
             f, bg, model, start, known, light, pursuit, opts, crowd, rv
         )
         # the count selection may have grown a small crowd into a large one
-        if whole_when_crowded and _large_crowd(crowd_em, px, opts["reach"]):
-            if counts is not None:
-                counts.frames_whole += 1
-            return None
+        if whole_when_crowded and _large_crowd(crowd_em, px, reach):
+            return _whole(counts)
         if len(crowd_em) and kept:
             tree = cKDTree(crowd_em[:, :2])
             for k in kept:
                 if any(tree.query_ball_point(r[:2], reach + tier.pad * px) for r in units[k].rows):
                     units[k] = tier.refit(units[k], [*rows_of(k), crowd_em])
+    if counts is not None:
+        counts.singles += n_kept
+        counts.promoted += len(promoted)
+        counts.crowded += len(crowd_pts)
+        counts.frames_with_crowds += int(len(crowd_pts) > 0)
     return _merge([units[k] for k in kept], crowd_fit, f.shape, px)
+
+
+def crowded(start: NDArray, n_kept: int, px: float, reach: float) -> bool:
+    """Whether the ``auto`` schedule solves a frame whole: its crowds' starts ``start``
+    (K, 4; nm, photons) outnumber the ``n_kept`` emitters of the kept units, or one crowd
+    (starts linked within ``reach`` nm, half a template's width) holds more than
+    :data:`SMALL_CROWD` of them."""
+    return len(start) > n_kept or _large_crowd(start, px, reach)
+
+
+def _whole(counts: TierCounts | None) -> None:
+    """The frame is left to the whole-frame solver (counted in ``counts``)."""
+    if counts is not None:
+        counts.frames_whole += 1
+    return None
 
 
 def _significant(tier: _Tier1, planes, rc, known: list, e: float, min_snr: float) -> bool:
