@@ -5,6 +5,10 @@ pipeline does, 100 nm pixels, 1000-5000 photons, background 10) at ``--density``
 per um^2 in one process, with timers around the solver's parts, and prints one table:
 
 - pursuit: the frame pursuit that gives the fits their start;
+- detection: the two-tier solver's candidate detections (the default ``auto`` schedule's
+  frames solved in tiers);
+- L1 deconvolution: the whole-frame solver's second start's deconvolution of crowded crops
+  (the fits from its peaks count as fits);
 - maximum-likelihood fits: every ``fit_emitters`` call (groups, count-selection trials,
   z flips, relocations), and within it the compiled Levenberg-Marquardt loop;
 - candidate search: the FFT correlations of residual windows with the PSF planes (count
@@ -37,16 +41,20 @@ from pathlib import Path
 import numpy as np
 
 import sparseloc
+import sparseloc.pipeline as pipeline_mod
 import sparseloc.solvers.frame as frame_mod
 import sparseloc.solvers.frame_mp as pursuit_mod
 import sparseloc.solvers.frame_windows as windows_mod
 import sparseloc.solvers.refine as refine_mod
 import sparseloc.solvers.relocate as relocate_mod
+import sparseloc.solvers.two_tier as two_tier_mod
 from sparseloc.pipeline import localize
 from speed_before_after import benchmark_frames  # this folder is on the path
 
 PHASES = (
     "pursuit",
+    "detection",
+    "L1 deconvolution",
     "maximum-likelihood fits",
     "candidate search",
     "neighbour light",
@@ -77,7 +85,9 @@ def _install_timers(acc: collections.Counter, inner: collections.Counter, fits: 
         setattr(owner, name, timed)
 
     wrap(pursuit_mod, "frame_pursuit", "pursuit")
-    for owner in (refine_mod, frame_mod, relocate_mod):
+    wrap(two_tier_mod, "detect_candidates", "detection")
+    wrap(pipeline_mod, "tiled_l1_starts", "L1 deconvolution")
+    for owner in (refine_mod, frame_mod, relocate_mod, two_tier_mod):
         wrap(owner, "fit_emitters", "maximum-likelihood fits")
     for owner in (refine_mod, relocate_mod):
         wrap(owner, "residual_candidates", "candidate search")
