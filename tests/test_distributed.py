@@ -256,3 +256,25 @@ def test_a_frame_source_without_identity_is_refused(model, params, movie, tmp_pa
 
     with pytest.raises(ValueError, match="identity"):
         localize_chunked(Frames(), model, params, tmp_path / "run", chunk_frames=8)
+
+
+def test_a_run_that_cannot_start_leaves_no_folder_it_made(
+    movie, model, params, tmp_path, monkeypatch
+):
+    """An unreachable scheduler (here: the chunks' runner refusing at once) removes the run
+    folder the run created; a folder that was there before is kept."""
+    import sparseloc.distributed as dist
+
+    def unreachable(*args, **kwargs):
+        raise ValueError("cannot reach the Dask scheduler at 'tcp://127.0.0.1:9'")
+
+    monkeypatch.setattr(dist, "_run_chunks", unreachable)
+    new = tmp_path / "new"
+    with pytest.raises(ValueError, match="cannot reach"):
+        localize_chunked(movie, model, params, new, chunk_frames=4)
+    assert not new.exists()
+    kept = tmp_path / "kept"  # a folder given that exists already stays
+    kept.mkdir()
+    with pytest.raises(ValueError, match="cannot reach"):
+        localize_chunked(movie, model, params, kept, chunk_frames=4)
+    assert kept.is_dir()

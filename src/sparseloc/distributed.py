@@ -42,6 +42,7 @@ import hashlib
 import json
 import logging
 import os
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
@@ -478,6 +479,7 @@ def localize_chunked(
         chunk_frames = _chunk_frames_of_run(run_dir) or auto_chunk_frames(stop - start, pool)
     chunks = plan_chunks(start, stop, chunk_frames)
     key, desc = _run_key(source, model, params, (start, stop), chunk_frames, read_variance)
+    created = not run_dir.exists()
     _prepare_run_dir(run_dir, key, desc, chunks, overwrite)
     done_before, todo = _done_and_todo(run_dir, chunks, chunk_frames, progress)
     writer = _PartWriter(run_dir, progress)
@@ -485,7 +487,13 @@ def localize_chunked(
     if todo:
         args = (work_model, params)
         pool = workers if scheduler == "processes" else threads
-        _run_chunks(scheduler, source, args, todo, read_variance, writer, pool, retries)
+        try:
+            _run_chunks(scheduler, source, args, todo, read_variance, writer, pool, retries)
+        except ValueError:
+            # a run that could not start (an unreachable scheduler) leaves no folder it made
+            if created and not any(run_dir.glob("part-*.parquet")):
+                shutil.rmtree(run_dir, ignore_errors=True)
+            raise
     meta = _run_metadata(model, params, source, (start, stop), run_dir, chunk_frames)
     res = _collect(run_dir, chunks, done_before, writer.failed, meta, t0)
     if res.table is not None:
