@@ -290,3 +290,10 @@ def test_version_and_the_camera_defaults_in_help():
     for flag, shown in (("offset", "ADU; default"), ("gain", "e-/ADU; default")):
         assert f"{shown} {LOCALIZE_DEFAULTS[flag]:g}" in text, text
     assert f"(default {LOCALIZE_DEFAULTS['psf']}," in text
+    # the solver's and the camera's defaults are shown too, from the same configuration
+    from sparseloc.config import LocalizeParams
+
+    assert f"(default {LocalizeParams(pixel_size=100.0).min_snr:g})" in text
+    assert "ideal, emccd or scmos (default ideal)" in text
+    assert "auto (default: temporal from 50 frames)" in text
+    assert "work: auto (default:" in text
