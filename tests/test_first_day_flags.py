@@ -479,3 +479,32 @@ def test_the_scale_bar_grows_with_the_image():
         said[width] = ax.texts[0].get_text()
         plt.close(fig)
     assert said == {1.3: "0.2 µm", 6.4: "1 µm", 54.1: "10 µm"}
+
+
+def test_overlay_colours_markers_by_z_and_marks_flagged_ones():
+    """Item 10: each localization's marker has the depth colour map's colour of its z (the
+    same map as ``render``), a flagged one a grey cross."""
+    from matplotlib import colormaps
+    from matplotlib.colors import to_rgba
+
+    from sparseloc.overlay import FLAGGED_COLOR, overlay_figure
+    from sparseloc.render import DEPTH_CMAP
+
+    locs = pd.DataFrame(
+        {
+            "frame": [0, 0, 0],
+            "x_nm": [1000.0, 3000.0, 5000.0],
+            "y_nm": [1000.0, 3000.0, 5000.0],
+            "z_nm": [-400.0, 400.0, 0.0],
+            "photons": [1000.0] * 3,
+            "flag": ["ok", "ok", "z_edge"],
+        }
+    )
+    fig = overlay_figure(
+        np.zeros((64, 64)), locs, frame_index=0, pixel_size=PX, z_range=(-500.0, 500.0)
+    )
+    ok, flagged = fig.axes[0].collections[:2]
+    np.testing.assert_allclose(ok.get_edgecolors(), colormaps[DEPTH_CMAP]([0.1, 0.9]))
+    assert len(ok.get_offsets()) == 2 and len(flagged.get_offsets()) == 1
+    shown = np.vstack([flagged.get_edgecolors(), flagged.get_facecolors()])
+    assert any(np.allclose(c, to_rgba(FLAGGED_COLOR)) for c in shown)
