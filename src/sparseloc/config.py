@@ -125,9 +125,9 @@ class LocalizeParams:
         crop where a crowd is large) run only where the light crowds or one emitter does not
         explain it (:mod:`sparseloc.solvers.two_tier`). ``auto`` (default): two tiers, but a
         frame whose crowds hold more emitters than its singles, or whose crowds are large, is
-        solved whole (:func:`~sparseloc.solvers.two_tier.crowded`): on sparse simulated movies
-        1.2-1.9x as fast as ``whole-frame`` with the same Jaccard, on dense ones the same
-        tables, a few per cent slower (``docs/benchmarks/auto_schedule.txt``).
+        solved whole (:func:`~sparseloc.solvers.two_tier.crowded`): faster where most
+        emitters are alone, the whole-frame solver's tables where they crowd (measurements:
+        ``docs/benchmarks/auto_schedule.txt``).
     second_start : bool
         The whole-frame solver also fits the frame from a second start, the peaks of its
         non-negative L1 deconvolution (:mod:`sparseloc.solvers.frame_l1`), and keeps, region
