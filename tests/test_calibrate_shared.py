@@ -103,7 +103,7 @@ def dh_calibration(shared_data):
     ).psf
 
 
-def _localize_crop(shared_data, name, model, window, margin, rows=100, cols=150):
+def _localize_crop(shared_data, name, model, window, margin, rows=100, cols=150, scale=1.0):
     import tifffile
 
     from sparseloc.evaluate import evaluate
@@ -115,7 +115,8 @@ def _localize_crop(shared_data, name, model, window, margin, rows=100, cols=150)
     frame = frame.reshape(-1, *frame.shape[-2:])[:, :rows, :cols]
     truth = read_truth_csv(folder / f"{name}_groundtruth.csv", pixel_size=100.0)
     inside = (truth["x_nm"] < cols * 100.0) & (truth["y_nm"] < rows * 100.0)
-    res = localize(frame, model, LocalizeParams(pixel_size=100.0, window=window, margin=margin))
+    params = LocalizeParams(pixel_size=100.0, window=window, margin=margin)
+    res = localize(frame * scale, model, params)
     return evaluate(res.table, truth[inside])
 
 
@@ -156,13 +157,25 @@ def test_storm_analysis_dh_random_density_1_per_um2(shared_data, dh_calibration)
     """1 emitter/um^2 of double helices (a third of the frame): most images overlap two or
     more others.
 
-    Measured on this crop with the frame solver: recall 0.938, precision 0.899, Jaccard
-    84.9 %, RMSE 46 / 78 nm (earlier versions and their figures:
-    docs/benchmarks/union_start.txt and second_start.txt). The thresholds guard the
-    precision, the recall, the Jaccard index and the errors against regressions.
+    On a frame this dense the count selection's choices move with rounding: the frame scaled
+    by 1 + k 1e-12 (k = 0..7) gives Jaccard indices with a standard deviation of 1.3-2.1
+    points and precisions of 0.014 (docs/benchmarks/rounding_spread_crop.txt). One run
+    cannot guard against a regression, so the test scores the mean of four such runs. Their
+    means measured: recall 0.912, precision 0.889, Jaccard 81.9 %, RMSE 50.5 / 69.6 nm (the
+    code of an earlier version, 2b1b41f: 0.922, 0.886, 82.4 %, 47.2 / 77.3 nm). The
+    thresholds lie about three standard deviations of such a mean below them.
     """
-    ev = _localize_crop(shared_data, "dh_random_density0.01px2", dh_calibration, 21, 6)
-    assert ev.precision >= 0.88
-    assert ev.recall >= 0.87
-    assert ev.jaccard >= 80.0
-    assert ev.rmse_lateral < 50.0 and ev.rmse_axial < 80.0
+    scores = [
+        _localize_crop(
+            shared_data, "dh_random_density0.01px2", dh_calibration, 21, 6, scale=1 + k * 1e-12
+        )
+        for k in range(4)
+    ]
+    mean = {
+        key: float(np.mean([getattr(ev, key) for ev in scores]))
+        for key in ("precision", "recall", "jaccard", "rmse_lateral", "rmse_axial")
+    }
+    assert mean["precision"] >= 0.865, mean
+    assert mean["recall"] >= 0.895, mean
+    assert mean["jaccard"] >= 79.5, mean
+    assert mean["rmse_lateral"] < 56.0 and mean["rmse_axial"] < 88.0, mean
