@@ -508,3 +508,42 @@ def test_overlay_colours_markers_by_z_and_marks_flagged_ones():
     assert len(ok.get_offsets()) == 2 and len(flagged.get_offsets()) == 1
     shown = np.vstack([flagged.get_edgecolors(), flagged.get_facecolors()])
     assert any(np.allclose(c, to_rgba(FLAGGED_COLOR)) for c in shown)
+
+
+_UNDER_A_LIMIT = """
+import resource, sys
+import matplotlib.pyplot, sparseloc.render
+from sparseloc.cli import main
+
+# the limit: what the loaded command holds now and 300 MiB, far below the 1.2 GiB the
+# requested image needs
+held = int(open("/proc/self/status").read().split("VmSize:")[1].split()[0]) * 1024
+resource.setrlimit(resource.RLIMIT_AS, (held + 300 * 2**20, resource.RLIM_INFINITY))
+sys.argv = ["sparseloc", *sys.argv[1:]]
+main()
+"""
+
+
+@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="Linux limits")
+def test_render_under_a_memory_limit_says_so_in_one_sentence(tmp_path):
+    """Item 1: under a memory limit, an image too large for it ends in one sentence and exit
+    code 1, not NumPy's _ArrayMemoryError traceback, and writes no picture."""
+    import subprocess
+    import sys
+
+    t = _table(2000)
+    t["x_nm"] *= 20.0  # a field 100 um wide at 8 nm pixels: 12,500 x 12,500 px
+    t["y_nm"] *= 20.0
+    src = tmp_path / "locs.parquet"
+    write_table(t, src)
+    out = tmp_path / "render.png"
+    args = ["render", str(src), "-o", str(out), "--px", "8"]
+    r = subprocess.run(
+        [sys.executable, "-c", _UNDER_A_LIMIT, *args], capture_output=True, text=True, timeout=300
+    )
+    assert r.returncode == 1, r.stderr
+    assert "Traceback" not in r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert lines[-1].startswith("error: render ran out of memory"), r.stderr
+    assert "did not fit" in lines[-1]
+    assert not out.exists()

@@ -56,8 +56,9 @@ def _plain(param: Any) -> Any:
         param.help = escape(param.help)
     if isinstance(param, TyperArgument):
         param.metavar = param.metavar or param.name.upper()
-        label = "<path>..." if param.nargs != 1 else param.display_type(None)
-        param.display_type_rich = lambda ctx, label=label: label
+        if hasattr(param, "display_type"):  # typer >= 0.28 labels types, older ones do not
+            label = "<path>..." if param.nargs != 1 else param.display_type(None)
+            param.display_type_rich = lambda ctx, label=label: label
     elif getattr(param, "is_flag", False):
         param.metavar = ""  # a flag takes no value
     return param
@@ -80,6 +81,17 @@ class _Command(TyperCommand):
                 f"interrupted (Ctrl-C): {ctx.info_name} stopped and wrote no output", err=True
             )
             raise typer.Exit(130) from None
+        except MemoryError as exc:
+            _NOTES.clear()
+            need = re.search(r"allocate ([\d.]+ \w+)", str(exc))  # NumPy says how much
+            asked = f" (one array of {need.group(1)} did not fit)" if need else ""
+            typer.echo(
+                f"error: {ctx.info_name} ran out of memory{asked}: give it less to hold (fewer "
+                "frames, a smaller region, larger render pixels) or run it where more memory "
+                "is free",
+                err=True,
+            )
+            raise typer.Exit(1) from None
         finally:
             _Command.running = None
 
