@@ -351,3 +351,23 @@ def test_a_drift_free_table_gets_a_caution_and_a_drifting_one_none(truth, locs, 
     assert "caution: the 10 segments' shifts vary" in res.output
     _, meta = read_table_and_metadata(tmp_path / "dc.parquet")
     assert "like noise" in meta["drift"]["caution"]
+
+
+def test_an_unreliable_z_advises_fewer_segments_or_no_z_in_the_commands_terms():
+    """Issue 27 item 8: the warning of a z stage that found too few correlations names what a
+    user can change (fewer segments, ``drift --no-z``), not the library's ``estimate_z``."""
+    rng = np.random.default_rng(0)
+    n = 20000
+    t, ang = rng.uniform(0, 1, n), rng.integers(0, 6, n) * 0.5  # lines in xy
+    table = pd.DataFrame(
+        {
+            "frame": rng.integers(0, 500, n),
+            "x_nm": 2000 + 4000 * t * np.cos(ang) + rng.normal(0, 15, n),
+            "y_nm": 2000 + 4000 * t * np.sin(ang) + rng.normal(0, 15, n),
+            "z_nm": rng.uniform(-800, 800, n),  # no structure in z: no z correlation
+        }
+    )
+    res = rcc_drift(table, segments=5, log_warnings=False)
+    z_warnings = [w for w in res.warnings if w.startswith("z:")]
+    assert any("fewer segments" in w and "drift --no-z" in w for w in z_warnings), res.warnings
+    assert not any("estimate_z" in w or "=" in w for w in res.warnings), res.warnings

@@ -6,8 +6,10 @@ voxels (item 17); no unauthenticated local Dask cluster for ``--workers`` (item 
 from __future__ import annotations
 
 import re
+import shutil
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pandas as pd
 import pytest
@@ -743,3 +745,22 @@ def test_calibrate_warns_where_the_stacks_noise_says_the_offset_is_missing(tmp_p
         assert said is warned, res.output
     # a higher offset than the camera's is not what the line can tell (it bounds from below)
     assert offset_mismatch(stack, Camera(kind="scmos", offset=210.0, gain=1.0)) == ""
+
+
+@pytest.mark.parametrize("oversample", [10**9, 0, -3])
+def test_a_calibration_with_an_absurd_oversample_is_refused(calibration_file, tmp_path, oversample):
+    """Item 19: a calibration file whose spline claims an absurd oversampling is refused in
+    one sentence naming the file, by the library and by the commands, rather than building
+    a table of that size (MemoryError) or dividing by it."""
+    from sparseloc.psf import make_psf
+
+    path = tmp_path / "odd.h5"
+    shutil.copyfile(calibration_file, path)
+    with h5py.File(path, "r+") as f:
+        f["spline"].attrs["oversample"] = oversample
+    with pytest.raises(ValueError, match=r"odd\.h5"):
+        make_psf(str(path))
+    out = tmp_path / "s.tif"
+    refused(run("simulate", "-o", out, "--psf", path, "--frames", 1, "--rows", 16, "--cols", 16),
+            "odd.h5")  # fmt: skip
+    assert not out.exists()

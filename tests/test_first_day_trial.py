@@ -155,6 +155,8 @@ def test_drift_with_an_unreliable_z_corrects_x_and_y_and_says_so(tmp_path):
     res = run("drift", locs, "-o", out, "--segments", 5, "--plot", plot)
     assert res.exit_code == 0, res.output
     assert "z drift not corrected (" in res.output and "x and y were" in res.output
+    # item 8: the advice names the command's flags, not the library's arguments
+    assert "--force" in res.output and "estimate_z" not in res.output
     from sparseloc.io.tables import read_table
 
     dc = read_table(out)
