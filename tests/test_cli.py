@@ -279,6 +279,15 @@ def test_frame_range_refuses_negative_frames():
             frame_range(bad, 6)
 
 
+def test_help_wraps_the_description_at_the_terminals_width():
+    """A command's description is wrapped at the terminal's width, not at its docstring's
+    line ends (which left lines of a few words at 80 columns)."""
+    res = runner.invoke(app, ["render", "--help"], env={"COLUMNS": "200"})
+    assert res.exit_code == 0
+    lines = [ln.strip() for ln in res.output.splitlines()]
+    assert any("rows with a non-finite or absurd coordinate are dropped" in ln for ln in lines)
+
+
 def test_version_and_the_camera_defaults_in_help():
     from sparseloc import __version__
     from sparseloc.options import LOCALIZE_DEFAULTS

@@ -44,6 +44,12 @@ def _one_line(text: str) -> str:
     return " ".join(text.strip().split("\n\n")[0].split())
 
 
+def _reflowed(text: str) -> str:
+    """A docstring's paragraphs each on one line, so that the help wraps them at the
+    terminal's width rather than at the source's line ends (rich keeps single line breaks)."""
+    return "\n\n".join(" ".join(p.split()) for p in text.strip().split("\n\n"))
+
+
 def _plain(param: Any) -> Any:
     """``param`` with a plain help entry: an argument named in capitals (``LOCS``) whose type
     reads ``<path>...`` for several files (not ``<list[Path]>``), no type beside a flag (no
@@ -98,7 +104,7 @@ class _Command(TyperCommand):
     def get_params(self, ctx: Any) -> list[Any]:
         if self.help and not getattr(self, "_sparseloc_plain", False):
             self._sparseloc_plain = True
-            self.help = escape(self.help)
+            self.help = escape(_reflowed(self.help))
         return [_plain(p) for p in super().get_params(ctx)]
 
     def collect_usage_pieces(self, ctx: Any) -> list[str]:
