@@ -1,0 +1,68 @@
+"""The README's commands use flags the commands have (issue 27 item 6: its synopsis once
+contradicted ``calibrate --help``), and the camera is given the same way to every command
+that reads camera data."""
+
+from __future__ import annotations
+
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+import typer.main
+
+from sparseloc.cli import app
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def _options(name: str) -> set[str]:
+    cmd = typer.main.get_command(app).commands[name]
+    return {o for p in cmd.params for o in (*p.opts, *p.secondary_opts) if o.startswith("-")}
+
+
+def _readme_commands() -> list[list[str]]:
+    """Every ``sparseloc ...`` line in the README's code blocks, continuations joined,
+    split as a shell would (comments dropped)."""
+    out = []
+    for block in re.findall(r"```[a-z]*\n(.*?)```", README.read_text(), re.S):
+        for line in block.replace("\\\n", " ").splitlines():
+            for part in line.split("&&"):
+                words = shlex.split(part, comments=True)
+                if len(words) > 1 and words[0] == "sparseloc":
+                    out.append(words)
+    return out
+
+
+def test_the_readme_shows_commands():
+    names = {w[1] for w in _readme_commands()}
+    assert {"demo", "calibrate", "simulate", "localize", "render", "camera"} <= names
+
+
+@pytest.mark.parametrize("words", _readme_commands(), ids=lambda w: " ".join(w[:2]))
+def test_every_flag_in_the_readme_exists(words):
+    known = _options(words[1])
+    flags = {w.split("=")[0] for w in words[2:] if w.startswith("--")}
+    assert flags <= known, f"{' '.join(words)}: {sorted(flags - known)} not in {words[1]} --help"
+
+
+CAMERA_FLAGS = {"--camera", "--offset", "--gain", "--em-gain", "--qe", "--read-noise", "--config"}
+
+
+@pytest.mark.parametrize("name", ["simulate", "calibrate", "localize"])
+def test_every_command_that_reads_camera_data_takes_the_same_camera_flags(name):
+    assert CAMERA_FLAGS <= _options(name), sorted(CAMERA_FLAGS - _options(name))
+
+
+def test_the_camera_estimate_takes_the_flags_of_what_it_does_not_estimate():
+    """``sparseloc camera`` estimates the gain (and the offset and read noise where they are
+    not given): it takes the other camera flags, by the same names."""
+    assert {"--camera", "--offset", "--em-gain", "--read-noise"} <= _options("camera")
+
+
+def test_the_readme_names_the_camera_flags_that_exist():
+    text = README.read_text()
+    line = next(ln for ln in text.splitlines() if "give every command your camera" in ln)
+    named = set(re.findall(r"`(--[a-z-]+)", line))
+    assert CAMERA_FLAGS <= named | {"--config"}, sorted(CAMERA_FLAGS - named)
+    assert named <= _options("localize"), sorted(named - _options("localize"))
