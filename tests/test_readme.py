@@ -66,3 +66,20 @@ def test_the_readme_names_the_camera_flags_that_exist():
     named = set(re.findall(r"`(--[a-z-]+)", line))
     assert CAMERA_FLAGS <= named | {"--config"}, sorted(CAMERA_FLAGS - named)
     assert named <= _options("localize"), sorted(named - _options("localize"))
+
+
+def test_the_readme_says_where_the_spline_tables_are_cached(monkeypatch, tmp_path):
+    """Issue 27 item 12: the first fit with a pupil model tabulates it once; the README says
+    so and names the folder and the variable that :func:`sparseloc.psf.cache.cache_dir`
+    reads."""
+    from sparseloc.psf.cache import cache_dir
+
+    text = " ".join(README.read_text().split())
+    assert "cached in `~/.cache/sparseloc` (`SPARSELOC_CACHE_DIR`)" in text
+    monkeypatch.setenv("SPARSELOC_CACHE_DIR", str(tmp_path))
+    assert cache_dir() == tmp_path
+    monkeypatch.delenv("SPARSELOC_CACHE_DIR")
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    if __import__("sys").platform.startswith("linux"):
+        assert cache_dir() == tmp_path / ".cache" / "sparseloc"
