@@ -8,8 +8,10 @@ The steps (each a function over NumPy arrays; file reading only in :func:`calibr
    (double helix, tetrapod) may show several maxima per bead; maxima closer than half an ROI
    are merged and the bead's centre is the centroid of its z-averaged image (the midpoint of
    a double helix's lobes).
-3. ROI size from the PSF's light: it holds 99 % of a plane's light on average
-   (:mod:`sparseloc.calibrate_crowd`), unless given.
+3. ROI size from the PSF's light: it holds 99 % of a plane's light on average, of the light
+   that stands above the frame's background around the brightest beads
+   (:mod:`sparseloc.calibrate_crowd`), unless given. A halo fainter than the background's
+   noise is not measured: fitted photons count the light inside the model.
 4. Reject beads too close to the edge, beads whose cores overlap another's, saturated beads,
    and, after registration, beads whose registered stack differs from the others' average far
    more than the rest (outliers: dirt, aggregates, a bead stuck to another one).
@@ -489,7 +491,7 @@ def _roi_size(
         if profile is not None:
             mean, least = profile.held(half)
             log.info(
-                "ROI %d x %d px holds %.1f %% of a plane's light (at least %.1f %%)",
+                "ROI %d x %d px holds %.1f %% of a plane's measured light (at least %.1f %%)",
                 roi,
                 roi,
                 100 * mean,
