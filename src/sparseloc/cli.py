@@ -1394,7 +1394,7 @@ def evaluate(
     note = excluded_note(int(_run(flagged_rows, loc_df, all_flags=all_flags).sum()))
     if note:
         _note(note)
-    cautions += _run(scoring_cautions, loc_df, truth_df)
+    cautions += _run(scoring_cautions, loc_df, truth_df, lateral_tol)
     result = _run(
         run_evaluation,
         loc_df,

@@ -445,10 +445,53 @@ def truth_in_frames(truth: pd.DataFrame, frames: Sequence[int] | None) -> pd.Dat
     return truth[(f >= start) & (f < stop)]
 
 
-def scoring_cautions(locs: pd.DataFrame, truth: pd.DataFrame) -> list[str]:
+def _near_counts(
+    locs: pd.DataFrame, truth: pd.DataFrame, shifts: Sequence[int], tol: float
+) -> list[int]:
+    """For each frame shift, how many localizations lie within ``tol`` nm (laterally) of a
+    truth emitter of their frame, the truth's frames moved by that shift."""
+    lxy = locs[["x_nm", "y_nm"]].to_numpy(float)
+    txy = truth[["x_nm", "y_nm"]].to_numpy(float)
+    ok_l, ok_t = np.isfinite(lxy).all(axis=1), np.isfinite(txy).all(axis=1)
+    lf = locs["frame"].to_numpy(float)[ok_l]
+    tf = truth["frame"].to_numpy(float)[ok_t]
+    # frames as a third axis, far enough apart that only same-frame pairs lie within tol
+    sep = 4.0 * tol
+    query = np.column_stack([lxy[ok_l], lf * sep])
+    out = []
+    for shift in shifts:
+        tree = cKDTree(np.column_stack([txy[ok_t], (tf + shift) * sep]))
+        d, _ = tree.query(query, distance_upper_bound=tol)
+        out.append(int(np.isfinite(d).sum()))
+    return out
+
+
+def frame_offset_caution(locs: pd.DataFrame, truth: pd.DataFrame, tol: float) -> str | None:
+    """A sentence where the truth's frames seem one off the table's (a 1-based truth file read
+    as 0-based, or the reverse): more localizations lie near a truth emitter with the truth
+    moved by one frame than as given, by more than three standard deviations of the counts'
+    Poisson noise. None otherwise."""
+    if len(locs) == 0 or len(truth) == 0:
+        return None
+    same, earlier, later = _near_counts(locs, truth, (0, -1, 1), tol)
+    best, shift = max((earlier, -1), (later, 1))
+    if best - same > 3.0 * math.sqrt(best + same):
+        return (
+            f"{best} localizations lie near a truth emitter with the truth's frames moved by "
+            f"{shift:+d} against {same} as given: are the truth's frames "
+            f"{'1-based' if shift == -1 else 'numbered from -1'}? sparseloc reads 0-based "
+            "frames (the SMLM challenge's and ThunderSTORM's files are recognised)"
+        )
+    return None
+
+
+def scoring_cautions(
+    locs: pd.DataFrame, truth: pd.DataFrame, lateral_tol: float = 250.0
+) -> list[str]:
     """What makes a per-frame score of ``locs`` against ``truth`` misleading, one sentence
-    each: a table merged over frames (``filter --merge``), or truth that holds none of the
-    table's frames or only some of them."""
+    each: a table merged over frames (``filter --merge``), truth that holds none of the
+    table's frames or only some of them, or truth whose frames seem one off the table's
+    (:func:`frame_offset_caution`, within ``lateral_tol`` nm)."""
     out = []
     if "n_frames" in locs.columns and np.nanmax(locs["n_frames"].to_numpy(), initial=1) > 1:
         out.append(
@@ -474,6 +517,9 @@ def scoring_cautions(locs: pd.DataFrame, truth: pd.DataFrame) -> list[str]:
                     "elsewhere count as missed: a table of part of the movie (localize "
                     "--frames) is scored with evaluate --frames START:STOP"
                 )
+    offset = frame_offset_caution(locs, truth, lateral_tol)
+    if offset:
+        out.append(offset)
     return out
 
 
