@@ -494,3 +494,22 @@ def test_pixel_truth_takes_the_tables_pixel_size_and_nm_truth_says_it_needs_none
     res = CliRunner().invoke(app, ["evaluate", str(table), str(nm), "--pixel-size", "110"])
     assert res.exit_code == 0 and "--pixel-size is not used" in res.output, res.output
     assert "differs from the table's" not in res.output
+
+
+def test_evaluate_needs_no_photons_column_in_the_truth(tmp_path):
+    """Matching needs positions only: a truth CSV without photons is scored, not refused."""
+    from typer.testing import CliRunner
+
+    from sparseloc.cli import app
+    from sparseloc.io.tables import complete_locs, write_table
+
+    truth = pd.DataFrame(
+        {"frame": [0, 1, 2], "x_nm": [1e3] * 3, "y_nm": [2e3] * 3, "z_nm": [0.0] * 3}
+    )
+    truth_path = tmp_path / "truth.csv"
+    truth.to_csv(truth_path, index=False)
+    table = tmp_path / "locs.parquet"
+    write_table(complete_locs(truth.assign(photons=1e3)), table)
+    res = CliRunner().invoke(app, ["evaluate", str(table), str(truth_path)])
+    assert res.exit_code == 0, res.output
+    assert "3 / 0 / 0" in res.output

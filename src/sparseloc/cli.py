@@ -888,7 +888,10 @@ def _read_truth(truth: Path, pixel_size: float | None, meta: Any) -> tuple[Any, 
 
     table_px = recorded_pixel_size(meta)
     truth_df = _run(
-        read_truth_csv, truth, pixel_size=table_px if pixel_size is None else pixel_size
+        read_truth_csv,
+        truth,
+        pixel_size=table_px if pixel_size is None else pixel_size,
+        require_photons=False,  # matching needs positions only
     )
     in_px = truth_gives_pixels(truth)
     said = []
