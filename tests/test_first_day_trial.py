@@ -48,8 +48,12 @@ def test_lengths_in_micrometres_are_refused_as_such():
         check_z_step(0.05)
     with pytest.raises(ValueError, match="positive number of nm"):
         check_pixel_size(0)
-    with pytest.raises(ValueError, match="above what microscopes make"):
+    with pytest.raises(ValueError, match="several planes over the PSF's depth"):
         check_z_step(1e5)
+    # a new user's 5 um step gave "39 planes z -95000..95000 nm" without a word
+    with pytest.raises(ValueError, match="--z-step 5000 nm is above 1000 nm"):
+        check_z_step(5000)
+    assert check_z_step(1000) == 1000.0
 
 
 def test_calibrate_refuses_a_z_step_or_pixel_size_in_micrometres(beads, tmp_path):

@@ -26,8 +26,9 @@ __all__ = [
 #: a camera pixel, 20 um beyond any objective used for single molecules.
 PIXEL_SIZE_RANGE_NM = (10.0, 20_000.0)
 #: Stage steps of a bead z-scan (nm): piezo stages step down to a few nm, and a step above
-#: 5 um skips the whole depth of any PSF.
-Z_STEP_RANGE_NM = (1.0, 5_000.0)
+#: 1 um leaves fewer than the spline's four planes over a PSF's depth (at most about 6 um, a
+#: tetrapod's).
+Z_STEP_RANGE_NM = (1.0, 1_000.0)
 #: Emission wavelengths of fluorophores (nm), ultraviolet to infrared.
 WAVELENGTH_RANGE_NM = (200.0, 2_000.0)
 #: Distances that decide something about localizations (match tolerances, largest
@@ -66,6 +67,13 @@ def check_pixel_size(value: object, what: str = "--pixel-size") -> float:
 
 def check_z_step(value: object, what: str = "--z-step") -> float:
     """A bead scan's stage step (nm), checked (:data:`Z_STEP_RANGE_NM`)."""
+    v = float(value) if isinstance(value, (int, float)) else value
+    hi = Z_STEP_RANGE_NM[1]
+    if isinstance(v, float) and math.isfinite(v) and v > hi:
+        raise ValueError(
+            f"{what} {v:g} nm is above {hi:g} nm: a bead scan needs several planes over the "
+            "PSF's depth of a few micrometres (steps of 10-100 nm are usual)"
+        )
     return check_length_nm(value, what, Z_STEP_RANGE_NM)
 
 
