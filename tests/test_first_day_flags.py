@@ -430,6 +430,11 @@ def test_overlay_zooms_on_a_region(movie_and_locs, tmp_path):
     args = ["overlay", str(movie), str(locs), "--frame", "1", "--pixel-size", "100"]
     r = runner.invoke(app, [*args, "-o", str(out), "--region", "8:24,8:24"])
     assert r.exit_code == 0, r.output
+    # the line printed counts the markers drawn, as the picture's title does
+    x, y = in_frame["x_nm"] / PX, in_frame["y_nm"] / PX
+    drawn = int(((x >= 8) & (x < 24) & (y >= 8) & (y < 24)).sum())
+    assert drawn < len(in_frame)
+    assert f"(frame 1, {drawn} localizations)" in r.output
     for bad in ("8-24,8-24", "40:50,40:50"):
         r = runner.invoke(app, [*args, "-o", str(tmp_path / "bad.png"), "--region", bad])
         assert r.exit_code == 2 and "region" in r.output, r.output

@@ -1788,7 +1788,7 @@ def overlay(
 ) -> None:
     """Draw one frame with its localizations: circles coloured by z, flagged fits as grey x."""
     from .io.movie import Movie
-    from .overlay import check_table_movie, plot_overlay
+    from .overlay import check_table_movie, overlay_rows, plot_overlay
     from .report import _overlay_pixel_size
 
     out = _new_output(output, overwrite=overwrite, inputs=[movie, locs])
@@ -1815,9 +1815,9 @@ def overlay(
             _note(note)
         px = _run(_overlay_pixel_size, pixel_size, meta, mov.pixel_size)
         image = _run(mov.__getitem__, frame)
-    n = int((table["frame"] == frame).sum()) if "frame" in table else 0
     box = _region(region) if region is not None else None
     _run(plot_overlay, image, table, frame_index=frame, pixel_size=px, path=out, region=box)
+    n = len(overlay_rows(table, frame, px, np.shape(image), box))  # the ones drawn
     typer.echo(f"wrote {out} (frame {frame}, {n} localizations)")
 
 

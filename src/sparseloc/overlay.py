@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike
 
-__all__ = ["check_table_movie", "frame_locs", "overlay_figure", "plot_overlay"]
+__all__ = ["check_table_movie", "frame_locs", "overlay_figure", "overlay_rows", "plot_overlay"]
 
 log = logging.getLogger(__name__)
 
@@ -137,14 +137,11 @@ def overlay_figure(
     px = float(pixel_size)
     if not (np.isfinite(px) and px > 0):
         raise ValueError(f"the pixel size must be a positive number of nm, got {pixel_size!r}")
+    rows = overlay_rows(locs, frame_index, px, img.shape, region)
     c0, r0 = 0, 0
     if region is not None:
         c0, c1, r0, r1 = _checked_region(region, img.shape)
         img = img[r0:r1, c0:c1]
-    rows = frame_locs(locs, frame_index)
-    if region is not None:
-        xs, ys = rows["x_nm"].to_numpy(float) / px, rows["y_nm"].to_numpy(float) / px
-        rows = rows[(xs >= c0) & (xs < c1) & (ys >= r0) & (ys < r1)]
     ok = (rows["flag"].astype(str) == "ok").to_numpy() if "flag" in rows else np.ones(len(rows))
     ok = ok.astype(bool)
     z_all = locs["z_nm"].to_numpy(float) if "z_nm" in locs else np.zeros(0)
@@ -201,6 +198,25 @@ def overlay_figure(
         title = f"frame {int(frame_index)}: {len(rows)} localizations"
     ax.set_title(title, fontsize=10)
     return fig
+
+
+def overlay_rows(
+    locs: pd.DataFrame,
+    frame_index: int,
+    pixel_size: float,
+    shape: tuple[int, int],
+    region: tuple[int, int, int, int] | None = None,
+) -> pd.DataFrame:
+    """The rows an overlay of frame ``frame_index`` (of ``shape`` pixels) draws:
+    :func:`frame_locs`, inside ``region`` (x0, x1, y0, y1; pixels, clipped to the frame)
+    where one is given."""
+    rows = frame_locs(locs, frame_index)
+    if region is not None:
+        c0, c1, r0, r1 = _checked_region(region, shape)
+        xs = rows["x_nm"].to_numpy(float) / pixel_size
+        ys = rows["y_nm"].to_numpy(float) / pixel_size
+        rows = rows[(xs >= c0) & (xs < c1) & (ys >= r0) & (ys < r1)]
+    return rows
 
 
 def _checked_region(region, shape: tuple[int, int]) -> tuple[int, int, int, int]:
