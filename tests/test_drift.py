@@ -371,3 +371,35 @@ def test_an_unreliable_z_advises_fewer_segments_or_no_z_in_the_commands_terms():
     z_warnings = [w for w in res.warnings if w.startswith("z:")]
     assert any("fewer segments" in w and "drift --no-z" in w for w in z_warnings), res.warnings
     assert not any("estimate_z" in w or "=" in w for w in res.warnings), res.warnings
+
+
+def test_the_plot_of_a_drift_whose_z_was_rejected_shows_no_z_points(tmp_path, monkeypatch):
+    """A new user's drift.png said "rcc drift (reliable)" and "dz (not estimated)" while
+    green dz points were drawn: the rejected z stage's segment shifts."""
+    import sparseloc.plotting
+    from sparseloc.drift import lateral_only
+
+    rng = np.random.default_rng(0)
+    n = 20000
+    t, ang = rng.uniform(0, 1, n), rng.integers(0, 6, n) * 0.5
+    frame = rng.integers(0, 500, n)
+    table = pd.DataFrame(
+        {
+            "frame": frame,
+            "x_nm": 2000 + 4000 * t * np.cos(ang) + rng.normal(0, 15, n) + 0.02 * frame,
+            "y_nm": 2000 + 4000 * t * np.sin(ang) + rng.normal(0, 15, n),
+            "z_nm": rng.uniform(-800, 800, n),  # no z structure: the z stage fails
+        }
+    )
+    xy = lateral_only(rcc_drift(table, segments=5, log_warnings=False))
+    assert xy is not None and xy.reliable
+    drawn = {}
+    monkeypatch.setattr(
+        sparseloc.plotting, "save_figure", lambda fig, path, dpi: drawn.update(fig=fig)
+    )
+    plot_drift(xy, tmp_path / "d.png")
+    ax = drawn["fig"].axes[0]
+    assert "z unreliable, not corrected" in ax.get_title()
+    z_lines = [ln for ln in ax.get_lines() if ln.get_color() == "C2"]
+    assert len(z_lines) == 1 and np.all(z_lines[0].get_ydata() == 0.0)
+    assert "dz (not corrected: unreliable)" in [ln.get_label() for ln in z_lines]

@@ -913,15 +913,18 @@ def plot_drift(
     fig = Figure(figsize=(7.0, 4.0))
     ax = fig.subplots()
     colours = ("C0", "C1", "C2")
+    z_dropped = bool(drift.details.get("z_dropped"))  # estimated, found unreliable, not applied
+    z_off = not drift.details.get("z_estimated", True)
     for k, name in enumerate("xyz"):
         c = colours[k]
-        if drift.raw_drift is not None:
-            ax.plot(drift.frames, drift.raw_drift[:, k], ",", color=c, alpha=0.3)
         label = f"d{name}"
-        if k == 2 and not drift.details.get("z_estimated", True):
-            label += " (not estimated)"
+        if k == 2 and z_off:
+            label += " (not corrected: unreliable)" if z_dropped else " (not estimated)"
+        points = not (k == 2 and z_off)  # a rejected z's segment shifts are not the drift
+        if points and drift.raw_drift is not None:
+            ax.plot(drift.frames, drift.raw_drift[:, k], ",", color=c, alpha=0.3)
         ax.plot(drift.frames, drift.drift[:, k], color=c, lw=1.5, label=label)
-        if drift.segment_frames is not None and drift.segment_shifts is not None:
+        if points and drift.segment_frames is not None and drift.segment_shifts is not None:
             ax.plot(drift.segment_frames, drift.segment_shifts[:, k], "o", color=c, ms=4)
         if truth is not None and k < truth.shape[1]:
             ax.plot(drift.frames, truth[:, k], "--", color=c, lw=1, label=f"d{name} truth")
@@ -930,5 +933,7 @@ def plot_drift(
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, ncol=2)
     status = "reliable" if drift.reliable else "UNRELIABLE"
+    if drift.reliable and z_dropped:
+        status = "x and y reliable; z unreliable, not corrected"
     ax.set_title(f"{drift.method} drift ({status})", fontsize=9)
     return save_figure(fig, path, dpi)
