@@ -153,7 +153,7 @@ def test_a_chunk_that_keeps_failing_is_reported(movie, model, tmp_path, client):
 def test_a_different_analysis_is_refused(movie, model, params, tmp_path):
     localize_chunked(movie, model, params, tmp_path / "run", chunk_frames=8)
     other = LocalizeParams(pixel_size=PX, tabulate=False, min_snr=6.0)
-    with pytest.raises(ValueError, match=r"different analysis \(changed: params\)"):
+    with pytest.raises(ValueError, match=r"different analysis \(changed: params.min_snr\)"):
         localize_chunked(movie, model, other, tmp_path / "run", chunk_frames=8)
     with pytest.raises(ValueError, match="chunk_frames"):
         localize_chunked(movie, model, params, tmp_path / "run", chunk_frames=4)

@@ -95,6 +95,20 @@ _SAMPLE_BLOCKS = 64
 _SAMPLE_BYTES = 1 << 16
 
 
+def _changed(old: Any, new: dict, prefix: str = "") -> list[str]:
+    """The keys whose values differ between two run descriptions, nested ones named in full
+    (``params.min_snr``): what a refused resume names."""
+    out = []
+    for k in sorted(set(new) | set(old if isinstance(old, dict) else {})):
+        a = old.get(k) if isinstance(old, dict) else None
+        b = new.get(k)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _changed(a, b, f"{prefix}{k}.")
+        elif json.dumps(a, default=str) != json.dumps(b, default=str):
+            out.append(f"{prefix}{k}")
+    return out
+
+
 def _file_sample_digest(path: str | Path, blocks: int = _SAMPLE_BLOCKS) -> str:
     """SHA-256 (16 hex digits) of ``blocks`` evenly spaced 64 KiB blocks of a file."""
     h = hashlib.sha256()
@@ -355,12 +369,7 @@ def _prepare_run_dir(run_dir: Path, key: str, desc: dict, chunks, overwrite: boo
                 "sparseloc run's; give an empty or new folder for the run's parts"
             )
         if old.get("key") != key and not overwrite:
-            changed = sorted(
-                k
-                for k in desc
-                if json.dumps(old.get("run", {}).get(k), default=str)
-                != json.dumps(desc[k], default=str)
-            )
+            changed = _changed(old.get("run", {}), desc)
             raise ValueError(
                 f"the run folder {str(run_dir)!r} holds results of a different analysis "
                 f"(changed: {', '.join(changed) or 'unknown'}); pass --overwrite to start over "
