@@ -406,3 +406,27 @@ def test_a_resume_refuses_a_replaced_movie(tmp_path):
     res = run("localize", m, "-o", out, "--config", cfg, "--run-dir", run_dir)
     refused(res, "different analysis", "data")
     assert not out.exists()
+
+
+def test_picasso_tables_filter_back_to_picasso(table, tmp_path):
+    """A new user's `filter h2.hdf5 -o h2f.hdf5 --merge` (a table localize wrote as Picasso
+    HDF5) did the work, then refused the output for want of a pixel size the sidecar held."""
+    import yaml
+
+    first = tmp_path / "a.hdf5"
+    assert run("filter", table, "-o", first).exit_code == 0
+    again = run("filter", first, "-o", tmp_path / "b.hdf5", "--merge")
+    assert again.exit_code == 0, again.output
+    assert (tmp_path / "b.hdf5").is_file()
+    # another program's Picasso table: its image description gives the pixel size and shape
+    docs = list(yaml.safe_load_all(first.with_suffix(".yaml").read_text()))
+    other = tmp_path / "other.hdf5"
+    shutil.copyfile(first, other)
+    other.with_suffix(".yaml").write_text(yaml.safe_dump(docs[0]))
+    assert run("filter", other, "-o", tmp_path / "c.hdf5").exit_code == 0
+    # a table without them is refused before the work, not after it
+    csv = tmp_path / "t.csv"
+    pd.read_parquet(table)[["frame", "x_nm", "y_nm", "z_nm"]].to_csv(csv, index=False)
+    res = run("filter", csv, "-o", tmp_path / "d.hdf5")
+    refused(res, "pixel size and frame shape")
+    assert "kept" not in res.output and not (tmp_path / "d.hdf5").exists()

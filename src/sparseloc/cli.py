@@ -1442,14 +1442,13 @@ def _table_output(path: Path, *, overwrite: bool, inputs: Any) -> Path:
 
 
 def _read_locs(path: Path) -> tuple[Any, dict]:
-    """A localization table and its metadata (Parquet files carry the analysis')."""
-    from .io.tables import read_parquet, read_table
+    """A localization table and its metadata (:func:`~sparseloc.io.tables.read_table_and_metadata`:
+    a sparseloc Parquet table's, or a Picasso table's sidecar)."""
+    from .io.tables import read_table_and_metadata
 
     if not path.is_file():
         _fail(f"{str(path)!r} does not exist or is not a file")
-    if path.suffix.lower() in (".parquet", ".pq"):
-        return _run(read_parquet, path)
-    return _run(read_table, path), {}
+    return _run(read_table_and_metadata, path)
 
 
 _ALL_FLAGS_HELP = "Use flagged fits too (default: only rows flagged 'ok')."
@@ -1470,18 +1469,27 @@ def _write_locs(table, out: Path, meta: dict) -> None:
     """Write a processed table in the format of ``out``'s suffix, with the metadata."""
     from .io.tables import write_table
 
-    params = meta.get("params", {}) if isinstance(meta.get("params"), dict) else {}
-    shape = meta.get("shape")
-    kwargs: dict[str, Any] = {"metadata": meta}
-    if out.suffix.lower() in (".hdf5", ".h5"):
-        if not params.get("pixel_size") or not shape:
-            _fail(
-                "a Picasso HDF5 output needs the pixel size and frame shape, which only a "
-                "sparseloc Parquet input carries; write .parquet or .csv instead"
-            )
-        kwargs.update(pixel_size=float(params["pixel_size"]), shape=tuple(shape))
+    kwargs: dict[str, Any] = {"metadata": meta, **_picasso_kwargs(out, meta)}
+    if "shape" in kwargs:
         kwargs["n_frames"] = int(table["frame"].max()) + 1 if len(table) else 1
     _run(write_table, table, out, **kwargs)
+
+
+def _picasso_kwargs(out: Path, meta: dict) -> dict[str, Any]:
+    """The pixel size and frame shape a Picasso HDF5 output ``out`` needs, from the input's
+    metadata; a refusal where the input has none (checked before the work, again when
+    writing). ``{}`` for other outputs."""
+    if out.suffix.lower() not in (".hdf5", ".h5"):
+        return {}
+    params = meta.get("params", {}) if isinstance(meta.get("params"), dict) else {}
+    shape = meta.get("shape")
+    if not params.get("pixel_size") or not shape:
+        _fail(
+            "a Picasso HDF5 output needs the pixel size and frame shape, which the input does "
+            "not carry (a sparseloc Parquet or Picasso table does); write .parquet or .csv "
+            "instead"
+        )
+    return {"pixel_size": float(params["pixel_size"]), "shape": tuple(shape)}
 
 
 @app.command(cls=_Command)
@@ -1603,6 +1611,7 @@ def drift(
     if not (np.isfinite(bin_nm) and bin_nm > 0):
         _fail(f"--bin-nm must be > 0, got {bin_nm:g}")
     table, meta = _read_locs(locs)
+    _picasso_kwargs(out, meta)  # an impossible output is refused before the work
     _usable(table, all_flags)  # says how many flagged rows the estimate leaves out
     if method == "rcc":
         # Its warnings are said below: in the refusal of an unreliable estimate, else after it.
@@ -1681,6 +1690,7 @@ def filter_cmd(
     if merge and out.suffix.lower() not in (".parquet", ".pq"):
         _note("only Parquet keeps the merged rows' n_frames and last_frame columns")
     table, meta = _read_locs(locs)
+    _picasso_kwargs(out, meta)  # an impossible output is refused before the work
     if len(table):
         # The coordinate part of the rule (select_usable); filter_locs counts the flags itself.
         table = _usable(table, True)

@@ -419,8 +419,9 @@ def recorded_pixel_size(metadata: Any) -> float | None:
 
 def read_table_and_metadata(path: str | Path) -> tuple[pd.DataFrame, dict[str, Any]]:
     """:func:`read_table`, with the analysis metadata of a sparseloc Parquet table or of a
-    Picasso table that sparseloc wrote (its sidecar's ``sparseloc`` document); ``{}`` for the
-    other formats."""
+    Picasso table that sparseloc wrote (its sidecar's ``sparseloc`` document); of another
+    Picasso table, its pixel size and frame shape (``Pixelsize``, ``Height``, ``Width``);
+    ``{}`` for the other formats."""
     src = source_path(path)
     with open(src, "rb") as fh:
         head = fh.read(8)
@@ -433,6 +434,13 @@ def read_table_and_metadata(path: str | Path) -> tuple[pd.DataFrame, dict[str, A
             own = doc.get("sparseloc")
             if isinstance(own, dict) and isinstance(own.get("metadata"), dict):
                 return table, own["metadata"]
+        # another program's Picasso table: its image description
+        for doc in docs:
+            try:
+                px, shape = float(doc["Pixelsize"]), [int(doc["Height"]), int(doc["Width"])]
+            except (KeyError, TypeError, ValueError):
+                continue
+            return table, {"params": {"pixel_size": px}, "shape": shape}
     return table, {}
 
 
