@@ -566,3 +566,20 @@ def test_render_under_a_memory_limit_says_so_in_one_sentence(tmp_path):
     assert lines[-1].startswith("error: render ran out of memory"), r.stderr
     assert "did not fit" in lines[-1]
     assert not out.exists()
+
+
+def test_render_says_when_the_frc_plot_it_was_asked_for_is_not_written(tmp_path):
+    """A single-frame table has no FRC (the halves split frames): render --frc wrote no plot
+    and said nothing of it."""
+    t = _table()
+    t["frame"] = 0
+    src = tmp_path / "one_frame.parquet"
+    write_table(t, src)
+    frc_png = tmp_path / "frc.png"
+    r = runner.invoke(
+        app, ["render", str(src), "-o", str(tmp_path / "r.png"), "--frc", str(frc_png)]
+    )
+    assert r.exit_code == 0, r.output
+    assert "FRC not computed" in r.output
+    assert "--frc frc.png was not written" in r.output
+    assert not frc_png.exists() and (tmp_path / "r.png").exists()

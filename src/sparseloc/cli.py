@@ -1571,6 +1571,8 @@ def render(
     typer.echo(frc_msg)
     if frc_plot is not None and res is not None:
         typer.echo(f"wrote {frc_plot}")
+    elif frc_plot is not None:
+        _note(f"--frc {frc_plot.name} was not written: there is no FRC curve to draw")
     if volume is not None:
         typer.echo(f"wrote {volume} ({vol.shape[0]} planes of {vol.shape[1]}x{vol.shape[2]})")
 
