@@ -430,3 +430,21 @@ def test_picasso_tables_filter_back_to_picasso(table, tmp_path):
     res = run("filter", csv, "-o", tmp_path / "d.hdf5")
     refused(res, "pixel size and frame shape")
     assert "kept" not in res.output and not (tmp_path / "d.hdf5").exists()
+
+
+def test_a_calibration_given_as_the_movie_is_named_as_swapped(movie, tmp_path):
+    """`localize PSF.h5 ... --psf movie.tif` said only that PSF.h5 is not a TIFF file."""
+    path, _ = movie
+    cal = tmp_path / "PSF.h5"
+    with h5py.File(cal, "w") as f:
+        f["x"] = np.zeros(3)
+    out = tmp_path / "l.parquet"
+    res = run("localize", cal, "-o", out, "--psf", path, "--pixel-size", "160")
+    refused(res, "PSF.h5", "HDF5 file", "the calibration after --psf")
+    assert not out.exists()
+    table = tmp_path / "t.parquet"
+    write_table(
+        complete_locs(pd.DataFrame({"frame": [0], "x_nm": [500.0], "y_nm": [500.0]})), table
+    )
+    res = run("overlay", cal, table, "-o", tmp_path / "o.png", "--pixel-size", "160")
+    refused(res, "PSF.h5", "HDF5 file", "the movie goes first")

@@ -777,7 +777,6 @@ def localize(
     written."""
     from .config import LOCALIZE_DEFAULTS, build_job
     from .distributed import resumable_by_default
-    from .io.movie import Movie
 
     given = {
         "psf": psf,
@@ -821,7 +820,7 @@ def localize(
     opts = {**LOCALIZE_DEFAULTS, **cfg}
     opts.update({k: v for k, v in given.items() if v is not None})
     default_psf = psf is None and cfg.get("psf") is None
-    mov = _run(Movie.open, [str(p) for p in movie] if len(movie) > 1 else str(movie[0]))
+    mov = _open_movie(movie, "the movie goes first, the calibration after --psf")
     with mov, _info_from("sparseloc.psf.spline"):
         inputs = [*mov.paths, config, Path(str(opts["psf"]))]
         inputs += [opts[k] for k in ("offset_map", "variance_map", "gain_map")]
@@ -1244,13 +1243,12 @@ def camera_cmd(
     """Estimate the camera's offset, gain (e-/ADU) and read noise from the movie's
     mean-variance (photon transfer) relation, for localize's camera flags."""
     from .camera import estimate_camera
-    from .io.movie import Movie
 
     kind = camera or "scmos"
     for flag, value in (("--offset", offset), ("--read-noise", read_noise)):
         if value is not None and not (np.isfinite(value) and value >= 0):
             _fail(f"{flag} must be a number >= 0, got {value:g}")
-    mov = _run(Movie.open, [str(p) for p in movie] if len(movie) > 1 else str(movie[0]))
+    mov = _open_movie(movie, "give the camera's movie or bead stack (TIFF)")
     with mov:
         start, stop = _run(_camera_frames, frames, len(mov))
         adu = _run(mov.frames, start, stop)
@@ -1439,6 +1437,25 @@ def _table_output(path: Path, *, overwrite: bool, inputs: Any) -> Path:
     return _new_output(
         path, overwrite=overwrite, inputs=inputs, companions=_table_companions(path, None)
     )
+
+
+def _open_movie(paths: list[Path], hint: str) -> Any:
+    """The movie of ``paths`` (one file or a series), refusing an HDF5 file (a calibration or
+    a Picasso table given where the movie belongs) in one sentence with ``hint``."""
+    from .io.movie import Movie
+
+    for path in paths:
+        try:
+            with open(path, "rb") as fh:
+                head = fh.read(8)
+        except OSError:
+            continue  # Movie.open says what is wrong with it
+        if head.startswith(b"\x89HDF"):
+            _fail(
+                f"{path.name!r} is an HDF5 file (a calibration or a Picasso table?), not a "
+                f"movie: {hint}"
+            )
+    return _run(Movie.open, [str(p) for p in paths] if len(paths) > 1 else str(paths[0]))
 
 
 def _read_locs(path: Path) -> tuple[Any, dict]:
@@ -1799,7 +1816,6 @@ def overlay(
     overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
 ) -> None:
     """Draw one frame with its localizations: circles coloured by z, flagged fits as grey x."""
-    from .io.movie import Movie
     from .overlay import check_table_movie, overlay_rows, plot_overlay
     from .report import _overlay_pixel_size
 
@@ -1815,7 +1831,7 @@ def overlay(
             "movie goes first (sparseloc overlay MOVIE LOCS)"
         )
     table, meta = _read_locs(locs)
-    mov = _run(Movie.open, movie)
+    mov = _open_movie([movie], "the movie goes first, the table second")
     with mov:
         if not 0 <= frame < mov.n_frames:
             _fail(
