@@ -764,3 +764,14 @@ def test_a_calibration_with_an_absurd_oversample_is_refused(calibration_file, tm
     refused(run("simulate", "-o", out, "--psf", path, "--frames", 1, "--rows", 16, "--cols", 16),
             "odd.h5")  # fmt: skip
     assert not out.exists()
+
+
+def test_camera_on_single_frames_calls_its_offset_no_bound(movie):
+    """On single-molecule frames the line is biased (see the caution): a new user's movie of
+    offset 100 gave "offset at least 105.7 ADU ... localize with --offset 105.7"."""
+    res = run("camera", movie)
+    assert res.exit_code == 0, res.output
+    assert "single-frame noise" in res.output
+    assert "offset at least" not in res.output
+    assert "from single frames, not a bound" in res.output
+    assert "--offset DARK_LEVEL" in res.output

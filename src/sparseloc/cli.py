@@ -1269,8 +1269,17 @@ def camera_cmd(
     # Without the offset the line gives only a lower bound of it (read noise taken as given);
     # a bound below zero places nothing, and no offset is suggested.
     placed = est.offset_given or est.offset >= 0
+    rough = est.method != "temporal"  # single frames: the emitters' images bias the line
     if est.offset_given:
         typer.echo(f"offset {est.offset:.1f} ADU (given)")
+    elif placed and rough:
+        # the bound holds for the line of a steady series; single frames' line is biased
+        placed = False
+        typer.echo(
+            f"offset about {est.offset:.1f} ADU from single frames, not a bound (their line "
+            "is biased as the gain is: see the caution); give --offset (the median of a dark "
+            "frame)"
+        )
     elif placed:
         typer.echo(
             f"offset at least {est.offset:.1f}{_plus_minus(est.offset_error, '.1f')} ADU (with a "
@@ -1314,7 +1323,6 @@ def camera_cmd(
     flags += "--offset " + (f"{est.offset:.1f}" if placed else "DARK_LEVEL")
     # a line of flags reads as advice to copy: single frames' noise biases the gain low by a
     # factor of 2 or more (the emitters' images), so that line leaves the gain to the user
-    rough = est.method != "temporal"
     flags += " --gain GAIN" if rough else f" --gain {est.gain:.4g}"
     if kind == "emccd" and em_gain is not None:
         flags += f" --em-gain {em_gain:g}"
