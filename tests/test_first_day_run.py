@@ -5,6 +5,7 @@ file, and a clean Ctrl-C."""
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 import pytest
@@ -369,3 +370,19 @@ def test_a_built_in_psf_takes_the_movies_recorded_pixel_size(tmp_path, caplog):
     from sparseloc.io.tables import read_table_and_metadata
 
     assert read_table_and_metadata(out)[1]["params"]["pixel_size"] == 110.0
+
+
+def test_progress_lines_go_on_while_a_long_frame_runs(monkeypatch):
+    """One frame with a wrong PSF ran 223 s and showed nothing until it was done: the
+    progress writes its line on a clock too, not only when a frame finishes."""
+    import io
+
+    import sparseloc.progress as progress
+
+    monkeypatch.setattr(progress, "PROGRESS_SECONDS", 0.1)
+    out = io.StringIO()
+    with progress.Progress(3, "localize", stream=out):
+        time.sleep(0.45)  # no frame finishes
+    lines = out.getvalue().splitlines()
+    assert len(lines) >= 2 and all(ln.startswith("localize: 0/3 frames (0%)") for ln in lines)
+    assert "elapsed" in lines[0]

@@ -2,12 +2,15 @@
 
 A tqdm bar redraws one line with carriage returns, which a log file (a cluster job's output)
 shows as nothing useful, so where stderr is not a terminal the run's progress is written as
-plain lines instead, one at most every :data:`PROGRESS_SECONDS` and one at the end.
+plain lines instead, one at most every :data:`PROGRESS_SECONDS` and one at the end. A frame
+can take minutes (a wrong PSF model, a huge frame): a clock thread keeps the bar's elapsed time
+moving and writes a line every :data:`PROGRESS_SECONDS` while no frame finishes.
 """
 
 from __future__ import annotations
 
 import sys
+import threading
 import time
 from typing import IO, Any
 
@@ -48,6 +51,9 @@ class Progress:
         self.done = 0
         self._bar: Any = None
         self._t0 = self._last = time.monotonic()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._clock: threading.Thread | None = None
 
     def __enter__(self) -> Progress:
         isatty = getattr(self.stream, "isatty", None)
@@ -55,21 +61,42 @@ class Progress:
             from tqdm import tqdm
 
             self._bar = tqdm(total=self.total, unit="frame", file=self.stream)
+        self._clock = threading.Thread(target=self._tick, daemon=True)
+        self._clock.start()
         return self
 
     def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._clock is not None:
+            self._clock.join()
         if self._bar is not None:
             self._bar.close()
 
+    def _tick(self) -> None:
+        """While the run lasts: the bar redrawn every second (its elapsed time), or a line
+        every :data:`PROGRESS_SECONDS` when no frame has finished since the last one."""
+        interval = 1.0 if self._bar is not None else max(PROGRESS_SECONDS, 0.05)
+        while not self._stop.wait(interval):
+            with self._lock:
+                if self._bar is not None:
+                    self._bar.refresh()
+                elif time.monotonic() - self._last >= PROGRESS_SECONDS:
+                    self._line()
+
     def update(self, n: int = 1) -> None:
         """Count ``n`` more frames done."""
-        self.done += int(n)
-        if self._bar is not None:
-            self._bar.update(n)
-            return
+        with self._lock:
+            self.done += int(n)
+            if self._bar is not None:
+                self._bar.update(n)
+                return
+            if time.monotonic() - self._last < PROGRESS_SECONDS and self.done < self.total:
+                return
+            self._line()
+
+    def _line(self) -> None:
+        """Write the progress line (the lock held)."""
         now = time.monotonic()
-        if now - self._last < PROGRESS_SECONDS and self.done < self.total:
-            return
         self._last = now
         elapsed = now - self._t0
         share = self.done / max(self.total, 1)
