@@ -166,6 +166,14 @@ def test_drift_with_an_unreliable_z_corrects_x_and_y_and_says_so(tmp_path):
     dc = read_table(out)
     assert np.allclose(np.sort(dc["z_nm"].to_numpy()), np.sort(table["z_nm"].to_numpy()))
     assert plot.exists()
+    # the report of the corrected table checks the residual drift as the correction was made
+    # (5 segments, x and y): it said "Unreliable: z ... use fewer segments" beside "already
+    # drift-corrected"
+    html = tmp_path / "r.html"
+    assert run("report", out, "-o", html).exit_code == 0
+    text = html.read_text()
+    assert "already drift-corrected" in text
+    assert "Unreliable" not in text and "fewer segments" not in text
 
 
 @pytest.fixture(scope="module")

@@ -1680,6 +1680,9 @@ def drift(
         typer.echo(f"caution: {caution}; it was applied (compare with --plot)")
     corrected = apply_drift(table, est)
     meta = {**meta, "drift": {"method": est.method, "reliable": bool(est.reliable)}}
+    if est.method == "rcc":  # how a report estimates the residual drift the same way
+        meta["drift"]["segments"] = int(est.details.get("segments", segments))
+        meta["drift"]["z_corrected"] = bool(est.details.get("z_estimated", True))
     if caution:
         meta["drift"]["caution"] = caution
     _write_locs(corrected, out, meta)

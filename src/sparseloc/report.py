@@ -115,14 +115,20 @@ def _drift_section(
     from .drift import no_drift_caution, plot_drift, rcc_drift
 
     done = ""
+    same: dict[str, Any] = {}  # the correction's own segments, and z only where it corrected z
     if isinstance(corrected, Mapping):
         method = html.escape(str(corrected.get("method", "")))
         done = f"This table is already drift-corrected (<code>sparseloc drift</code>, {method}). "
+        segments = corrected.get("segments")
+        if isinstance(segments, int) and segments >= 2:
+            same["segments"] = segments
+        if corrected.get("z_corrected") is False:
+            same["estimate_z"] = False
     try:
         # Unreliable: the section's text says why; logged too, the warnings would be printed on
         # the terminal of a run that asked only for a report (or the demo), beside its output.
         # Too short a table: the drift command's own rule refuses it, in its words.
-        d = rcc_drift(t, log_warnings=False)
+        d = rcc_drift(t, log_warnings=False, **same)
     except ValueError as exc:
         what = "Its residual drift is not estimated" if done else "Not estimated"
         return f"{done}{what}: {html.escape(str(exc))}", None
