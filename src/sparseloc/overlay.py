@@ -185,7 +185,10 @@ def overlay_figure(
             label=f"flagged ({int((~ok).sum())})",
         )
     if len(rows):
-        ax.legend(loc="upper right", fontsize=8, framealpha=0.6)
+        # a dark box: the light grey cross of a flagged fit was invisible on a white one
+        ax.legend(
+            loc="upper right", fontsize=8, facecolor="0.15", labelcolor="white", framealpha=0.8
+        )
     ax.set_xlim(ext[0], ext[1])
     ax.set_ylim(ext[2], ext[3])
     ax.set_xlabel("x (µm)")
