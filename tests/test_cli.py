@@ -305,4 +305,6 @@ def test_version_and_the_camera_defaults_in_help():
     assert f"(default {LocalizeParams(pixel_size=100.0).min_snr:g})" in text
     assert "ideal, emccd or scmos (default ideal)" in text
     assert "auto (default: temporal from 50 frames)" in text
+    wide = runner.invoke(app, ["calibrate", "--help"], env={"COLUMNS": "200"})
+    assert "(fraction of the brightest). [default: 0.2]" in " ".join(wide.output.split())
     assert "work: auto (default:" in text

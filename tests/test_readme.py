@@ -83,3 +83,28 @@ def test_the_readme_says_where_the_spline_tables_are_cached(monkeypatch, tmp_pat
     monkeypatch.setenv("HOME", str(tmp_path))
     if __import__("sys").platform.startswith("linux"):
         assert cache_dir() == tmp_path / ".cache" / "sparseloc"
+
+
+@pytest.mark.slow
+def test_the_tetrapod_recipe_runs_as_the_readme_says(shared_data, tmp_path, monkeypatch):
+    """Issue 27 item 9: the README's recipe for DeepSTORM3D's real tetrapod frame runs from
+    the command line alone (optics and camera as flags) and gives what its comments say."""
+    from typer.testing import CliRunner
+
+    block = next(
+        b for b in re.findall(r"```bash\n(.*?)```", README.read_text(), re.S) if "Tetrapod" in b
+    )
+    monkeypatch.chdir(tmp_path)
+    outputs = {}
+    for line in block.splitlines():
+        words = shlex.split(line.replace("$D", str(shared_data / "deepstorm3d")), comments=True)
+        if not words or words[0] != "sparseloc":
+            continue
+        res = CliRunner().invoke(app, words[1:])
+        assert res.exit_code == 0, (line, res.output)
+        said = re.search(r"#\s*(.*)$", line)
+        outputs[words[1] + str(len(outputs))] = (res.output, said.group(1) if said else "")
+    for output, comment in outputs.values():
+        for number in re.findall(r"(\d[\d.]*) (?:localizations|e-/ADU|e-)", comment):
+            assert number in output, (comment, output)
+    assert (tmp_path / "tetrapod_overlay.png").is_file()
