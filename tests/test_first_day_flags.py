@@ -538,22 +538,25 @@ sys.exit(command(given[at + 1:]))
 
 
 @pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="Linux limits")
-def test_render_under_a_memory_limit_says_so_in_one_sentence(tmp_path):
+@pytest.mark.parametrize(
+    ("command", "suffix", "extra"), [("render", ".png", ["--px", "8"]), ("report", ".html", [])]
+)
+def test_under_a_memory_limit_a_command_says_so_in_one_sentence(tmp_path, command, suffix, extra):
     """Item 1: under a memory limit, an image too large for it ends in one sentence and exit
-    code 1, not NumPy's _ArrayMemoryError traceback, and writes no picture."""
+    code 1, not NumPy's _ArrayMemoryError traceback, and writes nothing."""
     import subprocess
     import sys
 
     t = _table(2000)
-    t["x_nm"] *= 20.0  # a field 100 um wide at 8 nm pixels: 12,500 x 12,500 px
+    t["x_nm"] *= 20.0  # a field 100 um wide: 12,500 x 12,500 px at 8 nm
     t["y_nm"] *= 20.0
     src = tmp_path / "locs.parquet"
     write_table(t, src)
     small = tmp_path / "small.parquet"
     write_table(_table(), small)
-    out = tmp_path / "render.png"
-    warm = ["render", str(small), "-o", str(tmp_path / "small.png")]
-    args = ["render", str(src), "-o", str(out), "--px", "8"]
+    out = tmp_path / f"out{suffix}"
+    warm = [command, str(small), "-o", str(tmp_path / f"small{suffix}")]
+    args = [command, str(src), "-o", str(out), *extra]
     r = subprocess.run(
         [sys.executable, "-c", _UNDER_A_LIMIT, *warm, "--then", *args],
         capture_output=True,
@@ -563,7 +566,7 @@ def test_render_under_a_memory_limit_says_so_in_one_sentence(tmp_path):
     assert r.returncode == 1, r.stderr
     assert "Traceback" not in r.stderr
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert lines[-1].startswith("error: render ran out of memory"), r.stderr
+    assert lines[-1].startswith(f"error: {command} ran out of memory"), r.stderr
     assert "did not fit" in lines[-1]
     assert not out.exists()
 
