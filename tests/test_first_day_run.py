@@ -128,6 +128,10 @@ def test_a_wrong_psf_or_gain_is_reported(caplog):
     assert "does not describe the data" in msg
     for cause in ("PSF", "gain", "offset", "read noise", "EMCCD"):
         assert cause in msg
+    # said after the first frame too, not only at the end of the run
+    said = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert said[0].startswith("after 1 frame: the model does not describe the data"), said
+    assert "the run goes on" in said[0] and "does not describe the data" in said[-1]
     # astigmatic frames localized with the double helix
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="sparseloc"):

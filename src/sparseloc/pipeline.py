@@ -461,8 +461,9 @@ def localize(
         inputs = _with_starts(inputs, starts, params)
     work_args = (work_model_for(model, params), params, shape, read_variance)
     parts: list[dict] = []
+    early = _EarlyCheck(work_args[0], params, shape) if check and stop - start > 1 else None
     n_windows = _collect(
-        _solve(inputs, work_args, workers), parts, params.method == "frame", progress
+        _solve(inputs, work_args, workers), parts, params.method == "frame", progress, early
     )
     seconds = time.perf_counter() - t0
     meta = run_metadata(model, params, (start, stop), shape, read_variance)
@@ -656,10 +657,10 @@ def work_model_for(model: PSFModel, p: LocalizeParams) -> PSFModel:
     return model
 
 
-def _collect(results, parts: list[dict], renumber: bool, progress) -> int:
+def _collect(results, parts: list[dict], renumber: bool, progress, early=None) -> int:
     """Gather each frame's table parts in order; with ``renumber`` the frame solver's group
-    indices become window ids unique over the movie (a running count). Returns the number
-    of windows."""
+    indices become window ids unique over the movie (a running count); ``early`` is called
+    with the parts after each frame. Returns the number of windows."""
     n_windows = 0
     for rows, nw in results:
         if renumber:
@@ -669,7 +670,35 @@ def _collect(results, parts: list[dict], renumber: bool, progress) -> int:
         n_windows += nw
         if progress is not None:
             progress(1)
+        if early is not None:
+            early(parts)
     return n_windows
+
+
+class _EarlyCheck:
+    """The model check on the first frame that has fits, said at once where it fails: a
+    wrong PSF or camera setting shows after a frame, not at the end of an hours-long run.
+    The run goes on; the check of the whole run at its end decides."""
+
+    def __init__(self, work_model: PSFModel, params: LocalizeParams, shape: tuple[int, int]):
+        self.args = (work_model, params, shape)
+        self.frames = 0
+        self.done = False
+
+    def __call__(self, parts: list[dict]) -> None:
+        self.frames += 1
+        if self.done or not parts:
+            return
+        self.done = True
+        res = check_model(_table(parts), *self.args, warn=False)
+        if res.verdict in ("misfit", "too_little_noise"):
+            log.warning(
+                "after %d frame%s: %s; the run goes on (Ctrl-C stops it), and its check at the "
+                "end decides",
+                self.frames,
+                "" if self.frames == 1 else "s",
+                res.message,
+            )
 
 
 class _FrameWork:
