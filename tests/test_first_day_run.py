@@ -435,3 +435,23 @@ def _median_gof(output: str) -> float:
     import re
 
     return float(re.search(r"median goodness of fit ([\d.]+)", output).group(1))
+
+
+def test_the_command_line_says_warnings_as_its_own_lines(movie, tmp_path):
+    """Log warnings read as the commands' other lines ("warning: ..."), not as
+    "WARNING sparseloc.pipeline: ..." (a new user's trial); --verbose keeps the logger."""
+    import subprocess
+    import sys
+
+    args = ["localize", str(movie), "-o", str(tmp_path / "w.parquet"), "--psf", "dh-analytic"]
+    args += ["--pixel-size", "160", "--workers", "1", "--gain", "3"]  # the movie's gain is 1
+    cmd = [sys.executable, "-m", "sparseloc.cli"]
+    r = subprocess.run([*cmd, *args], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "warning: the model does not describe the data" in r.stderr
+    assert "warning: after 1 frame: the model does not describe the data" in r.stderr
+    assert "WARNING" not in r.stderr
+    r = subprocess.run(
+        [*cmd, "--verbose", *args, "--overwrite"], capture_output=True, text=True, timeout=300
+    )
+    assert "WARNING sparseloc.pipeline: the model does not describe the data" in r.stderr

@@ -371,6 +371,15 @@ def _print_version(value: bool) -> None:
         raise typer.Exit()
 
 
+class _Plain(logging.Formatter):
+    """Log records as the commands' own lines read: ``warning: ...`` (INFO messages bare);
+    ``--verbose`` keeps each record's level and logger."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        msg = record.getMessage()
+        return msg if record.levelno <= logging.INFO else f"{record.levelname.lower()}: {msg}"
+
+
 @app.callback()
 def _main(
     ctx: typer.Context,
@@ -382,10 +391,11 @@ def _main(
         ),
     ] = False,
 ) -> None:
-    logging.basicConfig(
-        level=logging.INFO if verbose else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
+    handler = logging.StreamHandler()
+    handler.setFormatter(
+        logging.Formatter("%(levelname)s %(name)s: %(message)s") if verbose else _Plain()
     )
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, handlers=[handler])
     _NOTES.clear()
     _FROM_CONFIG.clear()
     ctx.call_on_close(_print_notes)
