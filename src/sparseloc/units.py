@@ -25,9 +25,9 @@ __all__ = [
 #: Pixel sizes in the sample that microscopes give (nm): 10 nm is beyond any magnification of
 #: a camera pixel, 20 um beyond any objective used for single molecules.
 PIXEL_SIZE_RANGE_NM = (10.0, 20_000.0)
-#: Stage steps of a bead z-scan (nm): piezo stages step down to a few nm, and a step above
-#: 1 um leaves fewer than the spline's four planes over a PSF's depth (at most about 6 um, a
-#: tetrapod's).
+#: Stage steps of a bead z-scan (nm): piezo stages step down to a few nm; a step above 1 um
+#: leaves two or three planes over a double helix's or an astigmatic PSF's 2-3 um and a
+#: handful over a tetrapod's 6 um, too few for the spline's cubic interpolation in z.
 Z_STEP_RANGE_NM = (1.0, 1_000.0)
 #: Emission wavelengths of fluorophores (nm), ultraviolet to infrared.
 WAVELENGTH_RANGE_NM = (200.0, 2_000.0)
@@ -39,10 +39,13 @@ TOLERANCE_RANGE_NM = (1.0, 1_000_000.0)
 Z_SPAN_MIN_NM = 10.0
 
 
-def check_length_nm(value: object, what: str, plausible: tuple[float, float]) -> float:
+def check_length_nm(
+    value: object, what: str, plausible: tuple[float, float], too_large: str | None = None
+) -> float:
     """``value`` (nm) as a float if it is positive and within ``plausible`` (nm); else
     ValueError in one sentence naming ``what`` (a flag, say) and, below the range, the value
-    it would be in micrometres."""
+    it would be in micrometres; above it, ``too_large`` says why (default: beyond what
+    microscopes make)."""
     try:
         v = float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
@@ -56,7 +59,8 @@ def check_length_nm(value: object, what: str, plausible: tuple[float, float]) ->
             f"micrometres? {v:g} um is {v * 1000:g} nm"
         )
     if v > hi:
-        raise ValueError(f"{what} {v:g} nm is above what microscopes make ({lo:g}-{hi:g} nm)")
+        why = too_large or f"above what microscopes make ({lo:g}-{hi:g} nm)"
+        raise ValueError(f"{what} {v:g} nm is {why}")
     return v
 
 
@@ -67,14 +71,11 @@ def check_pixel_size(value: object, what: str = "--pixel-size") -> float:
 
 def check_z_step(value: object, what: str = "--z-step") -> float:
     """A bead scan's stage step (nm), checked (:data:`Z_STEP_RANGE_NM`)."""
-    v = float(value) if isinstance(value, (int, float)) else value
-    hi = Z_STEP_RANGE_NM[1]
-    if isinstance(v, float) and math.isfinite(v) and v > hi:
-        raise ValueError(
-            f"{what} {v:g} nm is above {hi:g} nm: a bead scan needs several planes over the "
-            "PSF's depth of a few micrometres (steps of 10-100 nm are usual)"
-        )
-    return check_length_nm(value, what, Z_STEP_RANGE_NM)
+    too_large = (
+        f"above {Z_STEP_RANGE_NM[1]:g} nm: a bead scan needs several planes over the PSF's "
+        "depth of a few micrometres (steps of 10-100 nm are usual)"
+    )
+    return check_length_nm(value, what, Z_STEP_RANGE_NM, too_large)
 
 
 def check_z_limits(lo: float | None, hi: float | None, what: str = "--z-min/--z-max") -> None:
