@@ -269,3 +269,30 @@ def test_the_detections_correlations_are_exact_with_templates_nearly_as_wide_as_
         # the documented centring: fftconvolve's "same" with the flipped template
         want = np.stack([fftconvolve(d, stack[j, ::-1, ::-1], mode="same") for j in range(2)])
         assert np.allclose(_correlations(d, stack, {}), want, rtol=1e-4, atol=1e-4)
+
+
+def test_units_refitted_after_the_crowds_see_each_emitters_light_once(astig, monkeypatch):
+    """After the crowds are solved, a kept unit is refitted with the kept units' and the
+    crowds' emitters: a promoted unit's emitter is the crowd's now and is not counted
+    twice (its first fit and the crowd's would both add light to the unit's window)."""
+    from sparseloc.solvers import two_tier
+
+    work, _, solver = astig
+    truth = [[3000.0, 3000.0, 0.0, 6000.0], [3300.0, 3050.0, 200.0, 6000.0],
+             [3100.0, 5000.0, -300.0, 3000.0]]  # fmt: skip
+    seen = []
+    refit = two_tier._Tier1.refit
+
+    def spy(self, unit, others):
+        seen.append(np.vstack([np.reshape(o, (-1, 4)) for o in others] or [np.zeros((0, 4))]))
+        return refit(self, unit, others)
+
+    monkeypatch.setattr(two_tier._Tier1, "refit", spy)
+    counts = TierCounts()
+    fit = _solve(solver, _frame(work, truth, seed=0), counts)
+    assert counts.frames_with_crowds == 1 and counts.singles == 1  # the pair, and one unit
+    assert len(fit.emitters) == 3
+    last = seen[-1]  # the refit with the crowds' light
+    assert len(last) == 2  # the crowd's two emitters, each once
+    d = np.hypot(*(last[:, None, :2] - last[None, :, :2]).transpose(2, 0, 1))
+    assert np.min(d[np.triu_indices(len(last), 1)]) > 100.0

@@ -449,7 +449,9 @@ def solve_two_tier(
             tree = cKDTree(crowd_em[:, :2])
             for k in kept:
                 if any(tree.query_ball_point(r[:2], reach + tier.pad * px) for r in units[k].rows):
-                    units[k] = tier.refit(units[k], [*rows_of(k), crowd_em])
+                    # the promoted units' emitters are the crowds' now (in crowd_em)
+                    others = [units[j].rows for j in kept if j != k]
+                    units[k] = tier.refit(units[k], [*others, crowd_em])
     if counts is not None:
         counts.singles += n_kept
         counts.promoted += len(promoted)
