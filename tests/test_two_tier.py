@@ -296,3 +296,39 @@ def test_units_refitted_after_the_crowds_see_each_emitters_light_once(astig, mon
     assert len(last) == 2  # the crowd's two emitters, each once
     d = np.hypot(*(last[:, None, :2] - last[None, :, :2]).transpose(2, 0, 1))
     assert np.min(d[np.triu_indices(len(last), 1)]) > 100.0
+
+
+def test_an_emitter_hidden_by_the_detections_neighbour_suppression_is_a_unit(astig):
+    """A dimmer emitter about a micrometre from a brighter one gives no local maximum of its
+    own in the detection (the brighter one's correlation is larger around it); the peak the
+    units leave unexplained is tried as a unit, and both are fitted alone (neither goes to the
+    crowds)."""
+    work, _, solver = astig
+    truth = [[3000.0, 3000.0, 300.0, 5000.0], [3000.0, 3850.0, -200.0, 1200.0]]
+    frame = _frame(work, truth, seed=4)
+    planes = detection_planes(solver.templates)
+    assert len(detect_candidates(frame, 10.0, planes, threshold=5.0)) == 1  # hidden
+    counts = TierCounts()
+    fit = _solve(solver, frame, counts)
+    em = fit.emitters.as_array().reshape(-1, 4)
+    assert counts.singles == 2 and counts.promoted == 0  # both fitted alone
+    assert len(em) == 2
+    for t in truth:
+        assert np.min(np.hypot(em[:, 0] - t[0], em[:, 1] - t[1])) < 40.0
+
+
+def test_a_unit_started_from_unexplained_light_must_pass_the_addition_bar(astig):
+    """A start from the light the units leave unexplained is an addition: it is kept only
+    above the count selection's addition threshold, as the frame solver's additions are; a
+    detected start, as the pursuit's, above the lower bar of an emitter alone. An emitter
+    of 300 photons on a background of 100 lies between the two."""
+    from sparseloc.solvers.two_tier import _Tier1
+
+    work, _, solver = astig
+    a = np.array([[3200.0, 3200.0, 0.0, 300.0]])
+    bg = np.full(SHAPE, 100.0)
+    for seed in range(3):
+        f = _frame(work, a, seed=seed, background=100.0)
+        tier = _Tier1(f, bg, work, solver.fit_kwargs(), 1.0, np.zeros(SHAPE), 0.15)
+        assert len(tier.fit(a).rows) == 1
+        assert len(tier.fit(a, added=True).rows) == 0

@@ -20,14 +20,22 @@ tiers:
    refitted in turn with their neighbours' latest light (at most :data:`REFIT_SWEEPS`
    sweeps, skipped where the frame solver's rule says the fit would stay: that light
    changed by little, or its linear response moves the emitter by less than a nm).
-3. **Promotion**: a unit goes to the crowds when its fit is flagged, when its window's
+3. **Unexplained light**: the frame less the units' light is searched again (the detection
+   test, its variance with the units' shot noise and the model's error). A peak there
+   farther than a crowd distance from every unit (:func:`_alone`) is an emitter the
+   detection could not separate from a brighter neighbour's correlation, or noise: it is
+   tried as a unit, kept only above the count selection's addition threshold (as the frame
+   solver's additions are), and the units that see it are refitted. Where a unit near the
+   new ones is then doubtful (below), the round is undone and the crowds solve that light,
+   as they solve the peaks the addition test drops. At most :data:`UNIT_ROUNDS` rounds.
+4. **Promotion**: a unit goes to the crowds when its fit is flagged, when its window's
    chi-square lies :data:`PROMOTE_MISFIT` standard deviations above expectation
    (:func:`misfit`, with the variance rule of :mod:`~sparseloc.solvers.variance`), when it
    lies within a core radius of another unit (:func:`crowd_distance`: the frame solver fits
    those together), or when the frame less the units' light holds a significant peak near
    it (the detection test again, its variance with the units' shot noise and the model's
-   error). Such peaks far from any unit are crowds too.
-4. **Crowds**: the frame solver (fits with count selection, z flips, relocations) with the
+   error). The peaks step 3 leaves elsewhere are crowds too.
+5. **Crowds**: the frame solver (fits with count selection, z flips, relocations) with the
    kept units' light known: a pair starts from its own starts, a larger crowd from the
    frame solver's pursuit on a crop around it (:func:`crowd_boxes`). Units that see the
    crowds' light are refitted with it.
@@ -102,6 +110,14 @@ PROMOTE_MISFIT = 2.0
 #: Most sweeps over the units that see other units' light, each refitting them in turn with
 #: their neighbours' latest light; fewer when a sweep leaves every unit in place.
 REFIT_SWEEPS = 2
+
+
+#: Rounds of unexplained peaks tried as units before the rest go to the crowds.
+UNIT_ROUNDS = 2
+
+#: An unexplained peak within this many pixels of one tried as a unit in an earlier round
+#: is the same peak (the units' refits move it by a pixel at most): it is not tried again.
+TRIED_DISTANCE = 1.5
 
 
 def _settled(before: NDArray, after: NDArray, xy_tol: float = 2.0, z_tol: float = 5.0) -> bool:
@@ -271,10 +287,15 @@ class _Tier1:
             return unit
         return self.fit(unit.rows, offset=offset)
 
-    def fit(self, start: NDArray, others=(), offset: NDArray | None = None) -> _Unit:
+    def fit(
+        self, start: NDArray, others=(), offset: NDArray | None = None, added: bool = False
+    ) -> _Unit:
         """Fit emitters ``start`` (K, 4) in their window with the light of emitters ``others``
         (arrays (M, 4)) known, or ``offset`` (photons/pixel over the window), and the frame
-        solver's z flips near the ends of the z range."""
+        solver's z flips near the ends of the z range. The fit is kept where the count
+        selection's removal test keeps it: with the bar of an emitter alone in its group, or
+        with the bar of an addition where ``added`` (a start proposed by the light that
+        fitted emitters leave unexplained, as the count selection's additions are)."""
         box = self.box(start)
         if offset is None:
             offset = _light(self.light, list(others), box)
@@ -287,7 +308,8 @@ class _Tier1:
         if self.z_flip:
             fit = _try_z_flips(y, model, fit, kw, self.z_flip, None)
         # the frame solver's count selection would remove an emitter this weak
-        fewer = weakest_removed(y, model, fit, kw, self.lr, MIN_PHOTONS, SINGLE_THRESHOLD)
+        single = None if added else SINGLE_THRESHOLD
+        fewer = weakest_removed(y, model, fit, kw, self.lr, MIN_PHOTONS, single)
         if fewer is not None:
             fit = fewer
         nf, e, rv = self.noise
@@ -397,33 +419,25 @@ def solve_two_tier(
         """The emitters of every unit but ``skip``."""
         return [u.rows for k, u in enumerate(units) if k != skip]
 
-    e = tier.noise[1]
-    for i in range(len(cand)):
-        if units and not _significant(tier, planes, cand[i], rows_of(), e, det["threshold"]):
-            continue
-        unit = tier.fit(starts[i][None], rows_of())
-        if len(unit.rows):  # else the count selection's removal test dropped it
-            units.append(unit)
-    near = _neighbours_in_reach(units, px, reach)
-    for _ in range(REFIT_SWEEPS):
-        moved = 0
-        for k in near:
-            before = units[k].rows
-            if len(before):
-                units[k] = tier.refit(units[k], rows_of(k))
-                moved += not _settled(before, units[k].rows)
-        if not moved:
-            break
-    units = [u for u in units if len(u.rows)]
+    _add_units(tier, planes, cand, starts, units, det["threshold"])
+    _refit_sweeps(tier, units, px, reach)
 
-    # 3. promotion: units that one emitter does not explain, units closer than a crowd
+    # 3. unexplained light: peaks alone are tried as units (see the module notes)
+    tried = np.zeros((0, 2))
+    for round_ in range(UNIT_ROUNDS + 1):
+        units[:] = [u for u in units if len(u.rows)]
+        resid, s_light = _unexplained(tier, planes, rows_of(), spectra, det)
+        alone = _alone(resid, units, px, crowd, reach / px, tried)
+        if round_ == UNIT_ROUNDS or not alone.any():
+            break
+        new = z_starts(f, bg + s_light, resid[alone], templates)
+        if not _units_from_peaks(tier, planes, resid[alone], new, units, det["threshold"]):
+            break  # the units are as before the round; those peaks go to the crowds
+        tried = np.vstack([tried, resid[alone]])
+
+    # 4. promotion: units that one emitter does not explain, units closer than a crowd
     # distance to another (the frame solver fits those together), and significant light
     # that the units leave unexplained go to the crowds
-    s_light = _light(light, rows_of(), (0, f.shape[0], 0, f.shape[1]))
-    var_extra = rv + (e * s_light) ** 2 if e > 0 else rv
-    resid = detect_candidates(
-        f, bg + s_light, planes, read_variance=var_extra, cache=spectra, **det
-    )
     close = _close_units(units, px, crowd)
     near_resid = _near(units, resid, px, crowd)
     promoted = [k for k, u in enumerate(units) if u.doubtful() or near_resid[k] or close[k]]
@@ -434,7 +448,7 @@ def solve_two_tier(
     if whole_when_crowded and crowded(start, n_kept, px, reach):
         return _whole(counts)
 
-    # 4. crowds: the frame solver with the units' light known; then units that see the
+    # 5. crowds: the frame solver with the units' light known; then units that see the
     # crowds' light once more with it
     crowd_fit = None
     if len(crowd_pts):
@@ -473,6 +487,105 @@ def _whole(counts: TierCounts | None) -> None:
     if counts is not None:
         counts.frames_whole += 1
     return None
+
+
+def _add_units(
+    tier: _Tier1, planes, cand: NDArray, starts: NDArray, units: list, threshold, added=False
+):
+    """Fit each candidate (pixels ``cand`` (K, 2), starts (K, 4)) in turn as one emitter with
+    the light of ``units`` known, where the frame less that light still holds a detection
+    there (the others are parts of images already explained); append the fits the count
+    selection keeps to ``units`` (with the addition's bar where ``added``, see
+    :meth:`_Tier1.fit`)."""
+    e = tier.noise[1]
+    for i in range(len(cand)):
+        known = [u.rows for u in units]
+        if units and not _significant(tier, planes, cand[i], known, e, threshold):
+            continue
+        unit = tier.fit(starts[i][None], known, added=added)
+        if len(unit.rows):
+            units.append(unit)
+
+
+def _refit_sweeps(tier: _Tier1, units: list, px: float, reach: float) -> None:
+    """Refit, in place, the units whose windows see another unit's light, each in turn with
+    its neighbours' latest light, for at most :data:`REFIT_SWEEPS` sweeps (fewer when a sweep
+    leaves every unit in place)."""
+    near = _neighbours_in_reach(units, px, reach)
+    for _ in range(REFIT_SWEEPS):
+        moved = 0
+        for k in near:
+            before = units[k].rows
+            if len(before):
+                units[k] = tier.refit(units[k], [u.rows for j, u in enumerate(units) if j != k])
+                moved += not _settled(before, units[k].rows)
+        if not moved:
+            break
+
+
+def _unexplained(
+    tier: _Tier1, planes, known: list, spectra: dict, det: dict
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Detections (K, 2 pixels) in the frame less the light of emitters ``known``, its
+    variance with their shot noise and the model's error; and that light (rows, cols)."""
+    f, bg = tier.f, tier.bg
+    _, e, rv = tier.noise
+    s_light = _light(tier.light, known, (0, f.shape[0], 0, f.shape[1]))
+    var = rv + (e * s_light) ** 2 if e > 0 else rv
+    resid = detect_candidates(f, bg + s_light, planes, read_variance=var, cache=spectra, **det)
+    return resid, s_light
+
+
+def _alone(
+    pts: NDArray, units: list, px: float, crowd: float, reach: float, tried: NDArray
+) -> NDArray:
+    """Whether each unexplained peak (K, 2 pixels, strongest first) is tried as a unit: it
+    was not tried before (none of ``tried`` within :data:`TRIED_DISTANCE` pixels), it lies
+    farther than ``crowd`` pixels from every unit's emitter, and no stronger peak within
+    ``reach`` pixels (half a template's width) goes to the crowds (the peaks of a crowd's
+    residual, a double helix's lobes among them, are the crowd's)."""
+    out = ~np.asarray(_near_points(pts, units, px, crowd), dtype=bool)
+    if len(tried) and len(pts):
+        out &= cKDTree(tried).query(pts)[0] > TRIED_DISTANCE
+    if len(pts) > 1:
+        tree = cKDTree(pts)
+        for i in range(len(pts)):
+            if out[i] and any(j < i and not out[j] for j in tree.query_ball_point(pts[i], reach)):
+                out[i] = False
+    return out
+
+
+def _units_from_peaks(tier: _Tier1, planes, pts: NDArray, starts: NDArray, units: list,
+                      threshold: float) -> bool:  # fmt: skip
+    """Try unexplained peaks (pixels ``pts`` (K, 2), starts (K, 4)) as units, and refit the
+    units that see their light; keep the result (True) unless a unit within reach of a new
+    one is then doubtful (:meth:`_Unit.doubtful`): one emitter each does not explain that
+    light (a wrong fit between two emitters leaves peaks around it), and ``units`` is put
+    back as it was (False) for the crowds to solve."""
+    before = list(units)
+    _add_units(tier, planes, pts, starts, units, threshold, added=True)
+    added = units[len(before) :]
+    if not added:
+        return True  # the addition test dropped every peak; the crowds fit them
+    px, reach = tier.px, float(tier.opts["reach"])
+    _refit_sweeps(tier, units, px, reach)
+    new_xy = [u.rows[:, :2] for u in units[len(before) :] if len(u.rows)]
+    if new_xy:
+        tree = cKDTree(np.vstack(new_xy))
+        for u in units:
+            if u.doubtful() and any(tree.query_ball_point(r[:2], reach) for r in u.rows):
+                units[:] = before
+                return False
+    return True
+
+
+def _near_points(pts: NDArray, units: list, px: float, distance: float) -> list[bool]:
+    """Whether each point (K, 2 pixels) lies within ``distance`` (pixels) of a unit's
+    emitter."""
+    up = _unit_points(units, px)
+    if len(pts) == 0 or len(up) == 0:
+        return [False] * len(pts)
+    return list(cKDTree(up).query(pts)[0] < distance)
 
 
 def _significant(tier: _Tier1, planes, rc, known: list, e: float, min_snr: float) -> bool:
