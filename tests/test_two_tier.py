@@ -19,6 +19,7 @@ from sparseloc.solvers.two_tier import (
     crowded,
     detection_planes,
     misfit,
+    overlapping,
     solve_two_tier,
 )
 
@@ -170,6 +171,12 @@ def test_the_auto_rule_solves_whole_where_crowds_outnumber_the_singles_or_one_is
     assert not crowded(apart, 4, px, reach)  # four small crowds, not one large
     chain = starts((10, 10), (18, 10), (26, 10), (34, 10))  # linked one to the next
     assert crowded(chain, 20, px, reach)  # (b) one crowd of more than SMALL_CROWD
+    # (a) counts only in a frame where most emitters' images overlap another's: three crowd
+    # starts beside two singles send a 32 x 32 px frame whole, not a 256 x 256 px one
+    three = starts((5, 5), (25, 5), (5, 25))
+    assert overlapping(5, (32, 32), px, reach) > 0.5 > overlapping(5, (256, 256), px, reach)
+    assert crowded(three, 2, px, reach, (32, 32))
+    assert not crowded(three, 2, px, reach, (256, 256))
 
 
 def test_auto_solves_a_frame_with_a_large_crowd_whole_and_a_sparse_one_in_tiers(astig):

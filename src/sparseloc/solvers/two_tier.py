@@ -42,7 +42,8 @@ tiers:
 
 Under the ``auto`` schedule (``whole_when_crowded``) a frame is solved whole instead, by the
 frame solver's pursuit, fits and second start, where after the promotion the crowds hold
-more starts than the kept units hold emitters, where one crowd holds more than
+more starts than the kept units hold emitters in a frame dense enough that most emitters'
+images would overlap another's (:func:`overlapping`), where one crowd holds more than
 :data:`SMALL_CROWD` starts, or where the crowds' fits grow one beyond that: two tiers only
 pay where most emitters are alone, and the whole-frame solver finds more where many images
 overlap.
@@ -95,6 +96,7 @@ __all__ = [
     "detection_match",
     "detection_planes",
     "misfit",
+    "overlapping",
     "solve_two_tier",
     "z_starts",
 ]
@@ -445,7 +447,7 @@ def solve_two_tier(
     kept = [k for k in range(len(units)) if k not in set(promoted)]
     n_kept = sum(len(units[k].rows) for k in kept)
     start = np.vstack([*(units[k].rows for k in promoted), z_starts(f, bg, resid, templates)])
-    if whole_when_crowded and crowded(start, n_kept, px, reach):
+    if whole_when_crowded and crowded(start, n_kept, px, reach, f.shape):
         return _whole(counts)
 
     # 5. crowds: the frame solver with the units' light known; then units that see the
@@ -474,12 +476,25 @@ def solve_two_tier(
     return _merge([units[k] for k in kept], crowd_fit, f.shape, px)
 
 
-def crowded(start: NDArray, n_kept: int, px: float, reach: float) -> bool:
+def crowded(
+    start: NDArray, n_kept: int, px: float, reach: float, shape: tuple[int, int] | None = None
+) -> bool:
     """Whether the ``auto`` schedule solves a frame whole: its crowds' starts ``start``
-    (K, 4; nm, photons) outnumber the ``n_kept`` emitters of the kept units, or one crowd
-    (starts linked within ``reach`` nm, half a template's width) holds more than
+    (K, 4; nm, photons) outnumber the ``n_kept`` emitters of the kept units in a frame
+    (``shape``, pixels) whose emitters mostly overlap another's image (:func:`overlapping`),
+    or one crowd (starts linked within ``reach`` nm, half a template's width) holds more than
     :data:`SMALL_CROWD` of them."""
-    return len(start) > n_kept or _large_crowd(start, px, reach)
+    many = len(start) > n_kept
+    if many and shape is not None:
+        many = overlapping(len(start) + n_kept, shape, px, reach) > 0.5
+    return many or _large_crowd(start, px, reach)
+
+
+def overlapping(n: int, shape: tuple[int, int], px: float, reach: float) -> float:
+    """The fraction of ``n`` emitters spread at random over a frame of ``shape`` pixels that
+    have another within ``reach`` nm (their images overlap): ``1 - exp(-rho pi reach^2)``."""
+    area = shape[0] * shape[1] * px * px
+    return float(1.0 - np.exp(-max(n - 1, 0) / area * np.pi * reach * reach))
 
 
 def _whole(counts: TierCounts | None) -> None:
