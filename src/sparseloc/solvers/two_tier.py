@@ -491,8 +491,25 @@ def crowded(
 
 
 def overlapping(n: int, shape: tuple[int, int], px: float, reach: float) -> float:
-    """The fraction of ``n`` emitters spread at random over a frame of ``shape`` pixels that
-    have another within ``reach`` nm (their images overlap): ``1 - exp(-rho pi reach^2)``."""
+    """The fraction of ``n`` emitters spread at random over a frame that have another within
+    ``reach`` (the centre of one inside the other's image): ``1 - exp(-rho pi reach^2)``.
+
+    Parameters
+    ----------
+    n : int
+        Emitters in the frame.
+    shape : (int, int)
+        The frame's shape (pixels).
+    px : float
+        Pixel size (nm).
+    reach : float
+        Half a template's width (nm).
+
+    Returns
+    -------
+    float
+        A fraction in [0, 1).
+    """
     area = shape[0] * shape[1] * px * px
     return float(1.0 - np.exp(-max(n - 1, 0) / area * np.pi * reach * reach))
 
