@@ -312,16 +312,17 @@ def test_an_emitter_hidden_by_the_detections_neighbour_suppression_is_a_unit(ast
     crowds)."""
     work, _, solver = astig
     truth = [[3000.0, 3000.0, 300.0, 5000.0], [3000.0, 3850.0, -200.0, 1200.0]]
-    frame = _frame(work, truth, seed=4)
     planes = detection_planes(solver.templates)
-    assert len(detect_candidates(frame, 10.0, planes, threshold=5.0)) == 1  # hidden
-    counts = TierCounts()
-    fit = _solve(solver, frame, counts)
-    em = fit.emitters.as_array().reshape(-1, 4)
-    assert counts.singles == 2 and counts.promoted == 0  # both fitted alone
-    assert len(em) == 2
-    for t in truth:
-        assert np.min(np.hypot(em[:, 0] - t[0], em[:, 1] - t[1])) < 40.0
+    for seed in range(3):
+        frame = _frame(work, truth, seed=seed)
+        assert len(detect_candidates(frame, 10.0, planes, threshold=5.0)) == 1  # hidden
+        counts = TierCounts()
+        fit = _solve(solver, frame, counts)
+        em = fit.emitters.as_array().reshape(-1, 4)
+        assert counts.singles == 2 and counts.promoted == 0  # both fitted alone
+        assert len(em) == 2
+        for t in truth:
+            assert np.min(np.hypot(em[:, 0] - t[0], em[:, 1] - t[1])) < 40.0
 
 
 def test_a_unit_started_from_unexplained_light_must_pass_the_addition_bar(astig):
