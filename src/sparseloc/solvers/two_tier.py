@@ -433,8 +433,10 @@ def solve_two_tier(
         if round_ == UNIT_ROUNDS or not alone.any():
             break
         new = z_starts(f, bg + s_light, resid[alone], templates)
-        if not _units_from_peaks(tier, planes, resid[alone], new, units, det["threshold"]):
-            break  # the units are as before the round; those peaks go to the crowds
+        n_before = len(units)
+        kept = _units_from_peaks(tier, planes, resid[alone], new, units, det["threshold"])
+        if not kept or len(units) == n_before:
+            break  # the units as before the round: the same residual, those peaks the crowds'
         tried = np.vstack([tried, resid[alone]])
 
     # 4. promotion: units that one emitter does not explain, units closer than a crowd
