@@ -179,3 +179,55 @@ def test_storm_analysis_dh_random_density_1_per_um2(shared_data, dh_calibration)
     assert mean["recall"] >= 0.895, mean
     assert mean["jaccard"] >= 79.5, mean
     assert mean["rmse_lateral"] < 56.0 and mean["rmse_axial"] < 88.0, mean
+
+
+def _false_lobe_fits(table, truth) -> tuple[float, int]:
+    """Of a table's localizations: the share that are false and dim beside a true emitter
+    (no truth within 100 nm laterally and 300 nm axially, the nearest truth within 1 um and
+    brighter: a fit to part of a neighbour's image), and the number of false ones beyond
+    the truth's z range by more than 100 nm that no flag marks."""
+    from scipy.spatial import cKDTree
+
+    t = truth[["x_nm", "y_nm", "z_nm", "photons"]].to_numpy()
+    loc = table[["x_nm", "y_nm", "z_nm", "photons"]].to_numpy()
+    tree = cKDTree(t[:, :2])
+    used: set[int] = set()
+    true = np.zeros(len(loc), dtype=bool)
+    for i in np.argsort(-loc[:, 3]):
+        for j in tree.query_ball_point(loc[i, :2], 100.0):
+            if j not in used and abs(t[j, 2] - loc[i, 2]) < 300.0:
+                used.add(j)
+                true[i] = True
+                break
+    d, nearest = tree.query(loc[:, :2])
+    lobe = ~true & (d < 1000.0) & (loc[:, 3] < t[nearest, 3])
+    beyond = ~true & ((loc[:, 2] < t[:, 2].min() - 100.0) | (loc[:, 2] > t[:, 2].max() + 100.0))
+    unflagged = beyond & (table["flag"].to_numpy() == "ok")
+    return float(lobe.mean()), int(unflagged.sum())
+
+
+@pytest.mark.slow
+def test_few_dim_fits_on_a_neighbours_lobe_at_1_per_um2(shared_data, dh_calibration):
+    """storm-analysis's whole DH frame at 1 /um^2 with default settings (issue 27 item 3).
+
+    The first-day trial found 211 of 737 localizations false there, most of them dim fits
+    to a neighbour's lobe, 41 % with z beyond the data's range, and the flags removed 41.
+    Measured with this test's rules: before the count selection knew the model's error
+    (3585ebd's parent) 256 of 739 localizations (34.6 %) were dim false fits beside a
+    brighter emitter and 61 false fits beyond the z range carried no flag; now 67 of 606
+    (11.1 %) and 9. The thresholds sit between, far from both (a run's rounding
+    moves these counts by a few).
+    """
+    import tifffile
+
+    from sparseloc.io.truth import read_truth_csv
+    from sparseloc.pipeline import LocalizeParams, localize
+
+    folder = shared_data / "storm_analysis_sim" / "dh"
+    name = "dh_random_density0.01px2"
+    frame = tifffile.imread(folder / f"{name}.tif").astype(float) - 100.0
+    truth = read_truth_csv(folder / f"{name}_groundtruth.csv", pixel_size=100.0)
+    res = localize(frame.reshape(-1, *frame.shape[-2:]), dh_calibration, LocalizeParams(100.0))
+    lobe_share, unflagged_beyond = _false_lobe_fits(res.table, truth)
+    assert lobe_share < 0.2, lobe_share
+    assert unflagged_beyond < 30, unflagged_beyond
