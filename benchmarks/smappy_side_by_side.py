@@ -31,7 +31,8 @@ Usage::
 
     python benchmarks/smappy_side_by_side.py [--frames 1000] [--psfs astig,dh]
         [--densities 0.05,0.5] [--workers 2] [--sparseloc-args "..."]
-        [--smappy-python PATH] [--work DIR] [--out benchmarks/results/smappy_side_by_side.json]
+        [--smappy-python PATH] [--work DIR] [--size 128]
+        [--out benchmarks/results/smappy_side_by_side.json]
 """
 
 from __future__ import annotations
@@ -297,12 +298,14 @@ def make_bead_stack(psf: str, folder: Path, seed: int) -> dict:
     }
 
 
-def make_movie(psf: str, density: float, frames: int, folder: Path, seed: int) -> Path:
+def make_movie(
+    psf: str, density: float, frames: int, folder: Path, seed: int, shape: tuple = SHAPE
+) -> Path:
     sim = simulate(
         make_psf(psf),
         scene="uniform",
         n_frames=frames,
-        shape=SHAPE,
+        shape=shape,
         pixel_size=PX,
         density=density,
         photons=PHOTONS,
@@ -498,6 +501,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--work", type=Path, default=None, help="folder for movies, calibrations")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
+        "--size", type=int, default=SHAPE[0], help="movie frames SIZE x SIZE px (bead stacks stay)"
+    )
+    ap.add_argument(
         "--out", type=Path, default=HERE / "results" / "smappy_side_by_side.json", help="JSON"
     )
     args = ap.parse_args(argv)
@@ -513,7 +519,7 @@ def main(argv: list[str] | None = None) -> dict:
     work = args.work or Path(tempfile.mkdtemp(prefix="smappy_side_by_side_"))
     work.mkdir(parents=True, exist_ok=True)
     print(
-        f"movies: {args.frames} frames of {SHAPE[1]}x{SHAPE[0]} px of {PX:.0f} nm, uniform "
+        f"movies: {args.frames} frames of {args.size}x{args.size} px of {PX:.0f} nm, uniform "
         f"scene, {PHOTONS[0]:.0f}-{PHOTONS[1]:.0f} photons, background {BACKGROUND:g} "
         f"photons/px, ideal camera (Poisson; offset {OFFSET:g} ADU, {GAIN:g} e-/ADU), z over "
         f"the PSF's range; seed {args.seed}\n"
@@ -536,7 +542,7 @@ def main(argv: list[str] | None = None) -> dict:
         "smappy": {"python": smappy_python, "version_or_skip_reason": smappy_info},
         "settings": {
             "pixel_nm": PX,
-            "shape": list(SHAPE),
+            "shape": [args.size, args.size],
             "photons": list(PHOTONS),
             "background": BACKGROUND,
             "camera_offset_adu": OFFSET,
@@ -595,7 +601,10 @@ def main(argv: list[str] | None = None) -> dict:
             dfolder = folder / f"density_{density:g}"
             dfolder.mkdir(parents=True, exist_ok=True)
             t0 = time.perf_counter()
-            movie = make_movie(psf, density, args.frames, dfolder, args.seed + 100 * i + 1 + j)
+            movie = make_movie(
+                psf, density, args.frames, dfolder, args.seed + 100 * i + 1 + j,
+                (args.size, args.size),
+            )  # fmt: skip
             truth = read_truth(movie)
             print(
                 f"\n{psf}, {density:g} /um^2: {len(truth)} emitters in {args.frames} frames "

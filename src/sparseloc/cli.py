@@ -686,9 +686,9 @@ def localize(
         str | None,
         typer.Option(
             help="How the frame solver spends its work: auto (default: emitters alone fitted "
-            "singly and the full solver on small crowds; a frame whose crowds are large, or hold "
-            "more emitters than its singles where most images overlap, solved whole; 1.2-1.9x "
-            "faster on sparse movies), "
+            "singly, the full solver on small crowds and the whole-frame solver on a crop "
+            "around a large one; a frame whose crowds hold more emitters than its singles where "
+            "most images overlap solved whole; 1.2-1.9x faster on sparse movies), "
             "whole-frame, or two-tier (never whole).",
         ),
     ] = None,

@@ -124,10 +124,10 @@ class LocalizeParams:
         other's are fitted alone, and the fits with count selection (from the pursuit on a
         crop where a crowd is large) run only where the light crowds or one emitter does not
         explain it (:mod:`sparseloc.solvers.two_tier`). ``auto`` (default): two tiers, but a
-        frame whose crowds are large, or hold more emitters than its singles where most
-        emitters' images overlap another's, is solved whole
-        (:func:`~sparseloc.solvers.two_tier.crowded`): faster where most emitters are alone,
-        the whole-frame solver's tables where they crowd (measurements:
+        frame whose crowds hold more emitters than its singles where most emitters' images
+        overlap another's is solved whole (:func:`~sparseloc.solvers.two_tier.crowded`), and
+        a large crowd by the whole-frame solver on a crop around it: faster where most
+        emitters are alone, the whole-frame solver's tables where they crowd (measurements:
         ``docs/benchmarks/auto_schedule.txt``).
     second_start : bool
         The whole-frame solver also fits the frame from a second start, the peaks of its

@@ -221,10 +221,11 @@ class _FrameSolver:
             correlators=self.correlators,
         )
 
-    def fit_kwargs(self) -> dict:
-        """Keywords of :func:`frame_fit` but the frame's own."""
+    def fit_kwargs(self, read_variance: Any = None) -> dict:
+        """Keywords of :func:`frame_fit` but the frame's own; the read variance is the run's
+        unless given (a crop's)."""
         p = self.p
-        return dict(
+        kw = dict(
             pixel_size=p.pixel_size,
             group_distance=self.group_distance,
             pad=self.pad,
@@ -235,6 +236,9 @@ class _FrameSolver:
             relocate=int(p.relocate),
             **self.noise_kw,
         )
+        if read_variance is not None and "read_variance" in kw:
+            kw["read_variance"] = read_variance
+        return kw
 
     def __call__(
         self, frame: NDArray, background: NDArray, start: NDArray | None = None
@@ -258,18 +262,45 @@ class _FrameSolver:
                 read_variance=self.noise_kw.get("read_variance", 0.0),
                 cache=self.detection_cache,
                 whole_when_crowded=self.p.frame_schedule == "auto",
+                whole=self.whole if self.p.frame_schedule == "auto" else None,
             )
             if fit is not None:
                 return fit
-        start = self.start(frame, background)
-        first = frame_fit(frame, self.model, start, background=background, **self.fit_kwargs())
-        return first if self.l1 is None else self.second(frame, background, first)
+        return self.whole(frame, background)
 
-    def second(self, frame: NDArray, background: NDArray, first: FrameFit) -> FrameFit:
+    def whole(
+        self,
+        frame: NDArray,
+        background: NDArray,
+        fixed_light: NDArray | None = None,
+        read_variance: Any = None,
+    ) -> FrameFit:
+        """The whole-frame solver on ``frame`` (or a crop of the frame, with its read
+        variance): the pursuit, the fits and the second start, with the light
+        ``fixed_light`` (photons/pixel, the image's shape) known."""
+        seen = background if fixed_light is None else background + fixed_light
+        start = self.start(frame, seen, read_variance)
+        kw = self.fit_kwargs(read_variance)
+        first = frame_fit(
+            frame, self.model, start, background=background, fixed_light=fixed_light, **kw
+        )
+        if self.l1 is None:
+            return first
+        return self.second(frame, background, first, fixed_light, read_variance)
+
+    def second(
+        self,
+        frame: NDArray,
+        background: NDArray,
+        first: FrameFit,
+        fixed_light: NDArray | None = None,
+        read_variance: Any = None,
+    ) -> FrameFit:
         """``first`` with each region where a fit from the L1 deconvolution's peaks places
         the emitters otherwise, and is likelier, replaced by that fit. Only the parts of the
         frame where ``first`` has groups of two or more are solved again (with a template's
-        reach around them, the light of ``first``'s other emitters known)."""
+        reach around them, the light of ``first``'s other emitters and ``fixed_light``
+        known)."""
         p = self.p
         px = p.pixel_size
         margin = self.templates.images.shape[-1] // 2
@@ -279,9 +310,10 @@ class _FrameSolver:
         arr = first.emitters.as_array().reshape(-1, 4)
         redone = np.zeros(len(arr), bool)
         second = None
+        kw = self.fit_kwargs(read_variance)
         for box in boxes:
             mine = inside(arr, box, px)
-            part = self.crop_fit(frame, background, box, arr[~mine], arr[mine])
+            part = self.crop_fit(frame, background, box, arr[~mine], arr[mine], fixed_light, kw)
             if part is not None:
                 redone |= mine
                 second = part if second is None else joined(second, part)
@@ -298,16 +330,27 @@ class _FrameSolver:
             group_distance=self.group_distance,
             pad=self.pad,
             penalty=add_threshold(None, p.qe),
-            fit_kwargs={**self.noise_kw, "noise": p.noise},
+            fit_kwargs={
+                k: v for k, v in kw.items() if k in ("noise", "qe", "read_variance", "plane")
+            },
+            fixed_light=fixed_light,
         )
 
     def crop_fit(
-        self, frame: NDArray, background: NDArray, box: tuple, others: NDArray, mine: NDArray
+        self,
+        frame: NDArray,
+        background: NDArray,
+        box: tuple,
+        others: NDArray,
+        mine: NDArray,
+        fixed_light: NDArray | None,
+        kw: dict,
     ) -> FrameFit | None:
         """The frame fit of the pixels ``box`` from the L1 deconvolution's peaks, with the
-        light of ``others`` (K, 4) known; emitters in frame coordinates. None where the peaks
-        are the first fit's emitters ``mine`` (one each, within a pixel laterally and one of
-        the deconvolution's plane spacings axially): the fit from them would find the same."""
+        light of ``others`` (K, 4) and ``fixed_light`` known; emitters in frame coordinates.
+        None where the peaks are the first fit's emitters ``mine`` (one each, within a pixel
+        laterally and one of the deconvolution's plane spacings axially): the fit from them
+        would find the same. ``kw``: :meth:`fit_kwargs` of the frame."""
         p, px = self.p, self.p.pixel_size
         r0, r1, c0, c1 = box
         crop = np.asarray(frame)[r0:r1, c0:c1]
@@ -318,7 +361,9 @@ class _FrameSolver:
             if len(others)
             else np.zeros(crop.shape)
         )
-        kw = self.fit_kwargs()
+        if fixed_light is not None:
+            light = light + fixed_light[r0:r1, c0:c1]
+        kw = dict(kw)
         rv = kw.get("read_variance")
         if rv is not None and np.ndim(rv) == 2:
             kw["read_variance"] = rv[r0:r1, c0:c1]

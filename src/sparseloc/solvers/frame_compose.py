@@ -169,6 +169,7 @@ def likelier_per_region(
     pad: int,
     penalty: float,
     fit_kwargs: dict,
+    fixed_light: NDArray | None = None,
 ) -> FrameFit:
     """One fit of the frame from two: ``first``, with each region where ``second`` places its
     emitters differently replaced by ``second``'s, or by the union of the two settled by the
@@ -198,6 +199,9 @@ def likelier_per_region(
     fit_kwargs : dict
         The likelihood's keywords of :func:`~sparseloc.solvers.mle.fit_emitters` (``noise``,
         ``qe``, ``read_variance``).
+    fixed_light : ndarray, shape (rows, cols), optional
+        Light known beside the two fits' emitters (photons/pixel), as in
+        :func:`~sparseloc.solvers.frame.frame_fit`.
 
     Returns
     -------
@@ -226,6 +230,8 @@ def likelier_per_region(
         kept = [a[others], b[use_b]] + [u.emitters.as_array().reshape(-1, 4) for u in unions]
         rest = np.vstack(kept)
         offset = light.window(rest, box) if len(rest) else 0.0
+        if fixed_light is not None:
+            offset = offset + fixed_light[r0:r1, c0:c1]
         start_bg = float(max(np.median(background[r0:r1, c0:c1]), 1e-3))
         kw = window_kwargs(frame, box, pixel_size, offset, start_bg, fit_kwargs)
         y = window_data(frame, box, fit_kwargs)

@@ -43,10 +43,12 @@ tiers:
 Under the ``auto`` schedule (``whole_when_crowded``) a frame is solved whole instead, by the
 frame solver's pursuit, fits and second start, where after the promotion the crowds hold
 more starts than the kept units hold emitters in a frame dense enough that most emitters'
-images would overlap another's (:func:`overlapping`), where one crowd holds more than
-:data:`SMALL_CROWD` starts, or where the crowds' fits grow one beyond that: two tiers only
-pay where most emitters are alone, and the whole-frame solver finds more where many images
-overlap.
+images would overlap another's (:func:`overlapping`): two tiers only pay where most
+emitters are alone, and the whole-frame solver finds more where many images overlap. A
+crowd of more than :data:`SMALL_CROWD` starts, or one the crowds' fits grow beyond that, is
+solved by the whole-frame solver (``whole``: pursuit, fits and second start) on a crop
+around it with the kept units' light known: how much of a frame that solver sees follows
+the crowd, not the frame's size (one large crowd sent a whole 512 x 512 px frame to it).
 
 The fits, the z flips and the crowds' count selection are the frame solver's own
 (:func:`~sparseloc.solvers.mle.fit_emitters`, :func:`~sparseloc.solvers.frame.frame_fit`).
@@ -78,6 +80,7 @@ from .frame import (
     add_threshold,
     frame_fit,
 )
+from .frame_compose import inside, subset
 from .frame_mp import FrameTemplates
 from .frame_windows import NeighbourLight, window_box, window_data, window_kwargs
 from .mle import fit_emitters
@@ -349,6 +352,7 @@ def solve_two_tier(
     counts: TierCounts | None = None,
     cache: dict | None = None,
     whole_when_crowded: bool = False,
+    whole=None,
 ) -> FrameFit | None:
     """Solve one frame in two tiers (see the module notes).
 
@@ -380,10 +384,17 @@ def solve_two_tier(
     cache : dict, optional
         Kept between frames: the detection's planes and their spectra.
     whole_when_crowded : bool
-        Return None where the crowds hold more starts than the kept units hold emitters,
-        where a crowd holds more than :data:`SMALL_CROWD` starts, or where its fit holds
-        more than that many emitters: the caller then solves the frame whole (its pursuit
-        and second start find more where images overlap than the crowds' fits).
+        Return None where the crowds hold more starts than the kept units hold emitters in
+        a frame where most images overlap, and, without ``whole``, where a crowd holds more
+        than :data:`SMALL_CROWD` starts or its fit more than that many emitters: the caller
+        then solves the frame whole (its pursuit and second start find more where images
+        overlap than the crowds' fits).
+    whole : callable, optional
+        ``whole(image, background, fixed_light, read_variance) -> FrameFit``: the
+        whole-frame solver on a crop. Where given, a crowd of more than :data:`SMALL_CROWD`
+        starts is solved by it on a crop around the crowd, with the kept units' light
+        known, instead of sending the frame whole (the frame's size then does not decide
+        how much of it the whole-frame solver sees).
 
     Returns
     -------
@@ -449,7 +460,7 @@ def solve_two_tier(
     kept = [k for k in range(len(units)) if k not in set(promoted)]
     n_kept = sum(len(units[k].rows) for k in kept)
     start = np.vstack([*(units[k].rows for k in promoted), z_starts(f, bg, resid, templates)])
-    if whole_when_crowded and crowded(start, n_kept, px, reach, f.shape):
+    if whole_when_crowded and crowded(start, n_kept, px, reach, f.shape, large=whole is None):
         return _whole(counts)
 
     # 5. crowds: the frame solver with the units' light known; then units that see the
@@ -457,11 +468,11 @@ def solve_two_tier(
     crowd_fit = None
     if len(crowd_pts):
         known = [units[k].rows for k in kept]
-        crowd_fit, crowd_em = _solve_crowds(
-            f, bg, model, start, known, light, pursuit, opts, crowd, rv
+        crowd_fit, crowd_em, grown = _solve_crowds(
+            f, bg, model, start, known, light, pursuit, opts, crowd, rv, whole
         )
         # the count selection may have grown a small crowd into a large one
-        if whole_when_crowded and _large_crowd(crowd_em, px, reach):
+        if whole_when_crowded and grown:
             return _whole(counts)
         if len(crowd_em) and kept:
             tree = cKDTree(crowd_em[:, :2])
@@ -479,17 +490,23 @@ def solve_two_tier(
 
 
 def crowded(
-    start: NDArray, n_kept: int, px: float, reach: float, shape: tuple[int, int] | None = None
+    start: NDArray,
+    n_kept: int,
+    px: float,
+    reach: float,
+    shape: tuple[int, int] | None = None,
+    large: bool = True,
 ) -> bool:
     """Whether the ``auto`` schedule solves a frame whole: its crowds' starts ``start``
     (K, 4; nm, photons) outnumber the ``n_kept`` emitters of the kept units in a frame
     (``shape``, pixels) whose emitters mostly overlap another's image (:func:`overlapping`),
-    or one crowd (starts linked within ``reach`` nm, half a template's width) holds more than
-    :data:`SMALL_CROWD` of them."""
+    or, where ``large``, one crowd (starts linked within ``reach`` nm, half a template's
+    width) holds more than :data:`SMALL_CROWD` of them (without ``large`` the caller
+    solves such a crowd on a crop of the frame)."""
     many = len(start) > n_kept
     if many and shape is not None:
         many = overlapping(len(start) + n_kept, shape, px, reach) > 0.5
-    return many or _large_crowd(start, px, reach)
+    return many or (large and _large_crowd(start, px, reach))
 
 
 def overlapping(n: int, shape: tuple[int, int], px: float, reach: float) -> float:
@@ -755,29 +772,40 @@ def _large_crowd(start: NDArray, px: float, reach: float) -> bool:
     return any(len(g) > SMALL_CROWD for g in _crowd_groups(start, px, reach)[1])
 
 
-def _solve_crowds(f, bg, model, start, known_rows, light, pursuit, opts, crowd, rv):
+def _solve_crowds(f, bg, model, start, known_rows, light, pursuit, opts, crowd, rv, whole=None):
     """The frame solver on the crowds, with the units' light known: a small crowd
-    (:data:`SMALL_CROWD`) from its starts ``start`` (K, 4), a larger one from the pursuit on
-    a crop around it (:func:`_pursuit_crop`). Returns the FrameFit (frame coordinates) and
-    its emitters (K, 4)."""
+    (:data:`SMALL_CROWD`) from its starts ``start`` (K, 4), a larger one on a crop around it
+    (:func:`_pursuit_crop`: the whole-frame solver ``whole`` where given, else the
+    pursuit's start and the fits). Returns the FrameFit (frame coordinates), its emitters
+    (K, 4) and whether the small crowds' fit grew a crowd of more than :data:`SMALL_CROWD`."""
     px = opts["pixel_size"]
     pts, groups = _crowd_groups(start, px, opts["reach"])
     big = [i for g in groups if len(g) > SMALL_CROWD for i in g]
     small = [i for g in groups if len(g) <= SMALL_CROWD for i in g]
     fits = []
-    if big and pursuit is not None:
-        fits += _pursuit_crop(f, bg, model, pts[big], known_rows, light, pursuit, opts, crowd, rv)
+    if big and (pursuit is not None or whole is not None):
+        fits += _pursuit_crop(
+            f, bg, model, pts[big], known_rows, light, pursuit, opts, crowd, rv, whole
+        )
     else:
         small += big
+    grown = False
     if small:
         done = [ft.emitters.as_array().reshape(-1, 4) for ft in fits]
         fixed = _light(light, [*known_rows, *done], (0, f.shape[0], 0, f.shape[1]))
         em = Emitters.from_array(start[sorted(small)])
-        fits.append(frame_fit(f, model, em, background=bg, fixed_light=fixed, **opts))
+        fit = frame_fit(f, model, em, background=bg, fixed_light=fixed, **opts)
+        grown = _large_crowd(fit.emitters.as_array().reshape(-1, 4), px, opts["reach"])
+        if grown and whole is not None:
+            # a crowd the count selection grew large: its crop solved as a large crowd's
+            fits += _regrown(f, bg, model, fit, [*known_rows, *done], light, opts, crowd, rv, whole)
+            grown = False
+        else:
+            fits.append(fit)
     if not fits:
-        return None, np.zeros((0, 4))
+        return None, np.zeros((0, 4)), False
     fit = _concat(fits)
-    return fit, fit.emitters.as_array().reshape(-1, 4)
+    return fit, fit.emitters.as_array().reshape(-1, 4), grown
 
 
 def _concat(fits: list[FrameFit]) -> FrameFit:
@@ -795,21 +823,49 @@ def _concat(fits: list[FrameFit]) -> FrameFit:
     )
 
 
-def _pursuit_crop(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv):
-    """The frame solver from the pursuit on crops around crowds (points ``pts``, pixels) with
-    the units' light known; FrameFits in frame coordinates.
+def _regrown(f, bg, model, fit, known_rows, light, opts, crowd, rv, whole) -> list[FrameFit]:
+    """The small crowds' ``fit`` where it grew a crowd of more than :data:`SMALL_CROWD`:
+    that crowd's crops solved by ``whole`` (:func:`_pursuit_crop`), with the light of the
+    small crowds' emitters outside them known, and those emitters."""
+    px = opts["pixel_size"]
+    em = fit.emitters.as_array().reshape(-1, 4)
+    pts, groups = _crowd_groups(em, px, opts["reach"])
+    large = [i for g in groups if len(g) > SMALL_CROWD for i in g]
+    out = np.zeros(len(em), dtype=bool)
+    for box in _crop_boxes(pts[large], opts, f.shape):
+        out |= inside(em, box, px)
+    rest = subset(fit, ~out)
+    crops = _pursuit_crop(
+        f, bg, model, pts[large], [*known_rows, em[~out]], light, None, opts, crowd, rv, whole
+    )
+    return [rest, *crops]
+
+
+def _crop_boxes(pts: NDArray, opts: dict, shape: tuple[int, int]) -> list[tuple]:
+    """The crops of :func:`_pursuit_crop` around crowd points ``pts`` (K, 2 pixels)."""
+    h = int(np.ceil(opts["reach"] / opts["pixel_size"]))
+    return crowd_boxes(pts, h + 1, shape, join=2 * h)
+
+
+def _pursuit_crop(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv, whole=None):
+    """The frame solver on crops around crowds (points ``pts``, pixels) with the units' light
+    known; FrameFits in frame coordinates.
 
     Each crop holds its crowd with half a template's width around it, so the pursuit sees
-    every image whole, and crowds whose images could reach each other share a crop; the
-    pursuit's emitters farther than a crowd distance and a pad from the crowd's points are
-    left out (the units explain them)."""
+    every image whole, and crowds whose images could reach each other share a crop. Where
+    ``whole`` is given it solves each crop (the whole-frame solver: pursuit, fits, second
+    start); else the fits start from the pursuit's emitters, those farther than a crowd
+    distance and a pad from the crowd's points left out (the units explain them)."""
     px, pad = opts["pixel_size"], int(opts["pad"])
-    h = int(np.ceil(opts["reach"] / px))
     fits = []
-    for r0, r1, c0, c1 in crowd_boxes(pts, h + 1, f.shape, join=2 * h):
+    for r0, r1, c0, c1 in _crop_boxes(pts, opts, f.shape):
         win = (slice(r0, r1), slice(c0, c1))
         fixed = _light(light, known_rows, (r0, r1, c0, c1))
         sub_rv = rv[win] if np.ndim(rv) else rv
+        if whole is not None:
+            fits.append(_in_frame(whole(f[win], bg[win], fixed, _crop_rv(opts, f.shape, win)),
+                                  c0 * px, r0 * px))  # fmt: skip
+            continue
         start = pursuit(f[win], bg[win] + fixed, sub_rv).as_array().reshape(-1, 4)
         if len(start):
             at = np.column_stack([start[:, 1] / px - 0.5 + r0, start[:, 0] / px - 0.5 + c0])
@@ -818,17 +874,28 @@ def _pursuit_crop(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv
         if len(start) == 0:
             continue
         sub_opts = dict(opts)
-        if np.ndim(sub_opts.get("read_variance")):
-            sub_opts["read_variance"] = np.broadcast_to(sub_opts["read_variance"], f.shape)[win]
+        if (crop_rv := _crop_rv(opts, f.shape, win)) is not None:
+            sub_opts["read_variance"] = crop_rv
         fit = frame_fit(
             f[win], model, Emitters.from_array(start), background=bg[win], fixed_light=fixed,
             **sub_opts,
         )  # fmt: skip
-        em = fit.emitters.as_array().reshape(-1, 4)
-        em[:, 0] += c0 * px
-        em[:, 1] += r0 * px
-        fits.append(replace(fit, emitters=Emitters.from_array(em)))
+        fits.append(_in_frame(fit, c0 * px, r0 * px))
     return fits
+
+
+def _crop_rv(opts: dict, shape: tuple[int, int], win) -> NDArray | None:
+    """The crop ``win`` of the fits' read-variance map; None where it is a number or absent."""
+    rv = opts.get("read_variance")
+    return np.broadcast_to(rv, shape)[win] if np.ndim(rv) else None
+
+
+def _in_frame(fit: FrameFit, dx: float, dy: float) -> FrameFit:
+    """A crop's fit with its emitters moved by ``dx``, ``dy`` nm into the frame."""
+    em = fit.emitters.as_array().reshape(-1, 4).copy()
+    em[:, 0] += dx
+    em[:, 1] += dy
+    return replace(fit, emitters=Emitters.from_array(em))
 
 
 def _merge(units: list[_Unit], crowd_fit: FrameFit | None, shape, px) -> FrameFit:
