@@ -223,6 +223,32 @@ def test_auto_solves_a_large_crowd_with_the_whole_frame_solver_on_its_crop(astig
     assert len(t) != len(a) or np.max(np.abs(t[:, :3] - a[:, :3])) > 3.0
 
 
+def test_a_crowds_crop_takes_its_part_of_an_scmos_read_noise_map(astig, monkeypatch):
+    """The crop of a large crowd is solved with its own part of a read-variance map: the same
+    emitters as the whole-frame schedule with that map, to a few nm."""
+    import sparseloc.solvers.two_tier as two_tier
+
+    work, _, _ = astig
+    crops = []
+    solve_crop = two_tier._pursuit_crop
+    monkeypatch.setattr(
+        two_tier, "_pursuit_crop", lambda *a, **k: crops.append(1) or solve_crop(*a, **k)
+    )
+    p = LocalizeParams(pixel_size=PX, noise="scmos", background="spatial")
+    truth = np.vstack([[[1200.0, 1300.0, -200.0, 3000.0], [5000.0, 5100.0, 250.0, 2500.0]],
+                       _crowd((3200.0, 3200.0), 8, 450.0, seed=4)])  # fmt: skip
+    frames = _frame(work, truth, seed=1)[None]
+    rv = np.random.default_rng(0).uniform(1.0, 9.0, SHAPE)
+    a = localize(frames, work, p, read_variance=rv, check=False).table
+    w = localize(
+        frames, work, replace(p, frame_schedule="whole-frame"), read_variance=rv, check=False
+    ).table
+    assert crops and len(a) == len(w) >= 6
+    cols = ["x_nm", "y_nm", "z_nm"]
+    a, w = (t.sort_values("x_nm")[cols].to_numpy() for t in (a, w))
+    assert np.max(np.abs(a - w)) < 3.0
+
+
 def test_an_unknown_schedule_is_refused(tmp_path):
     with pytest.raises(ValueError, match="frame_schedule"):
         LocalizeParams(pixel_size=PX, frame_schedule="fast")
