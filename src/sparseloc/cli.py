@@ -688,7 +688,7 @@ def localize(
             help="How the frame solver spends its work: auto (default: emitters alone fitted "
             "singly, the full solver on small crowds and the whole-frame solver on a crop "
             "around a large one; a frame whose crowds hold more emitters than its singles where "
-            "most images overlap solved whole; 1.2-1.9x faster on sparse movies), "
+            "most images overlap solved whole; 2.1-2.3x faster on sparse movies), "
             "whole-frame, or two-tier (never whole).",
         ),
     ] = None,

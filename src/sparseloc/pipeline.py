@@ -330,9 +330,7 @@ class _FrameSolver:
             group_distance=self.group_distance,
             pad=self.pad,
             penalty=add_threshold(None, p.qe),
-            fit_kwargs={
-                k: v for k, v in kw.items() if k in ("noise", "qe", "read_variance", "plane")
-            },
+            fit_kwargs={k: v for k, v in kw.items() if k in ("noise", "qe", "read_variance")},
             fixed_light=fixed_light,
         )
 
