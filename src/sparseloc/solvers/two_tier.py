@@ -58,7 +58,7 @@ Measurements: ``docs/benchmarks/two_tier.txt``, ``docs/benchmarks/auto_schedule.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -80,7 +80,7 @@ from .frame import (
     add_threshold,
     frame_fit,
 )
-from .frame_compose import inside, subset
+from .frame_compose import inside, shifted, subset
 from .frame_mp import FrameTemplates
 from .frame_windows import NeighbourLight, window_box, window_data, window_kwargs
 from .mle import fit_emitters
@@ -863,7 +863,7 @@ def _pursuit_crop(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv
         fixed = _light(light, known_rows, (r0, r1, c0, c1))
         sub_rv = rv[win] if np.ndim(rv) else rv
         if whole is not None:
-            fits.append(_in_frame(whole(f[win], bg[win], fixed, _crop_rv(opts, f.shape, win)),
+            fits.append(shifted(whole(f[win], bg[win], fixed, _crop_rv(opts, f.shape, win)),
                                   c0 * px, r0 * px))  # fmt: skip
             continue
         start = pursuit(f[win], bg[win] + fixed, sub_rv).as_array().reshape(-1, 4)
@@ -880,7 +880,7 @@ def _pursuit_crop(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv
             f[win], model, Emitters.from_array(start), background=bg[win], fixed_light=fixed,
             **sub_opts,
         )  # fmt: skip
-        fits.append(_in_frame(fit, c0 * px, r0 * px))
+        fits.append(shifted(fit, c0 * px, r0 * px))
     return fits
 
 
@@ -888,14 +888,6 @@ def _crop_rv(opts: dict, shape: tuple[int, int], win) -> NDArray | None:
     """The crop ``win`` of the fits' read-variance map; None where it is a number or absent."""
     rv = opts.get("read_variance")
     return np.broadcast_to(rv, shape)[win] if np.ndim(rv) else None
-
-
-def _in_frame(fit: FrameFit, dx: float, dy: float) -> FrameFit:
-    """A crop's fit with its emitters moved by ``dx``, ``dy`` nm into the frame."""
-    em = fit.emitters.as_array().reshape(-1, 4).copy()
-    em[:, 0] += dx
-    em[:, 1] += dy
-    return replace(fit, emitters=Emitters.from_array(em))
 
 
 def _merge(units: list[_Unit], crowd_fit: FrameFit | None, shape, px) -> FrameFit:
