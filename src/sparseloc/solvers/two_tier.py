@@ -48,7 +48,7 @@ emitters are alone, and the whole-frame solver finds more where many images over
 crowd of more than :data:`SMALL_CROWD` starts, or one the crowds' fits grow beyond that, is
 solved by the whole-frame solver (``whole``: pursuit, fits and second start) on a crop
 around it with the kept units' light known: how much of a frame that solver sees follows
-the crowd, not the frame's size (one large crowd sent a whole 512 x 512 px frame to it).
+the crowd, not the frame's size.
 
 The fits, the z flips and the crowds' count selection are the frame solver's own
 (:func:`~sparseloc.solvers.mle.fit_emitters`, :func:`~sparseloc.solvers.frame.frame_fit`).
@@ -863,8 +863,8 @@ def _pursuit_crop(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv
         fixed = _light(light, known_rows, (r0, r1, c0, c1))
         sub_rv = rv[win] if np.ndim(rv) else rv
         if whole is not None:
-            fits.append(shifted(whole(f[win], bg[win], fixed, _crop_rv(opts, f.shape, win)),
-                                  c0 * px, r0 * px))  # fmt: skip
+            fit = whole(f[win], bg[win], fixed, _crop_rv(opts, f.shape, win))
+            fits.append(shifted(fit, c0 * px, r0 * px))
             continue
         start = pursuit(f[win], bg[win] + fixed, sub_rv).as_array().reshape(-1, 4)
         if len(start):
