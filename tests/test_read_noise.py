@@ -318,3 +318,16 @@ def test_emccd_read_noise_given_on_the_command_line_passes_the_model_check(tmp_p
     check = read_parquet(out)[1]["model_check"]
     assert check["verdict"] == "ok", check
     assert 0.85 < check["median_gof"] < 1.2
+
+
+def test_a_crop_of_the_read_variance_is_the_maps_pixels_or_the_number():
+    from sparseloc.solvers.variance import read_variance_crop
+
+    rv = np.arange(20.0).reshape(4, 5)
+    crop = read_variance_crop(rv, (4, 5), (1, 3, 2, 5))
+    np.testing.assert_array_equal(crop, [[7.0, 8.0, 9.0], [12.0, 13.0, 14.0]])
+    # a row of the map broadcast over the frame's rows; open ends as slices have them
+    row = read_variance_crop(np.arange(5.0), (4, 5), (None, 2, 3, None))
+    np.testing.assert_array_equal(row, [[3.0, 4.0], [3.0, 4.0]])
+    assert read_variance_crop(2.5, (4, 5), (1, 3, 2, 5)) == 2.5
+    assert read_variance_crop(None, (4, 5), (1, 3, 2, 5)) is None

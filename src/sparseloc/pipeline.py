@@ -58,7 +58,7 @@ from .solvers.frame_compose import (
 from .solvers.frame_l1 import l1_templates, tiled_l1_starts
 from .solvers.refine import refine_solution
 from .solvers.two_tier import solve_two_tier
-from .solvers.variance import noise_factor_of
+from .solvers.variance import noise_factor_of, read_variance_crop
 
 log = logging.getLogger(__name__)
 
@@ -362,9 +362,8 @@ class _FrameSolver:
         if fixed_light is not None:
             light = light + fixed_light[r0:r1, c0:c1]
         kw = dict(kw)
-        rv = kw.get("read_variance")
-        if rv is not None and np.ndim(rv) == 2:
-            kw["read_variance"] = rv[r0:r1, c0:c1]
+        if "read_variance" in kw:
+            kw["read_variance"] = read_variance_crop(kw["read_variance"], np.shape(frame), box)
         starts = tiled_l1_starts(
             crop - light,
             bg,

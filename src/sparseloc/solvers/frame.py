@@ -48,6 +48,7 @@ from .mle import LikelihoodProblem, check_qe, fit_emitters
 from .mp import MIN_PHOTONS
 from .refine import LR_THRESHOLD, fit_with_count_selection
 from .relocate import RELOCATE, RELOCATE_AFTER, relocation_pass
+from .variance import read_variance_crop
 
 log = logging.getLogger(__name__)
 
@@ -496,7 +497,7 @@ class _Sweep:
             **self.fit_kwargs,
         )
         if self.rv is not None:
-            kw["read_variance"] = np.broadcast_to(self.rv, self.f.shape)[r0:r1, c0:c1]
+            kw["read_variance"] = read_variance_crop(self.rv, self.f.shape, box)
         start = Emitters.from_array(start_em)
         if o["count_selection"]:
             fit = fit_with_count_selection(

@@ -26,6 +26,7 @@ from ..detect import circular_shape
 from ..psf.base import PSFModel
 from .emitters import Emitters
 from .frame_mp import FrameTemplates, frame_templates, in_tiles
+from .variance import read_variance_crop
 
 __all__ = ["L1_ITERATIONS", "Convolver", "l1_starts", "l1_templates", "tiled_l1_starts"]
 
@@ -263,7 +264,8 @@ def tiled_l1_starts(
         conv = cache.get(sub.shape)
         if conv is None:
             conv = cache[sub.shape] = Convolver(templates.images, sub.shape)
-        sub_rv = np.broadcast_to(rv, f.shape)[window] if rv.ndim else rv
+        rows_, cols_ = window
+        sub_rv = read_variance_crop(rv, f.shape, (rows_.start, rows_.stop, cols_.start, cols_.stop))
         found = l1_starts(
             sub, bg[window], templates, convolver=conv, read_variance=sub_rv, **kwargs
         )

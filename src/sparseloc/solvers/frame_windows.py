@@ -7,6 +7,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..psf.base import PSFModel
+from .variance import read_variance_crop
 
 __all__ = [
     "FLIP_MEMORY_NM",
@@ -223,10 +224,9 @@ def window_data(f: NDArray, box: tuple[int, int, int, int], fit_kwargs: dict) ->
 def window_kwargs(f, box, px, offset, background, fit_kwargs) -> dict:
     """Keywords of :func:`fit_emitters` for a window of the frame; a read-variance map in
     ``fit_kwargs`` is cropped to it."""
-    r0, r1, c0, c1 = box
+    r0, _, c0, _ = box
     kw = dict(fit_kwargs, pixel_size=px, origin=(c0 * px, r0 * px), offset=offset)
     kw["background"] = background
-    rv = kw.get("read_variance")
-    if rv is not None and np.ndim(rv) > 0:
-        kw["read_variance"] = np.broadcast_to(rv, f.shape)[r0:r1, c0:c1]
+    if "read_variance" in kw:
+        kw["read_variance"] = read_variance_crop(kw["read_variance"], f.shape, box)
     return kw

@@ -86,7 +86,7 @@ from .frame_windows import NeighbourLight, window_box, window_data, window_kwarg
 from .mle import fit_emitters
 from .mp import MIN_PHOTONS
 from .refine import weakest_removed
-from .variance import misfit, model_error_of
+from .variance import misfit, model_error_of, read_variance_crop
 
 log = logging.getLogger(__name__)
 
@@ -861,11 +861,12 @@ def _pursuit_crop(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv
     for r0, r1, c0, c1 in _crop_boxes(pts, opts, f.shape):
         win = (slice(r0, r1), slice(c0, c1))
         fixed = _light(light, known_rows, (r0, r1, c0, c1))
-        sub_rv = rv[win] if np.ndim(rv) else rv
+        fit_rv = read_variance_crop(opts.get("read_variance"), f.shape, (r0, r1, c0, c1))
         if whole is not None:
-            fit = whole(f[win], bg[win], fixed, _crop_rv(opts, f.shape, win))
+            fit = whole(f[win], bg[win], fixed, fit_rv)
             fits.append(shifted(fit, c0 * px, r0 * px))
             continue
+        sub_rv = read_variance_crop(rv, f.shape, (r0, r1, c0, c1))
         start = pursuit(f[win], bg[win] + fixed, sub_rv).as_array().reshape(-1, 4)
         if len(start):
             at = np.column_stack([start[:, 1] / px - 0.5 + r0, start[:, 0] / px - 0.5 + c0])
@@ -874,20 +875,14 @@ def _pursuit_crop(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv
         if len(start) == 0:
             continue
         sub_opts = dict(opts)
-        if (crop_rv := _crop_rv(opts, f.shape, win)) is not None:
-            sub_opts["read_variance"] = crop_rv
+        if "read_variance" in opts:
+            sub_opts["read_variance"] = fit_rv
         fit = frame_fit(
             f[win], model, Emitters.from_array(start), background=bg[win], fixed_light=fixed,
             **sub_opts,
         )  # fmt: skip
         fits.append(shifted(fit, c0 * px, r0 * px))
     return fits
-
-
-def _crop_rv(opts: dict, shape: tuple[int, int], win) -> NDArray | None:
-    """The crop ``win`` of the fits' read-variance map; None where it is a number or absent."""
-    rv = opts.get("read_variance")
-    return np.broadcast_to(rv, shape)[win] if np.ndim(rv) else None
 
 
 def _merge(units: list[_Unit], crowd_fit: FrameFit | None, shape, px) -> FrameFit:

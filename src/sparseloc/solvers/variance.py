@@ -23,7 +23,14 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["error_allowance", "misfit", "model_error_of", "noise_factor_of", "pixel_variance"]
+__all__ = [
+    "error_allowance",
+    "misfit",
+    "model_error_of",
+    "noise_factor_of",
+    "pixel_variance",
+    "read_variance_crop",
+]
 
 
 def model_error_of(model: object) -> float:
@@ -71,6 +78,35 @@ def error_allowance(noise_var: NDArray, error_var: NDArray) -> float:
     """
     v = np.maximum(noise_var, 1e-12)
     return float(np.sum(np.asarray(error_var) / v))
+
+
+def read_variance_crop(
+    read_variance: float | NDArray | None,
+    shape: tuple[int, int],
+    box: tuple[int | None, int | None, int | None, int | None],
+) -> float | NDArray | None:
+    """The read-noise variance over a crop of a frame: a number (or None) as it is, a map
+    (photons^2, the frame's ``shape`` or broadcastable to it) cut to ``box``
+    (``r0, r1, c0, c1`` pixels, slice bounds: None is an open end).
+
+    Parameters
+    ----------
+    read_variance : float, ndarray or None
+        The frame's read-noise variance (photons^2).
+    shape : (int, int)
+        The frame's shape (pixels).
+    box : tuple
+        The crop's first and end row and column.
+
+    Returns
+    -------
+    float, ndarray or None
+        The crop's read-noise variance: a view of the map, or the number.
+    """
+    if read_variance is None or np.ndim(read_variance) == 0:
+        return read_variance
+    r0, r1, c0, c1 = box
+    return np.broadcast_to(read_variance, shape)[r0:r1, c0:c1]
 
 
 def noise_factor_of(noise: str) -> float:
