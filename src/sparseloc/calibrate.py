@@ -51,6 +51,7 @@ __all__ = [
     "Calibration",
     "calibrate_beads",
     "calibrate_file",
+    "detection_sigma",
     "find_beads",
     "read_bead_positions",
     "read_z_file",
@@ -264,7 +265,7 @@ def calibrate_beads(
     roi_size: int | None = None,
     saturation: float | None = None,
     threshold: float = 0.2,
-    detect_sigma: float = 3.0,
+    detect_sigma: float | None = None,
     min_beads: int = 2,
     iterations: int = 3,
     name: str = "spline",
@@ -300,8 +301,9 @@ def calibrate_beads(
         ADU at which the camera saturates; default the integer type's maximum.
     threshold : float
         Bead detection threshold, a fraction of the brightest bead.
-    detect_sigma : float
-        Smoothing (px) for bead detection.
+    detect_sigma : float, optional
+        Smoothing (px) for bead detection; default :func:`detection_sigma` of the pixel
+        size (the scale of a PSF, so a double helix's ring of lobe positions is one bead).
     min_beads : int
         Fewest usable beads to accept.
     iterations : int
@@ -337,6 +339,8 @@ def calibrate_beads(
         than ``min_beads``, all beads saturated, NaNs; each message says what to try.
     """
     scan = read_scan(stack, pixel_size, z_step, z, valid, z0_slice, offset, gain, saturation)
+    if detect_sigma is None:
+        detect_sigma = detection_sigma(scan.pixel_size)
     cal = _calibrate_scan(
         scan,
         roi_size,
@@ -462,6 +466,21 @@ def _model_error(psf: SplinePSF, stacks: _BeadStacks, used: list[int], scan: Bea
             f"(more than {100 * MAX_MODEL_ERROR:.0f} %), too much to trust the model: {hint}"
         )
     return error
+
+
+#: Bead detection smooths the stack's z-average with a Gaussian of this width (nm), and at
+#: least :data:`DETECTION_SIGMA_PX` pixels, and merges maxima within three times it: the
+#: scale of a PSF (about 1.3 times a high-NA objective's lambda / 2 NA), at which a double
+#: helix's ring of lobe positions is one hill whatever the pixel size.
+DETECTION_SIGMA_NM = 300.0
+#: The fewest pixels of that smoothing (the scale on pixels of 100 nm and larger).
+DETECTION_SIGMA_PX = 3.0
+
+
+def detection_sigma(pixel_size: float) -> float:
+    """The bead detection's smoothing (px) on pixels of ``pixel_size`` nm:
+    :data:`DETECTION_SIGMA_NM` in pixels, at least :data:`DETECTION_SIGMA_PX`."""
+    return max(DETECTION_SIGMA_PX, DETECTION_SIGMA_NM / float(pixel_size))
 
 
 def _detect(
