@@ -841,3 +841,41 @@ def test_the_bead_detections_scale_is_physical_below_100_nm_pixels():
 
     assert detection_sigma(65.0) == pytest.approx(300.0 / 65.0)
     assert detection_sigma(PX) == detection_sigma(160.0) == 3.0  # unchanged from 100 nm up
+
+
+def test_a_random_crowded_bead_field_keeps_its_neighbours_light_out_of_the_model():
+    """22 beads at random on a 16 x 16 um field: most ROIs hold other beads' light, some of
+    it from beads at the frame's edge or too close to another to be used. Without modelling
+    the edge beads' light and leaving each bead's voxels that disagree with the other beads'
+    out of the average and of the error's measurement, the model erred by 38 % of the
+    signal (and a count selection allowing for that keeps few dim emitters)."""
+    rng = np.random.default_rng(3)
+    positions = rng.uniform(300, 15700, (22, 2))
+    truth = bead_scan_truth(positions, ZP, PHOTONS)
+    sim = simulate(
+        make_psf("dh-analytic"), scene=truth, n_frames=ZP.size, shape=(160, 160),
+        pixel_size=PX, background=10.0, seed=3,
+    )  # fmt: skip
+    cal = calibrate_beads(sim.movie, PX, Z_STEP, offset=OFFSET)
+    assert cal.n_used >= 6
+    assert cal.params["n_beads_with_neighbours"] >= 1
+    assert cal.psf.model_error < 0.05
+
+
+def test_the_robust_average_leaves_out_only_a_crowded_beads_odd_voxels():
+    from sparseloc.calibrate import robust_average
+
+    rng = np.random.default_rng(0)
+    shape = np.exp(-(np.hypot(*np.mgrid[-5:6, -5:6]) ** 2) / 8.0)[None] * 500.0  # (1, 11, 11)
+    stacks = rng.poisson(np.broadcast_to(shape, (6, 1, 11, 11))).astype(float)
+    stacks[2] *= 2.0  # a brighter bead weighs more, as in the plain mean
+    clean_mean = stacks.mean(axis=0)
+    stacks[4, 0, :3, :3] += 400.0  # a neighbour's light in bead 4's corner
+    plain = stacks.mean(axis=0)
+    suspects = np.array([False, False, False, False, True, False])
+    robust = robust_average(stacks, suspects)
+    corner = (0, slice(0, 3), slice(0, 3))
+    assert np.abs(plain[corner] - clean_mean[corner]).min() > 60.0
+    assert np.abs(robust[corner] - clean_mean[corner]).max() < 30.0
+    # no suspect: the plain mean
+    np.testing.assert_allclose(robust_average(stacks, np.zeros(6, bool)), plain)

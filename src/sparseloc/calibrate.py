@@ -391,8 +391,9 @@ def _calibrate_scan(
     residual = dict.fromkeys(range(nb), np.nan)
     stacks = _BeadStacks(scan.data, centres, used, half, p, step)
     stacks.tick = tick
-    avg = stacks.register(used, scan.zplanes, iterations, name)
     neighbours = _neighbour_pairs(centres, reason, roi)
+    stacks.crowded = set(neighbours)
+    avg = stacks.register(used, scan.zplanes, iterations, name)
     for _ in range(NEIGHBOUR_ROUNDS if neighbours else 0):
         avg = _without_neighbours(stacks, scan, centres, used, neighbours, avg, iterations, name)
     tick()
@@ -453,7 +454,8 @@ def _model_error(psf: SplinePSF, stacks: _BeadStacks, used: list[int], scan: Bea
     bg = scan.background if scan.background is not None else np.zeros(scan.zplanes.size)
     rois = [stacks.rois[i] for i in used]
     shifts = [_fit_shift(psf, roi, scan.zplanes)[0] for roi in rois]
-    error = bead_model_error(psf, rois, shifts, scan.zplanes, bg)
+    # the voxels the average left out of a bead (another's light) are no error of the model
+    error = bead_model_error(psf, rois, shifts, scan.zplanes, bg, stacks.kept_in_rois(used))
     psf.error_table = error.table
     log.info("model error: %.1f %% of the signal per pixel (rms over planes)", 100 * error.overall)
     if not error.overall <= MAX_MODEL_ERROR:
@@ -552,10 +554,11 @@ def _held(profile: LightProfile | None, half: int) -> list[float] | None:
 def _neighbour_pairs(
     centres: NDArray[np.float64], reason: list[str], roi: int
 ) -> dict[int, list[int]]:
-    """For each usable bead, the other beads (not at the edge) whose ROI overlaps its ROI: the
-    ROI holds all but a percent of a bead's light, so farther beads do not reach it."""
+    """For each usable bead, the other beads whose ROI overlaps its ROI (those at the frame's
+    edge too: their light reaches inward): the ROI holds all but a percent of a bead's light,
+    so farther beads do not reach it."""
     out: dict[int, list[int]] = {}
-    ok = [j for j in range(len(centres)) if reason[j] != "edge"]
+    ok = list(range(len(centres)))
     for i in range(len(centres)):
         if reason[i]:
             continue
@@ -564,6 +567,11 @@ def _neighbour_pairs(
         if near:
             out[i] = near
     return out
+
+
+#: The smallest half side (px) of the ROI a bead at the frame's edge is fitted in to model
+#: its light on its neighbours; a bead nearer the edge than this is left out.
+EDGE_FIT_HALF = 3
 
 
 def _without_neighbours(
@@ -586,7 +594,12 @@ def _without_neighbours(
         if j in stacks.rois:
             roi, shift = stacks.rois[j], stacks.shifts[j]
         else:  # a bead that is not used still shines on its neighbours
-            roi = _roi(scan.data, ri, ci, half)
+            # at the frame's edge, fitted in the largest ROI around it inside the frame
+            h, w = scan.projection.shape
+            inner = min(half, ri, ci, h - 1 - ri, w - 1 - ci)
+            if inner < EDGE_FIT_HALF:
+                continue
+            roi = _roi(scan.data, ri, ci, inner)
             shift = _fit_shift(model, roi, scan.zplanes)[0]
         photons = plane_photons(model, roi, shift, scan.zplanes)
         placed[j] = ((ci + 0.5) * p + shift[0], (ri + 0.5) * p + shift[1], shift[2], photons)
@@ -597,7 +610,7 @@ def _without_neighbours(
         light = neighbour_light(
             model,
             (ri - half, ci - half, 2 * half + 1),
-            [placed[j] for j in neighbours.get(i, [])],
+            [placed[j] for j in neighbours.get(i, []) if j in placed],
             scan.zplanes,
         )
         stacks.rois[i] = _roi(scan.data, ri, ci, half) - light
@@ -754,14 +767,32 @@ class _BeadStacks:
         self.photons = {i: float(self.rois[i].sum() / self.rois[i].shape[0]) for i in used}
         self.init_shift = {i: v.copy() for i, v in self.shifts.items()}
         self.tick: Callable[[], None] = lambda: None  # called after each bead's registration
+        # beads whose ROI holds another bead's light: their voxels may disagree with the PSF
+        self.crowded: set[int] = set()
 
     def aligned(self, i: int) -> NDArray[np.float64]:
         """Bead ``i``'s stack resampled onto the average's frame."""
         return _shift_stack(self.rois[i], self.shifts[i], self.p, self.step)
 
+    def kept_in_rois(self, ids: list[int]) -> list[NDArray[np.bool_]]:
+        """Each bead's voxels that agree with the other beads' (:func:`robust_keep` of the
+        registered stacks), on its own ROI's pixels and planes."""
+        keep = robust_keep(np.stack([self.aligned(i) for i in ids]), self._suspects(ids))
+        out = []
+        for i, k in zip(ids, keep, strict=True):
+            s = self.shifts[i]
+            back = _shift_stack(k.astype(np.float64), -np.asarray(s), self.p, self.step)
+            out.append(back > 0.5)
+        return out
+
     def average(self, ids: list[int]) -> NDArray[np.float64]:
-        acc = sum(self.aligned(i) for i in ids)
-        return acc / len(ids)
+        """The registered beads' average, robust where there are enough of them
+        (:func:`robust_average`)."""
+        return robust_average(np.stack([self.aligned(i) for i in ids]), self._suspects(ids))
+
+    def _suspects(self, ids: list[int]) -> NDArray[np.bool_]:
+        """Which of the beads ``ids`` have neighbours in their ROI."""
+        return np.array([i in self.crowded for i in ids], dtype=bool)
 
     def register(
         self,
@@ -811,6 +842,55 @@ class _BeadStacks:
             bi = aligned[i] * (others.sum() / max(aligned[i].sum(), 1e-12))
             out[i] = float(np.linalg.norm(bi - others) / np.linalg.norm(others))
         return out
+
+
+#: Beads needed for the robust average (:func:`robust_average`); fewer are averaged plainly.
+ROBUST_BEADS = 5
+#: A bead's voxel farther than this many robust standard deviations from the beads' median
+#: is left out of the average.
+ROBUST_CLIP = 3.0
+
+
+def robust_keep(stacks: NDArray[np.float64], suspects: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Which voxels of registered bead stacks (B, Nz, R, R; photons less background) to
+    average: light that a bead's ROI holds and the other beads' do not (a neighbour's, an
+    undetected bead's) is not the PSF.
+
+    A voxel of a bead of ``suspects`` (B,) (beads with a neighbour in their ROI) is left out
+    where it lies more than :data:`ROBUST_CLIP` robust standard deviations (the median
+    absolute deviation over the beads, at least the square root of the voxel's light, its
+    Poisson noise) from the beads' median, each stack scaled to the beads' mean total light;
+    the other beads' voxels are all kept, and every voxel where fewer than
+    :data:`ROBUST_BEADS` beads are averaged (the median of two or three says nothing about
+    outliers).
+    """
+    keep = np.ones(stacks.shape, dtype=bool)
+    if stacks.shape[0] < ROBUST_BEADS or not np.any(suspects):
+        return keep
+    scaled = stacks * _light_scale(stacks)
+    med = np.median(scaled, axis=0)
+    mad = 1.4826 * np.median(np.abs(scaled - med), axis=0)
+    sd = np.maximum(mad, np.sqrt(np.maximum(med, 1.0)))
+    keep[suspects] = np.abs(scaled[suspects] - med) <= ROBUST_CLIP * sd
+    return keep
+
+
+def _light_scale(stacks: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Factors (B, 1, 1, 1) that scale each bead stack to the beads' mean total light."""
+    total = np.maximum(stacks.sum(axis=tuple(range(1, stacks.ndim)), keepdims=True), 1e-12)
+    return total.mean() / total
+
+
+def robust_average(stacks: NDArray[np.float64], suspects: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """The mean of registered bead stacks (B, Nz, R, R) over the voxels :func:`robust_keep`
+    keeps: each voxel the sum of the kept beads' light over their share of the beads' total
+    light, so brighter beads weigh more, as in the plain mean (which it equals where every
+    voxel is kept)."""
+    keep = robust_keep(stacks, suspects)
+    if keep.all():
+        return stacks.mean(axis=0)
+    share = 1.0 / _light_scale(stacks)  # each bead's light over the beads' mean
+    return (stacks * keep).sum(axis=0) / np.maximum((share * keep).sum(axis=0), 1e-12)
 
 
 def _drop_outliers(

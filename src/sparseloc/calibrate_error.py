@@ -58,6 +58,7 @@ def bead_model_error(
     shifts: list[NDArray[np.float64]],
     zplanes: NDArray[np.float64],
     background: NDArray[np.float64],
+    masks: list[NDArray[np.bool_]] | None = None,
 ) -> ModelError:
     """Measure the model error of ``psf`` on the beads it was made from.
 
@@ -73,6 +74,9 @@ def bead_model_error(
         The z (nm) of the ROI stacks' planes; only those inside the model's range are used.
     background : ndarray, shape (Nz,)
         Each plane's frame background (photons/pixel), part of the noise variance.
+    masks : list of ndarray of bool, each shape (Nz, R, R), optional
+        The voxels of each ROI to measure on (default all): light that a bead's ROI holds
+        and the other beads' do not is not the model's error.
 
     Returns
     -------
@@ -81,14 +85,16 @@ def bead_model_error(
     nz = zplanes.size
     excess = np.zeros(nz)
     signal = np.zeros(nz)
-    maps, count = np.zeros((nz, *rois[0].shape[1:])), np.zeros(nz)
+    maps, count = np.zeros((nz, *rois[0].shape[1:])), np.zeros((nz, *rois[0].shape[1:]))
     n = len(rois)
-    for roi, shift in zip(rois, shifts, strict=True):
-        res2, noise, sig2, ok, bead_map = _bead_residual(psf, roi, shift, zplanes, background)
+    if masks is None:
+        masks = [np.ones(roi.shape, dtype=bool) for roi in rois]
+    for roi, shift, mask in zip(rois, shifts, masks, strict=True):
+        res2, noise, sig2, ok, bead_map = _bead_residual(psf, roi, shift, zplanes, background, mask)
         excess[ok] += res2[ok] * (n / (n - 1) if n > 1 else 1.0) - noise[ok]
         signal[ok] += sig2[ok]
         maps[ok] += bead_map[ok]
-        count[ok] += 1
+        count[ok] += mask[ok]
     table = _error_table(psf, maps, count, n, zplanes, shifts)
     covered = signal > 0
     per_plane = np.full(nz, np.nan)
@@ -145,10 +151,12 @@ def _bead_residual(
     shift: NDArray[np.float64],
     zplanes: NDArray[np.float64],
     background: NDArray[np.float64],
+    mask: NDArray[np.bool_],
 ) -> tuple[NDArray, NDArray, NDArray, NDArray[np.bool_], NDArray]:
     """Per plane: the residual power, the expected noise power and the signal power of one
-    bead against the model (:func:`plane_fits`), which planes count, and the residual's
-    excess over the noise pixel by pixel per photon squared (planes, rows, cols)."""
+    bead against the model (:func:`plane_fits`) over the voxels of ``mask``, which planes
+    count, and the residual's excess over the noise pixel by pixel per photon squared
+    (planes, rows, cols; 0 outside ``mask``)."""
     nz = roi.shape[0]
     res2, noise, sig2 = np.zeros(nz), np.zeros(nz), np.zeros(nz)
     excess = np.zeros(roi.shape)
@@ -156,12 +164,13 @@ def _bead_residual(
     idx, imgs, scale, offset = plane_fits(psf, roi, shift, zplanes)
     for k, m, a, b in zip(idx, imgs, scale, offset, strict=True):
         fit = a * m + b
+        keep = mask[k]
         r2, var = (roi[k] - fit) ** 2, np.maximum(fit + background[k], 0.0)
-        res2[k], noise[k] = float(np.sum(r2)), float(np.sum(var))
-        sig2[k] = float(np.sum((a * m) ** 2))
+        res2[k], noise[k] = float(np.sum(r2[keep])), float(np.sum(var[keep]))
+        sig2[k] = float(np.sum((a * m)[keep] ** 2))
         ok[k] = True
         if a > 0:
-            excess[k] = (r2 - var) / a**2
+            excess[k] = np.where(keep, (r2 - var) / a**2, 0.0)
     return res2, noise, sig2, ok, excess
 
 
@@ -179,12 +188,12 @@ def _error_table(
     shifts: list[NDArray[np.float64]],
 ) -> SplinePSF | None:
     """:attr:`ModelError.table` from the beads' excess maps summed over ``count`` beads per
-    plane (``n`` beads in all, each partly in the model: scaled by ``n / (n - 1)``)."""
-    covered = np.flatnonzero(count > 0)
+    voxel (``n`` beads in all, each partly in the model: scaled by ``n / (n - 1)``)."""
+    covered = np.flatnonzero(count.reshape(count.shape[0], -1).max(axis=1) > 0)
     if covered.size < 4:
         return None
     var = np.zeros_like(maps)
-    var[covered] = maps[covered] / count[covered, None, None] * (n / (n - 1) if n > 1 else 1.0)
+    var[covered] = maps[covered] / np.maximum(count[covered], 1) * (n / (n - 1) if n > 1 else 1.0)
     var = np.maximum(gaussian_filter(var, ERROR_TABLE_SMOOTHING, mode="nearest"), 0.0)
     sl = slice(covered.min(), covered.max() + 1)
     # the beads sit at the ROIs' centres plus their shifts; the table is centred on their mean
