@@ -20,6 +20,13 @@ check. A wrong PSF looks crowded as well (the solver explains each image with se
 emitters of the wrong shape), so the message names the wrong model first and the crowding
 after it, with the localizations' density for the user to compare with the sample's.
 
+A bead calibration measures how far its own model misses its beads (the model error,
+:mod:`sparseloc.solvers.variance`): coarse pixels, a truncated ROI or few beads make it larger,
+and every window's deviance then carries that error's expected share, ``sum(E / V)`` (the
+count selection's allowance). The upper limit is raised by the median of that share per
+degree of freedom over the windows, so the check flags misfit beyond what the calibration
+says its model misses; an exact model adds nothing.
+
 The yardstick is one window's spread, not the median's own sampling spread: that shrinks as
 ``1 / sqrt(windows)``, so on a long movie it would reject every model short of exact (a spline
 table of a pupil model is ~1 % off), and the verdict would depend on the movie's length.
@@ -126,6 +133,7 @@ def check_fit(
     density: float | None = None,
     alpha: float = ALPHA,
     unresolved_ratio: float | None = None,
+    allowance: ArrayLike | None = None,
 ) -> ModelCheck:
     """Judge a run by the median goodness of fit of its windows (see the module notes).
 
@@ -153,6 +161,12 @@ def check_fit(
         named as a cause only where the median ``gof`` lies within what as many unresolved
         emitters as fitted ones add, ``upper + k * ratio / dof``: a rough bound (the unresolved
         are not counted), far beyond which crowding is not a plausible cause.
+    allowance : array_like, optional
+        The calibration's model error's expected share of windows' deviance per degree of
+        freedom (``sum(E / V) / dof``, the count selection's allowance,
+        :mod:`sparseloc.solvers.variance`), for a sample of windows: the upper limit is raised
+        by their median, the misfit the model is known to have (a bead calibration on coarse
+        pixels misses its beads by more than one on fine pixels, and says so).
 
     Returns
     -------
@@ -171,6 +185,8 @@ def check_fit(
         return ModelCheck("unchecked", nan, 0, nan, nan, nan, alpha, "no fits to check")
     k = float(np.median(d))
     lower, upper = float(chi2.ppf(alpha, k) / k), float(chi2.ppf(1.0 - alpha, k) / k)
+    known = _known_misfit(allowance)
+    upper += known
     med = float(np.median(g))
     bg = None if background is None else np.asarray(background, dtype=np.float64).ravel()[keep]
     counts_ok = bg is None or float(np.nanmedian(bg)) >= LOW_COUNT
@@ -188,9 +204,13 @@ def check_fit(
     )
     if med > upper:
         verdict = "misfit"
+        with_error = (
+            f" (with {known:.2f} for the calibration's measured model error)" if known else ""
+        )
         message = (
-            f"the model does not describe the data: {said}, above {upper:.2f}, which fewer "
-            f"than {alpha:.1%} of the fits of a correct model exceed; {_CAUSES_HIGH}{crowded}"
+            f"the model does not describe the data: {said}, above {upper:.2f}{with_error}, "
+            f"which fewer than {alpha:.1%} of the fits of a correct model exceed; "
+            f"{_CAUSES_HIGH}{crowded}"
         )
     elif med < lower and counts_ok:
         verdict = "too_little_noise"
@@ -202,3 +222,12 @@ def check_fit(
         verdict = "ok"
         message = f"the model describes the data: {said} (a correct model: about 1)"
     return ModelCheck(verdict, med, int(g.size), k, lower, upper, float(alpha), message, k_med)
+
+
+def _known_misfit(allowance: ArrayLike | None) -> float:
+    """The median of the windows' model-error allowances per degree of freedom (0 without)."""
+    if allowance is None:
+        return 0.0
+    a = np.asarray(allowance, dtype=np.float64).ravel()
+    a = a[np.isfinite(a)]
+    return float(np.median(a)) if a.size else 0.0

@@ -576,10 +576,61 @@ def check_model(
     # the frame solver's addition threshold bounds what an unresolved emitter adds (the
     # windowed methods' count selection has its own; there crowding is named unbounded)
     ratio = add_threshold(None, params.qe) if params.method == "frame" else None
-    res = check_fit(wins["gof"], dof, bg, wins["k"], density=density, unresolved_ratio=ratio)
+    allowance = _window_allowances(table, work_model, params, shape)
+    res = check_fit(
+        wins["gof"], dof, bg, wins["k"], density=density, unresolved_ratio=ratio,
+        allowance=allowance,
+    )  # fmt: skip
     if warn and not res.ok:
         log.warning("%s", res.message)
     return res
+
+
+#: Windows whose model-error allowance the model check computes (an even sample of the run's):
+#: it needs their median only.
+ALLOWANCE_WINDOWS = 200
+
+
+def _window_allowances(
+    table: pd.DataFrame, work_model: PSFModel, params: LocalizeParams, shape: tuple[int, int]
+) -> NDArray[np.float64] | None:
+    """The model error's expected share of the deviance per degree of freedom (the count
+    selection's allowance ``sum(E / V)`` over dof, :mod:`sparseloc.solvers.variance`) of an
+    even sample of the table's windows (each its localizations with the frame solver's pad);
+    None for an exact model."""
+    from .solvers.frame_windows import window_box
+    from .solvers.mle import likelihood_weight
+    from .solvers.variance import error_allowance, model_error_of, model_error_variance
+
+    if getattr(work_model, "error_table", None) is None and model_error_of(work_model) <= 0:
+        return None
+    groups = list(table.groupby(["frame", "window_id"], sort=False))
+    if not groups:
+        return None
+    step = max(1, len(groups) // ALLOWANCE_WINDOWS)
+    px = params.pixel_size
+    pad = _FrameSolver(work_model, params, shape).pad if params.method == "frame" else 0
+    w = likelihood_weight(params.noise, params.qe)
+    rv = float(_noise_kwargs(params).get("read_variance", 0.0) or 0.0)
+    out = []
+    for _, g in groups[::step]:
+        em = g[["x_nm", "y_nm", "z_nm", "photons"]].to_numpy(np.float64)
+        if params.method == "frame":
+            r0, r1, c0, c1 = window_box(em, shape[0], shape[1], px, pad)
+        else:
+            half = params.window // 2
+            r, c = int(em[:, 1].mean() / px), int(em[:, 0].mean() / px)
+            r0, r1, c0, c1 = max(r - half, 0), r + half + 1, max(c - half, 0), c + half + 1
+        size, origin = (r1 - r0, c1 - c0), (c0 * px, r0 * px)
+        lo, hi = work_model.z_range
+        z = np.clip(em[:, 2], lo, hi)
+        signal = work_model.render(em[:, 0], em[:, 1], z, em[:, 3], size, px, origin=origin)
+        mu = signal + float(g["background"].median())
+        error_var = model_error_variance(work_model, em, signal, px, origin)
+        dof = size[0] * size[1] - (4 * len(em) + 1)
+        if error_var is not None and dof >= 1:
+            out.append(error_allowance(mu / w + rv, error_var) / dof)
+    return np.asarray(out) if out else None
 
 
 def run_metadata(

@@ -45,7 +45,7 @@ from .mle import (
     likelihood_weight,
 )
 from .mp import MIN_PHOTONS
-from .variance import error_allowance, model_error_of
+from .variance import error_allowance, model_error_of, model_error_variance
 
 log = logging.getLogger(__name__)
 
@@ -207,25 +207,20 @@ def _error_allowance(null: FitResult, model: PSFModel, kw: dict) -> float:
     else ``(e * signal)^2`` of all the fit's light, the neighbours' included. ``kw``:
     :func:`fit_emitters`'s keywords, ``pixel_size`` and ``origin`` included."""
     table = getattr(model, "error_table", None)
-    e = model_error_of(model)
-    if table is None and e <= 0:
+    if table is None and model_error_of(model) <= 0:
+        return 0.0
+    em = null.emitters.as_array().reshape(-1, 4)
+    if table is not None and len(em) == 0:
         return 0.0
     rv = kw.get("read_variance")
     mu = null.model_image
     w = likelihood_weight(kw.get("noise", "poisson"), check_qe(kw.get("qe", 1.0)))
     noise_var = mu / w + (0.0 if rv is None else np.asarray(rv, float))
-    if table is None:
-        signal = mu - background_image(null.background, mu.shape)
-        return error_allowance(noise_var, (e * signal) ** 2)
-    em = null.emitters.as_array().reshape(-1, 4)
-    if len(em) == 0:
-        return 0.0
-    lo, hi = table.z_range
-    error_var = table.render(
-        em[:, 0], em[:, 1], np.clip(em[:, 2], lo, hi), em[:, 3] ** 2, mu.shape,
-        kw["pixel_size"], origin=kw.get("origin", (0.0, 0.0)),
-    )  # fmt: skip
-    return error_allowance(noise_var, error_var)
+    signal = mu - background_image(null.background, mu.shape)
+    error_var = model_error_variance(
+        model, em, signal, kw["pixel_size"], kw.get("origin", (0.0, 0.0))
+    )
+    return 0.0 if error_var is None else error_allowance(noise_var, error_var)
 
 
 def removal_threshold(k: int, lr_threshold: float, single_threshold: float | None) -> float:

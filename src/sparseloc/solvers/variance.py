@@ -27,6 +27,7 @@ __all__ = [
     "error_allowance",
     "misfit",
     "model_error_of",
+    "model_error_variance",
     "noise_factor_of",
     "pixel_variance",
     "read_variance_crop",
@@ -107,6 +108,42 @@ def read_variance_crop(
         return read_variance
     r0, r1, c0, c1 = box
     return np.broadcast_to(read_variance, shape)[r0:r1, c0:c1]
+
+
+def model_error_variance(
+    model: object,
+    emitters: NDArray,
+    signal: NDArray,
+    pixel_size: float,
+    origin: tuple[float, float] = (0.0, 0.0),
+) -> NDArray | None:
+    """The model error's variance (photons^2) of each pixel of a window: the model's error
+    table rendered for ``emitters`` where it has one, else ``(e * signal)^2``; None for an
+    exact model (see the module notes).
+
+    Parameters
+    ----------
+    model : PSFModel
+        The PSF model (its ``error_table`` and ``model_error``, where it has them).
+    emitters : ndarray, shape (K, 4)
+        x, y, z (nm) and photons of the window's emitters.
+    signal : ndarray, shape (rows, cols)
+        The light (photons/pixel) that the error scales with where the model has no table.
+    pixel_size : float
+        Pixel size (nm).
+    origin : (float, float)
+        x, y (nm) of the window's corner.
+    """
+    table = getattr(model, "error_table", None)
+    e = model_error_of(model)
+    if table is None:
+        return (e * np.asarray(signal)) ** 2 if e > 0 else None
+    em = np.asarray(emitters, dtype=np.float64).reshape(-1, 4)
+    lo, hi = table.z_range
+    return table.render(
+        em[:, 0], em[:, 1], np.clip(em[:, 2], lo, hi), em[:, 3] ** 2, np.shape(signal),
+        pixel_size, origin=origin,
+    )  # fmt: skip
 
 
 def noise_factor_of(noise: str) -> float:
