@@ -44,7 +44,7 @@ from numpy.typing import ArrayLike, NDArray
 from .calibrate_crowd import LightProfile, light_profile, neighbour_light, plane_photons
 from .calibrate_error import MAX_MODEL_ERROR, bead_model_error
 from .calibrate_scan import BeadScan, read_bead_positions, read_scan, read_z_file
-from .camera import Camera, camera_mismatch
+from .camera import Camera, camera_mismatch, noise_variance
 from .psf.spline import SplinePSF
 
 __all__ = [
@@ -352,6 +352,7 @@ def calibrate_beads(
         z_smooth,
         beads,
         progress or (lambda: None),
+        photon_noise(camera),
     )
     if fit_pupil:
         cal.pupil = _fit_pupil_in_frame(cal.psf, cal.z, cal.pixel_size, pupil_options)
@@ -375,6 +376,7 @@ def _calibrate_scan(
     z_smooth: bool,
     known: ArrayLike | None = None,
     tick: Callable[[], None] = lambda: None,
+    noise: tuple[float, float] = (1.0, 0.0),
 ) -> Calibration:
     """Find the beads, vet them, register and average them, and build the spline model;
     ``tick()`` between the steps."""
@@ -416,7 +418,7 @@ def _calibrate_scan(
     origin["centroid_over_z_nm"] = _centroid_over_z(clean, centre, half, p)
     psf = SplinePSF(clean, p, zplanes, centre=(cr, cc), name=name)
     tick()
-    error = _model_error(psf, stacks, used, scan)
+    error = _model_error(psf, stacks, used, scan, noise)
     psf.model_error = error.overall  # the solvers' allowance (sparseloc.solvers.variance)
     params = {
         "pixel_size_nm": p,
@@ -448,14 +450,34 @@ def _calibrate_scan(
     )
 
 
-def _model_error(psf: SplinePSF, stacks: _BeadStacks, used: list[int], scan: BeadScan):
-    """The finished model's error on its beads (:mod:`sparseloc.calibrate_error`), overall and
-    as the model's ``error_table``; ``ValueError`` when it is too large to trust."""
+def photon_noise(camera: Camera | None) -> tuple[float, float]:
+    """The camera's noise in photons as ``variance = a * mu + b`` for ``mu`` expected photons:
+    ``(a, b)`` from :func:`sparseloc.camera.noise_variance` (an sCMOS map's read variance
+    averaged over its pixels); ``(1, 0)``, photon counting, without a camera."""
+    if camera is None:
+        return 1.0, 0.0
+    shape = camera.map_shape or (1, 1)
+    zero = noise_variance(np.zeros(shape), camera)
+    one = noise_variance(np.ones(shape), camera)
+    return float(np.mean(one - zero)), float(np.mean(zero))
+
+
+def _model_error(
+    psf: SplinePSF,
+    stacks: _BeadStacks,
+    used: list[int],
+    scan: BeadScan,
+    noise: tuple[float, float] = (1.0, 0.0),
+):
+    """The finished model's error on its beads (:mod:`sparseloc.calibrate_error`) beyond the
+    camera's ``noise`` (:func:`photon_noise`), overall and as the model's ``error_table``;
+    ``ValueError`` when it is too large to trust."""
     bg = scan.background if scan.background is not None else np.zeros(scan.zplanes.size)
     rois = [stacks.rois[i] for i in used]
     shifts = [_fit_shift(psf, roi, scan.zplanes)[0] for roi in rois]
     # the voxels the average left out of a bead (another's light) are no error of the model
-    error = bead_model_error(psf, rois, shifts, scan.zplanes, bg, stacks.kept_in_rois(used))
+    masks = stacks.kept_in_rois(used)
+    error = bead_model_error(psf, rois, shifts, scan.zplanes, bg, masks, noise)
     psf.error_table = error.table
     log.info("model error: %.1f %% of the signal per pixel (rms over planes)", 100 * error.overall)
     if not error.overall <= MAX_MODEL_ERROR:

@@ -59,6 +59,7 @@ def bead_model_error(
     zplanes: NDArray[np.float64],
     background: NDArray[np.float64],
     masks: list[NDArray[np.bool_]] | None = None,
+    noise: tuple[float, float] = (1.0, 0.0),
 ) -> ModelError:
     """Measure the model error of ``psf`` on the beads it was made from.
 
@@ -77,6 +78,10 @@ def bead_model_error(
     masks : list of ndarray of bool, each shape (Nz, R, R), optional
         The voxels of each ROI to measure on (default all): light that a bead's ROI holds
         and the other beads' do not is not the model's error.
+    noise : (float, float)
+        The camera's variance in photons^2 as ``a * mu + b`` for ``mu`` expected photons
+        (default photon counting): an EMCCD's excess noise or read noise is not the model's
+        error either.
 
     Returns
     -------
@@ -90,8 +95,10 @@ def bead_model_error(
     if masks is None:
         masks = [np.ones(roi.shape, dtype=bool) for roi in rois]
     for roi, shift, mask in zip(rois, shifts, masks, strict=True):
-        res2, noise, sig2, ok, bead_map = _bead_residual(psf, roi, shift, zplanes, background, mask)
-        excess[ok] += res2[ok] * (n / (n - 1) if n > 1 else 1.0) - noise[ok]
+        res2, var, sig2, ok, bead_map = _bead_residual(
+            psf, roi, shift, zplanes, background, mask, noise
+        )
+        excess[ok] += res2[ok] * (n / (n - 1) if n > 1 else 1.0) - var[ok]
         signal[ok] += sig2[ok]
         maps[ok] += bead_map[ok]
         count[ok] += mask[ok]
@@ -152,11 +159,13 @@ def _bead_residual(
     zplanes: NDArray[np.float64],
     background: NDArray[np.float64],
     mask: NDArray[np.bool_],
+    camera_noise: tuple[float, float] = (1.0, 0.0),
 ) -> tuple[NDArray, NDArray, NDArray, NDArray[np.bool_], NDArray]:
     """Per plane: the residual power, the expected noise power and the signal power of one
-    bead against the model (:func:`plane_fits`) over the voxels of ``mask``, which planes
-    count, and the residual's excess over the noise pixel by pixel per photon squared
-    (planes, rows, cols; 0 outside ``mask``)."""
+    bead against the model (:func:`plane_fits`) over the voxels of ``mask`` (the camera's
+    noise ``a * mu + b``: ``camera_noise``), which planes count, and the residual's excess
+    over the noise pixel by pixel per photon squared (planes, rows, cols; 0 outside
+    ``mask``)."""
     nz = roi.shape[0]
     res2, noise, sig2 = np.zeros(nz), np.zeros(nz), np.zeros(nz)
     excess = np.zeros(roi.shape)
@@ -165,7 +174,8 @@ def _bead_residual(
     for k, m, a, b in zip(idx, imgs, scale, offset, strict=True):
         fit = a * m + b
         keep = mask[k]
-        r2, var = (roi[k] - fit) ** 2, np.maximum(fit + background[k], 0.0)
+        r2 = (roi[k] - fit) ** 2
+        var = camera_noise[0] * np.maximum(fit + background[k], 0.0) + camera_noise[1]
         res2[k], noise[k] = float(np.sum(r2[keep])), float(np.sum(var[keep]))
         sig2[k] = float(np.sum((a * m)[keep] ** 2))
         ok[k] = True
