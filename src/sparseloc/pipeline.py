@@ -586,8 +586,8 @@ def check_model(
     return res
 
 
-#: Windows whose model-error allowance the model check computes (an even sample of the run's):
-#: it needs their median only.
+#: Windows whose model-error allowance the model check computes (a random sample of the run's,
+#: fixed seed): it needs their median only.
 ALLOWANCE_WINDOWS = 200
 
 
@@ -595,8 +595,8 @@ def _window_allowances(
     table: pd.DataFrame, work_model: PSFModel, params: LocalizeParams, shape: tuple[int, int]
 ) -> NDArray[np.float64] | None:
     """The model error's expected share of the deviance per degree of freedom (the count
-    selection's allowance ``sum(E / V)`` over dof, :mod:`sparseloc.solvers.variance`) of an
-    even sample of the table's windows (each its localizations with the frame solver's pad);
+    selection's allowance ``sum(E / V)`` over dof, :mod:`sparseloc.solvers.variance`) of a
+    sample of the table's windows (each its localizations with the frame solver's pad);
     None for an exact model."""
     from .solvers.frame_windows import window_box
     from .solvers.mle import likelihood_weight
@@ -604,16 +604,19 @@ def _window_allowances(
 
     if getattr(work_model, "error_table", None) is None and model_error_of(work_model) <= 0:
         return None
-    groups = list(table.groupby(["frame", "window_id"], sort=False))
-    if not groups:
+    keys = table[["frame", "window_id"]].drop_duplicates()
+    if not len(keys):
         return None
-    step = max(1, len(groups) // ALLOWANCE_WINDOWS)
+    # the sample's rows only (a long movie's table holds millions of windows), drawn at random
+    # with a fixed seed: the same table gives the same verdict
+    sample = keys.sample(n=min(ALLOWANCE_WINDOWS, len(keys)), random_state=0)
+    rows = table.merge(sample, on=["frame", "window_id"])
     px = params.pixel_size
     pad = _FrameSolver(work_model, params, shape).pad if params.method == "frame" else 0
     w = likelihood_weight(params.noise, params.qe)
     rv = float(_noise_kwargs(params).get("read_variance", 0.0) or 0.0)
     out = []
-    for _, g in groups[::step]:
+    for _, g in rows.groupby(["frame", "window_id"], sort=False):
         em = g[["x_nm", "y_nm", "z_nm", "photons"]].to_numpy(np.float64)
         if params.method == "frame":
             r0, r1, c0, c1 = window_box(em, shape[0], shape[1], px, pad)
