@@ -547,7 +547,7 @@ def check_model(
     -------
     ModelCheck
     """
-    from .solvers.frame_windows import window_box
+    from .solvers.frame_windows import window_boxes
 
     wins = table.groupby(["frame", "window_id"], sort=False).agg(
         gof=("gof", "first"),
@@ -561,12 +561,9 @@ def check_model(
     px = params.pixel_size
     if params.method == "frame" and len(wins):
         pad = _FrameSolver(work_model, params, shape).pad
-        corners = np.zeros((2, 4))
-        pixels = np.empty(len(wins))
-        for i, (x0, x1, y0, y1) in enumerate(wins[["x0", "x1", "y0", "y1"]].to_numpy()):
-            corners[:, 0], corners[:, 1] = (x0, x1), (y0, y1)
-            r0, r1, c0, c1 = window_box(corners, shape[0], shape[1], px, pad)
-            pixels[i] = (r1 - r0) * (c1 - c0)
+        x0, x1, y0, y1 = (wins[c].to_numpy() for c in ("x0", "x1", "y0", "y1"))
+        r0, r1, c0, c1 = window_boxes(x0, x1, y0, y1, shape[0], shape[1], px, pad)
+        pixels = ((r1 - r0) * (c1 - c0)).astype(np.float64)
     else:
         pixels = np.full(len(wins), float(params.window) ** 2)
     dof = pixels - (4 * wins["k"].to_numpy() + 1)

@@ -19,6 +19,7 @@ __all__ = [
     "split_group",
     "sum_pieces",
     "window_box",
+    "window_boxes",
     "window_data",
     "window_kwargs",
 ]
@@ -90,13 +91,20 @@ def near_window(xy: NDArray[np.float64], box: tuple[int, int, int, int], px: flo
 
 def window_box(em: NDArray[np.float64], rows: int, cols: int, px: float, pad: int) -> tuple:
     """Window (r0, r1, c0, c1) of a group's emitters (K, 4 in nm): their pixels and ``pad``
-    more each way, inside the frame."""
-    pr = em[:, 1] / px
-    pc = em[:, 0] / px
-    r0 = int(np.clip(np.floor(pr.min()) - pad, 0, rows - 1))
-    r1 = int(np.clip(np.ceil(pr.max()) + pad + 1, r0 + 1, rows))
-    c0 = int(np.clip(np.floor(pc.min()) - pad, 0, cols - 1))
-    c1 = int(np.clip(np.ceil(pc.max()) + pad + 1, c0 + 1, cols))
+    more each way, inside the frame (:func:`window_boxes` of one group)."""
+    x, y = em[:, 0], em[:, 1]
+    box = window_boxes(x.min(), x.max(), y.min(), y.max(), rows, cols, px, pad)
+    return tuple(int(v) for v in box)
+
+
+def window_boxes(x0, x1, y0, y1, rows: int, cols: int, px: float, pad: int) -> tuple:
+    """Windows (r0, r1, c0, c1) of groups whose emitters span ``x0..x1``, ``y0..y1`` (nm,
+    numbers or arrays of one value per group): their pixels and ``pad`` more each way, inside
+    the frame; integer arrays (or numbers) of the inputs' shape."""
+    r0 = np.clip(np.floor(np.asarray(y0) / px) - pad, 0, rows - 1).astype(np.int64)
+    r1 = np.clip(np.ceil(np.asarray(y1) / px) + pad + 1, r0 + 1, rows).astype(np.int64)
+    c0 = np.clip(np.floor(np.asarray(x0) / px) - pad, 0, cols - 1).astype(np.int64)
+    c1 = np.clip(np.ceil(np.asarray(x1) / px) + pad + 1, c0 + 1, cols).astype(np.int64)
     return r0, r1, c0, c1
 
 
