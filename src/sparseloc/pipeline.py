@@ -563,7 +563,7 @@ def check_model(
         pad = _FrameSolver(work_model, params, shape).pad
         x0, x1, y0, y1 = (wins[c].to_numpy() for c in ("x0", "x1", "y0", "y1"))
         r0, r1, c0, c1 = window_boxes(x0, x1, y0, y1, shape[0], shape[1], px, pad)
-        pixels = ((r1 - r0) * (c1 - c0)).astype(np.float64)
+        pixels = (r1 - r0) * (c1 - c0)
     else:
         pixels = np.full(len(wins), float(params.window) ** 2)
     dof = pixels - (4 * wins["k"].to_numpy() + 1)

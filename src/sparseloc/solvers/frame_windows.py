@@ -100,11 +100,11 @@ def window_box(em: NDArray[np.float64], rows: int, cols: int, px: float, pad: in
 def window_boxes(x0, x1, y0, y1, rows: int, cols: int, px: float, pad: int) -> tuple:
     """Windows (r0, r1, c0, c1) of groups whose emitters span ``x0..x1``, ``y0..y1`` (nm,
     numbers or arrays of one value per group): their pixels and ``pad`` more each way, inside
-    the frame; integer arrays (or numbers) of the inputs' shape."""
-    r0 = np.clip(np.floor(np.asarray(y0) / px) - pad, 0, rows - 1).astype(np.int64)
-    r1 = np.clip(np.ceil(np.asarray(y1) / px) + pad + 1, r0 + 1, rows).astype(np.int64)
-    c0 = np.clip(np.floor(np.asarray(x0) / px) - pad, 0, cols - 1).astype(np.int64)
-    c1 = np.clip(np.ceil(np.asarray(x1) / px) + pad + 1, c0 + 1, cols).astype(np.int64)
+    the frame; whole numbers as floats, of the inputs' shape."""
+    r0 = np.clip(np.floor(y0 / px) - pad, 0, rows - 1)
+    r1 = np.clip(np.ceil(y1 / px) + pad + 1, r0 + 1, rows)
+    c0 = np.clip(np.floor(x0 / px) - pad, 0, cols - 1)
+    c1 = np.clip(np.ceil(x1 / px) + pad + 1, c0 + 1, cols)
     return r0, r1, c0, c1
 
 
