@@ -62,10 +62,12 @@ PHASES = (
 )
 
 
-def _install_timers(acc: collections.Counter, inner: collections.Counter, fits: list) -> list:
-    """Wrap the solver's functions with timers; returns what to restore."""
+def outermost_timers(acc: collections.Counter, calls: collections.Counter | None = None):
+    """``(wrap, saved)``: ``wrap(owner, name, label)`` replaces ``owner.name`` by a timer that
+    adds its seconds to ``acc[label]`` (and one to ``calls[label]``) at the outermost timed
+    call only, so the labels' times add up; ``saved`` lists what to restore."""
     depth = [0]
-    saved = []
+    saved: list = []
 
     def wrap(owner, name: str, label: str) -> None:
         f = getattr(owner, name)
@@ -80,9 +82,18 @@ def _install_timers(acc: collections.Counter, inner: collections.Counter, fits: 
                 return f(*a, **k)
             finally:
                 acc[label] += time.perf_counter() - t
+                if calls is not None:
+                    calls[label] += 1
                 depth[0] -= 1
 
         setattr(owner, name, timed)
+
+    return wrap, saved
+
+
+def _install_timers(acc: collections.Counter, inner: collections.Counter, fits: list) -> list:
+    """Wrap the solver's functions with timers; returns what to restore."""
+    wrap, saved = outermost_timers(acc)
 
     wrap(pursuit_mod, "frame_pursuit", "pursuit")
     wrap(two_tier_mod, "detect_candidates", "detection")

@@ -29,6 +29,7 @@ import tifffile
 import sparseloc
 import sparseloc.pipeline as pipeline_mod
 import sparseloc.solvers.two_tier as tt
+from phases import outermost_timers  # this folder is on the path
 from sparseloc.config import LocalizeParams
 from sparseloc.io.calibration import load_calibration
 from sparseloc.pipeline import localize, work_model_for
@@ -53,25 +54,9 @@ LOOP = "compiled fit loop (within)"
 
 def _install(acc: collections.Counter, calls: collections.Counter) -> list:
     """Wrap each step's function with a timer counted at its outermost call."""
-    depth = [0]
-    saved = []
+    wrap, saved = outermost_timers(acc, calls)
     for owner, name, label in STEPS:
-        f = getattr(owner, name)
-        saved.append((owner, name, f))
-
-        def timed(*a, _f=f, _label=label, **k):
-            if depth[0]:
-                return _f(*a, **k)
-            depth[0] += 1
-            t = time.perf_counter()
-            try:
-                return _f(*a, **k)
-            finally:
-                acc[_label] += time.perf_counter() - t
-                calls[_label] += 1
-                depth[0] -= 1
-
-        setattr(owner, name, timed)
+        wrap(owner, name, label)
     # the compiled fit loop runs inside several steps: timed on its own, not exclusively
     from sparseloc.solvers import _fit_numba
 
