@@ -250,6 +250,27 @@ def one_bead(model):
     return simulate_scan(model, [(6037.0, 5963.0)], seed=2)
 
 
+def test_one_bead_calibrates_and_says_its_model_error_is_not_cross_checked(scan, one_bead, cal):
+    """A z-stack of a single bead is a common calibration: it was refused ("a calibration
+    needs at least 2"). It now gives the bead's model, as close to the beads' as one bead's
+    noise allows, with a warning that no other bead measured its error."""
+    from sparseloc.calibrate_output import calibration_summary
+
+    one = calibrate_beads(one_bead, PX, Z_STEP, offset=OFFSET)
+    assert one.n_used == 1
+    assert "one bead" in one.params["bead_warning"]
+    assert cal.params["bead_warning"] == ""
+    text = "\n".join(calibration_summary(one))
+    assert "warning: calibrated from one bead" in text
+    assert "model error: not measured" in text
+    # the one bead's model renders the many beads' PSF: an emitter at each z, same light
+    z = np.linspace(one.z[2], one.z[-3], 7)
+    a = one.psf.images([1000.0] * 7, [1000.0] * 7, z, (21, 21), PX)
+    b = cal.psf.images([1000.0] * 7, [1000.0] * 7, z, (21, 21), PX)
+    diff = np.abs(a - b).sum(axis=(1, 2)) / b.sum(axis=(1, 2))
+    assert diff.max() < 0.15, diff
+
+
 def test_errors(scan, one_bead):
     movie = scan["movie"]
     with pytest.raises(ValueError, match="only one frame"):
@@ -272,7 +293,7 @@ def test_errors(scan, one_bead):
     with pytest.raises(ValueError, match="pixel-size"):
         calibrate_beads(movie, -1.0, Z_STEP, offset=OFFSET)
     with pytest.raises(ValueError, match="only 1 usable bead"):
-        calibrate_beads(one_bead, PX, Z_STEP, offset=OFFSET)
+        calibrate_beads(one_bead, PX, Z_STEP, offset=OFFSET, min_beads=2)
     # Pure noise. Seed 0: for about 1 seed in 10 a noise peak 2-3 px from the frame edge
     # passes detection and the message is 'found 1 bead(s) but none is usable (1 edge)'.
     rng = np.random.default_rng(0)

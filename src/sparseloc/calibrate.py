@@ -266,7 +266,7 @@ def calibrate_beads(
     saturation: float | None = None,
     threshold: float = 0.2,
     detect_sigma: float | None = None,
-    min_beads: int = 2,
+    min_beads: int = 1,
     iterations: int = 3,
     name: str = "spline",
     fit_pupil: bool = False,
@@ -305,7 +305,9 @@ def calibrate_beads(
         Smoothing (px) for bead detection; default :func:`detection_sigma` of the pixel
         size (the scale of a PSF, so a double helix's ring of lobe positions is one bead).
     min_beads : int
-        Fewest usable beads to accept.
+        Fewest usable beads to accept. One bead is accepted where its frames agree as a
+        bead scan's do; its model error is then not cross-checked against other beads
+        (``params["bead_warning"]`` says so).
     iterations : int
         Rounds of registration.
     name : str
@@ -436,6 +438,7 @@ def _calibrate_scan(
         "n_beads_with_neighbours": sum(1 for i in used if neighbours.get(i)),
         "model_error": error.overall,
         "model_error_z": [float(v) for v in error.per_plane],
+        "bead_warning": ONE_BEAD_WARNING if len(used) == 1 else "",
         **origin,
     }
     return Calibration(
@@ -700,13 +703,26 @@ def _enough_beads(
     centres: NDArray[np.float64],
     half: int,
 ) -> None:
-    """``ValueError`` when fewer than ``min_beads`` of the ``nb`` beads found are usable."""
-    if len(used) < min_beads:
-        hint = _not_a_scan(scan, _whole_rois(scan, centres, half)) or (
-            f"a calibration needs at least {min_beads} to average and cross-check: image more "
-            "beads in the field"
-        )
-        raise ValueError(f"only {len(used)} usable bead(s) (of {nb} found); {hint}")
+    """``ValueError`` when fewer than ``min_beads`` of the ``nb`` beads found are usable, or
+    when one is and the spots change from frame to frame as a single-molecule movie's do
+    (with one bead nothing else cross-checks the model)."""
+    few = len(used) < min_beads
+    if few or len(used) == 1:
+        hint = _not_a_scan(scan, _whole_rois(scan, centres, half))
+        if few or hint:
+            hint = hint or (
+                f"a calibration needs at least {min_beads} to average and cross-check: image "
+                "more beads in the field"
+            )
+            raise ValueError(f"only {len(used)} usable bead(s) (of {nb} found); {hint}")
+
+
+#: What a calibration from one bead says: nothing measured its model against another bead.
+ONE_BEAD_WARNING = (
+    "calibrated from one bead: the model is that bead, so its error against other beads "
+    "(a PSF that changes over the field, a bad bead) is not measured and the count selection "
+    "allows for none; image more beads for a cross-checked model"
+)
 
 
 #: Agreement of consecutive frames (their correlation over the one the noise allows) below

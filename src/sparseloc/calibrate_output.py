@@ -36,11 +36,16 @@ def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
     """
     nz, nr, nc = cal.average.shape
     took = "" if seconds is None else f"; {seconds:.1f} s"
+    error = (
+        f"  model error: the beads depart from the model by {100 * cal.params['model_error']:.1f} %"
+        " of their signal per pixel (rms beyond noise; the count selection allows for it)"
+    )
+    if cal.params.get("bead_warning"):
+        error = "  model error: not measured (one bead; see the warning below)"
     lines = [
         f"{cal.n_used} of {len(cal.beads)} beads used; {nz} planes z "
         f"{cal.z[0]:.0f}..{cal.z[-1]:.0f} nm, ROI {nr} x {nc} px; hash {cal.content_hash}{took}",
-        f"  model error: the beads depart from the model by {100 * cal.params['model_error']:.1f} %"
-        " of their signal per pixel (rms beyond noise; the count selection allows for it)",
+        error,
     ]
     wander = cal.params["centroid_over_z_nm"]
     lines.append(
@@ -55,6 +60,8 @@ def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
             f"centroid lies {dx:+.1f}, {dy:+.1f} nm (x, y) from the emitter "
             f"(rms over beads {cal.params['bead_position_rms_nm']:.1f} nm)"
         )
+    if cal.params.get("bead_warning"):
+        lines.append(f"  warning: {cal.params['bead_warning']}")
     if cal.params.get("camera_warning"):
         lines.append(f"  warning: {cal.params['camera_warning']}")
     rejected = cal.beads[~cal.beads["used"]]
