@@ -42,7 +42,7 @@ import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from .calibrate_crowd import LightProfile, light_profile, neighbour_light, plane_photons
-from .calibrate_error import MAX_MODEL_ERROR, bead_model_error
+from .calibrate_error import MAX_MODEL_ERROR, bead_errors, bead_model_error
 from .calibrate_scan import BeadScan, read_bead_positions, read_scan, read_z_file
 from .camera import Camera, camera_mismatch, noise_variance
 from .psf.spline import SplinePSF
@@ -88,8 +88,9 @@ class Calibration:
         Pixel size (nm).
     beads : DataFrame
         One row per bead found: position (nm, native coordinates), ``used``, the rejection
-        ``reason`` (empty when used), photons per plane, fitted shifts (nm) and the relative
-        residual against the average of the others.
+        ``reason`` (empty when used), photons per plane, fitted shifts (nm) and the ``residual``:
+        the bead's own model error against the beads' average, beyond the camera's noise
+        (NaN where fewer than 3 beads were compared).
     projection : ndarray, shape (H, W)
         The z-averaged background-subtracted frame, for the diagnostic figure.
     bead_ncc : ndarray, shape (n_used, Nz)
@@ -402,7 +403,7 @@ def _calibrate_scan(
         avg = _without_neighbours(stacks, scan, centres, used, neighbours, avg, iterations, name)
     tick()
     used, avg = _drop_outliers(
-        stacks, used, avg, reason, residual, scan.zplanes, iterations, min_beads, name
+        stacks, used, avg, reason, residual, scan, iterations, min_beads, name, noise
     )
     _enough_beads(used, nb, min_beads, scan, centres, half)
     max_dz = max(abs(stacks.shifts[i][2]) for i in used)
@@ -870,17 +871,6 @@ class _BeadStacks:
             avg = self.average(ids)
         return avg
 
-    def residuals(self, ids: list[int]) -> dict[int, float]:
-        """Relative difference of each bead from the average of the others."""
-        aligned = {i: self.aligned(i) for i in ids}
-        total = sum(aligned.values())
-        out = {}
-        for i in ids:
-            others = (total - aligned[i]) / (len(ids) - 1)
-            bi = aligned[i] * (others.sum() / max(aligned[i].sum(), 1e-12))
-            out[i] = float(np.linalg.norm(bi - others) / np.linalg.norm(others))
-        return out
-
 
 #: Beads needed for the robust average (:func:`robust_average`); fewer are averaged plainly.
 ROBUST_BEADS = 5
@@ -937,31 +927,68 @@ def _drop_outliers(
     avg: NDArray[np.float64],
     reason: list[str],
     residual: dict[int, float],
-    zplanes: NDArray[np.float64],
+    scan: BeadScan,
     iterations: int,
     min_beads: int,
     name: str,
+    noise: tuple[float, float] = (1.0, 0.0),
 ) -> tuple[list[int], NDArray[np.float64]]:
     """Drop clear outliers among the registered beads (dirt, aggregates, two beads seen as
-    one) and register the rest again; returns the beads kept and their average."""
-    # Each bead is compared with the average of the others; the rest are registered again
-    # from scratch, so that nothing fitted against a bad bead remains.
+    one) and register the rest again; returns the beads kept and their average.
+
+    A bead's ``residual`` is its own model error against the beads' average
+    (:func:`~sparseloc.calibrate_error.bead_errors`: beyond the camera's ``noise``, on the
+    voxels the average keeps, so a neighbour's light does not count); an outlier departs
+    from the model by more than :data:`OUTLIER_FLOOR` and by far more than the beads'
+    median. Where more than :data:`OUTLIER_SHARE` of the beads would go, none does: the
+    beads then differ as a population (a PSF that changes over the field), which the model
+    error measures, not as a few bad ones."""
+    # The rest are registered again from scratch, so that nothing fitted against a bad bead
+    # remains.
     for _ in range(3):
         if len(used) < 3:
             break
-        residual.update(stacks.residuals(used))
+        residual.update(_bead_errors(stacks, used, avg, scan, name, noise))
         res = np.array([residual[i] for i in used])
         med = np.median(res)
         mad = 1.4826 * np.median(np.abs(res - med))
-        bad = [i for i in used if residual[i] > max(med + 5 * mad, 1.5 * med)]
-        if not bad or len(used) - len(bad) < max(min_beads, 1):
+        bar = max(med + 5 * mad, 1.5 * med, OUTLIER_FLOOR)
+        bad = [i for i in used if residual[i] > bar]
+        few = len(bad) <= OUTLIER_SHARE * len(used)  # else the field's PSF varies
+        if not bad or not few or len(used) - len(bad) < max(min_beads, 1):
             break
         for i in bad:
             reason[i] = "outlier"
             stacks.shifts.pop(i, None)
         used = [i for i in used if i not in bad]
-        avg = stacks.register(used, zplanes, iterations, name)
+        avg = stacks.register(used, scan.zplanes, iterations, name)
     return used, avg
+
+
+#: A bead whose own model error is below this fraction of its signal is no outlier, however
+#: far the others' median lies below it: model errors of a tenth are the field's ordinary
+#: spread (a PSF that changes over the field, a neighbour's residual light).
+OUTLIER_FLOOR = 0.1
+#: The largest share of the beads that the outlier test drops in one round.
+OUTLIER_SHARE = 1.0 / 3.0
+
+
+def _bead_errors(
+    stacks: _BeadStacks,
+    used: list[int],
+    avg: NDArray[np.float64],
+    scan: BeadScan,
+    name: str,
+    noise: tuple[float, float],
+) -> dict[int, float]:
+    """Each used bead's own model error against the current average (see
+    :func:`_drop_outliers`)."""
+    model = SplinePSF(_clean_average(avg), stacks.p, scan.zplanes, name=name)
+    bg = scan.background if scan.background is not None else np.zeros(scan.zplanes.size)
+    rois = [stacks.rois[i] for i in used]
+    shifts = [stacks.shifts[i] for i in used]
+    errors = bead_errors(model, rois, shifts, scan.zplanes, bg, stacks.kept_in_rois(used), noise)
+    return dict(zip(used, (float(e) for e in errors), strict=True))
 
 
 def _model_stack(

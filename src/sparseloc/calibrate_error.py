@@ -23,7 +23,7 @@ from scipy.ndimage import gaussian_filter
 
 from .psf.spline import SplinePSF
 
-__all__ = ["MAX_MODEL_ERROR", "ModelError", "bead_model_error", "plane_fits"]
+__all__ = ["MAX_MODEL_ERROR", "ModelError", "bead_errors", "bead_model_error", "plane_fits"]
 
 #: A calibration whose model error exceeds this fraction of the signal is refused: its model
 #: would leave more than a quarter of a bead's signal power unexplained.
@@ -111,6 +111,36 @@ def bead_model_error(
     lo, hi = psf.z_range
     inside = (zplanes >= lo - 1e-6) & (zplanes <= hi + 1e-6)
     return ModelError(overall, per_plane[inside], table)
+
+
+def bead_errors(
+    psf: SplinePSF,
+    rois: list[NDArray[np.float64]],
+    shifts: list[NDArray[np.float64]],
+    zplanes: NDArray[np.float64],
+    background: NDArray[np.float64],
+    masks: list[NDArray[np.bool_]],
+    noise: tuple[float, float] = (1.0, 0.0),
+) -> NDArray[np.float64]:
+    """Each bead's own model error: :func:`bead_model_error`'s overall figure measured on
+    that bead alone (scaled by ``n / (n - 1)`` for the ``n`` beads the model averages),
+    so a bead unlike the others (two beads seen as one, dirt) stands out.
+
+    Parameters are those of :func:`bead_model_error` (``masks`` required).
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        Relative errors (NaN for a bead with no plane in the model's range).
+    """
+    n = len(rois)
+    scale = n / (n - 1) if n > 1 else 1.0
+    out = np.full(n, np.nan)
+    for k, (roi, shift, mask) in enumerate(zip(rois, shifts, masks, strict=True)):
+        res2, var, sig2, ok, _ = _bead_residual(psf, roi, shift, zplanes, background, mask, noise)
+        if sig2[ok].sum() > 0:
+            out[k] = np.sqrt(max((res2[ok] * scale - var[ok]).sum(), 0.0) / sig2[ok].sum())
+    return out
 
 
 def plane_fits(
