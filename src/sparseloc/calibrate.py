@@ -399,15 +399,27 @@ def _calibrate_scan(
     neighbours = _neighbour_pairs(centres, reason, roi)
     stacks.crowded = set(neighbours)
     avg = stacks.register(used, scan.zplanes, iterations, name)
-    for _ in range(NEIGHBOUR_ROUNDS if neighbours else 0):
-        before = stacks.positions(used, centres)
-        avg = _without_neighbours(stacks, scan, centres, used, neighbours, avg, iterations, name)
-        if np.abs(stacks.positions(used, centres) - before).max() < NEIGHBOUR_TOLERANCE:
-            break
+
+    def clean(avg: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Rounds of removing the neighbours' modelled light until no bead moves."""
+        for _ in range(NEIGHBOUR_ROUNDS if neighbours else 0):
+            before = stacks.positions(used, centres)
+            avg = _without_neighbours(
+                stacks, scan, centres, used, neighbours, avg, iterations, name
+            )
+            if np.abs(stacks.positions(used, centres) - before).max() < NEIGHBOUR_TOLERANCE:
+                break
+        return avg
+
+    avg = clean(avg)
     tick()
+    n_vetted = len(used)
     used, avg = _drop_outliers(
         stacks, used, avg, reason, residual, scan, iterations, min_beads, name, noise
     )
+    if len(used) < n_vetted:
+        # the neighbours' light was modelled with the outliers in the model: again without
+        avg = clean(avg)
     _enough_beads(used, nb, min_beads, scan, centres, half)
     max_dz = max(abs(stacks.shifts[i][2]) for i in used)
     clean, zplanes, sl, zwin = _model_stack(avg, scan.zplanes, max_dz, step, z_smooth)
@@ -624,7 +636,7 @@ def _without_neighbours(
     placed: dict[int, tuple[float, float, float, NDArray[np.float64]]] = {}
     for j in sorted({j for near in neighbours.values() for j in near}):
         ri, ci = (int(v) for v in np.round(centres[j]))
-        if j in stacks.rois:
+        if j in stacks.shifts:  # a used bead (an outlier's shift is dropped)
             roi, shift = stacks.rois[j], stacks.shifts[j]
         else:  # a bead that is not used still shines on its neighbours
             # at the frame's edge, fitted in the largest ROI around it inside the frame
