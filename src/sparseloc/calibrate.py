@@ -399,19 +399,8 @@ def _calibrate_scan(
     neighbours = _neighbour_pairs(centres, reason, roi)
     stacks.crowded = set(neighbours)
     avg = stacks.register(used, scan.zplanes, iterations, name)
-
-    def clean(avg: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Rounds of removing the neighbours' modelled light until no bead moves."""
-        for _ in range(NEIGHBOUR_ROUNDS if neighbours else 0):
-            before = stacks.positions(used, centres)
-            avg = _without_neighbours(
-                stacks, scan, centres, used, neighbours, avg, iterations, name
-            )
-            if np.abs(stacks.positions(used, centres) - before).max() < NEIGHBOUR_TOLERANCE:
-                break
-        return avg
-
-    avg = clean(avg)
+    rounds = (stacks, scan, centres, neighbours, iterations, name)
+    avg = _neighbour_rounds(*rounds, used, avg)
     tick()
     n_vetted = len(used)
     used, avg = _drop_outliers(
@@ -419,7 +408,7 @@ def _calibrate_scan(
     )
     if len(used) < n_vetted:
         # the neighbours' light was modelled with the outliers in the model: again without
-        avg = clean(avg)
+        avg = _neighbour_rounds(*rounds, used, avg)
     _enough_beads(used, nb, min_beads, scan, centres, half)
     max_dz = max(abs(stacks.shifts[i][2]) for i in used)
     clean, zplanes, sl, zwin = _model_stack(avg, scan.zplanes, max_dz, step, z_smooth)
@@ -617,6 +606,26 @@ def _neighbour_pairs(
 #: The smallest half side (px) of the ROI a bead at the frame's edge is fitted in to model
 #: its light on its neighbours; a bead nearer the edge than this is left out.
 EDGE_FIT_HALF = 3
+
+
+def _neighbour_rounds(
+    stacks: _BeadStacks,
+    scan: BeadScan,
+    centres: NDArray[np.float64],
+    neighbours: dict[int, list[int]],
+    iterations: int,
+    name: str,
+    used: list[int],
+    avg: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """Rounds of :func:`_without_neighbours` until no bead moves by
+    :data:`NEIGHBOUR_TOLERANCE` (at most :data:`NEIGHBOUR_ROUNDS`); the registered average."""
+    for _ in range(NEIGHBOUR_ROUNDS if neighbours else 0):
+        before = stacks.positions(used, centres)
+        avg = _without_neighbours(stacks, scan, centres, used, neighbours, avg, iterations, name)
+        if np.abs(stacks.positions(used, centres) - before).max() < NEIGHBOUR_TOLERANCE:
+            break
+    return avg
 
 
 def _without_neighbours(
