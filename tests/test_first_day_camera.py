@@ -775,3 +775,23 @@ def test_camera_on_single_frames_calls_its_offset_no_bound(movie):
     assert "offset at least" not in res.output
     assert "from single frames, not a bound" in res.output
     assert "--offset DARK_LEVEL" in res.output
+
+
+def test_a_stack_of_one_bead_on_a_wide_field_gives_the_gain():
+    """A z-stack of one bead on a field of background: one bin of the line spanned the bead's
+    dim wings to its peak and its clip, set by the bin's pooled variance, cut the peak's
+    noise: gain 3.4 e-/ADU for a true 1, and calibrate warned of a wrong --gain. Each
+    difference is now clipped on the line at its own light."""
+    from sparseloc.camera import Camera, camera_mismatch, estimate_camera
+    from sparseloc.psf import make_psf
+    from sparseloc.simulate import bead_scan_truth, simulate
+
+    cam = Camera(kind="scmos", offset=100.0, gain=1.0, read_noise=1.5)
+    zs = np.arange(-500.0, 501.0, 20.0)
+    truth = bead_scan_truth(np.array([(6037.0, 5963.0)]), zs, photons=20000.0)
+    movie = simulate(make_psf("dh-analytic"), scene=truth, n_frames=zs.size, shape=(120, 120),
+                     camera=cam, background=10.0, seed=0).movie  # fmt: skip
+    est = estimate_camera(movie, kind="scmos")
+    assert est.method == "temporal"
+    assert est.gain == pytest.approx(1.0, rel=0.25)
+    assert camera_mismatch(movie, cam) == ""

@@ -781,7 +781,22 @@ def _binned_line(
             "the frames all have the same brightness: the mean-variance line needs frames "
             "with brighter and darker parts"
         )
-    # a bin's variance estimate scatters by about v * sqrt(2 / n)
+    slope, intercept, _ = _weighted_line(c, v, count)
+    # Again with each difference clipped at 4 standard deviations of its own light (``near``)
+    # on that line: where most pixels are background, one bin spans the beads' dim wings to
+    # their peaks, and a clip at the bin's pooled variance cuts the bright pixels' noise.
+    limit = 16.0 * scale * np.maximum(slope * near + intercept, np.min(v))
+    inside = d**2 <= limit
+    v = np.array(
+        [np.mean(d[(idx == k) & inside] ** 2) / scale for k in range(_TEMPORAL_BINS)
+         if np.sum(idx == k) > 2]
+    )  # fmt: skip
+    return _weighted_line(c, v, count)
+
+
+def _weighted_line(c: NDArray, v: NDArray, count: list[int]) -> tuple[float, float, NDArray]:
+    """The line through bin variances ``v`` at means ``c``, each weighted by its scatter
+    (about ``v * sqrt(2 / n)`` for ``n`` differences)."""
     sd = np.maximum(v, 1e-12) * np.sqrt(2.0 / np.asarray(count))
     (slope, intercept), cov = np.polyfit(c, v, 1, w=1.0 / sd, cov="unscaled")
     return float(slope), float(intercept), cov
