@@ -575,7 +575,7 @@ def _light_profile(data: NDArray[np.float64], centres: NDArray[np.float64]) -> L
 #: Most rounds of removing the neighbours' modelled light and registering again; fewer when
 #: a round moves no bead by :data:`NEIGHBOUR_TOLERANCE` (nm) or more. Each round removes part
 #: of the light the model still holds of the beads' neighbours, so its origin settles slowly
-#: where every bead sees a neighbour (two beads 4 um apart: 20 nm off after 2 rounds).
+#: where every bead sees a neighbour (docs/benchmarks/calibration_layouts.txt).
 NEIGHBOUR_ROUNDS = 8
 NEIGHBOUR_TOLERANCE = 1.0
 
