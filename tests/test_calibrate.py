@@ -251,9 +251,8 @@ def one_bead(model):
 
 
 def test_one_bead_calibrates_and_says_its_model_error_is_not_cross_checked(scan, one_bead, cal):
-    """A z-stack of a single bead is a common calibration: it was refused ("a calibration
-    needs at least 2"). It now gives the bead's model, as close to the beads' as one bead's
-    noise allows, with a warning that no other bead measured its error."""
+    """A z-stack of a single bead is a common calibration: it gives the bead's model, close
+    to the many beads' one, with a warning that no other bead measured its error."""
     from sparseloc.calibrate_output import calibration_summary
 
     one = calibrate_beads(one_bead, PX, Z_STEP, offset=OFFSET)
@@ -757,11 +756,9 @@ def test_model_error_is_measured_and_saved(tmp_path, cal):
 
 def test_a_pair_seen_as_one_bead_is_the_only_outlier_in_a_crowded_field(model):
     """Two beads 700 nm apart are found as one (the detection merges the lobes of a double
-    helix). The outlier test compared whole ROIs, so the pair's neighbour, whose ROI holds
-    the pair's light, was dropped with it; on a random bead slide (30 beads, 25.6 um) the
-    neighbours' light hid the pairs and they were averaged into the model (a 35-55 nm
-    lateral bias). Each bead's own model error on the voxels the average keeps singles out
-    the pair alone."""
+    helix). An outlier test on whole ROIs drops the pair's neighbour too (its ROI holds the
+    pair's light), and on a random bead slide the neighbours' light hides the pairs. Each
+    bead's own model error on the voxels the average keeps singles out the pair alone."""
     rng = np.random.default_rng(1)
     grid = np.array([18.0, 43.0, 68.0, 93.0]) * PX  # 2.5 um apart: every ROI sees neighbours
     pos = np.array([(x, y) for y in grid for x in grid]) + rng.uniform(-50, 50, (16, 2))
@@ -775,9 +772,9 @@ def test_a_pair_seen_as_one_bead_is_the_only_outlier_in_a_crowded_field(model):
 
 
 def test_two_beads_that_see_each_other_give_a_model_centred_on_them(model):
-    """Two beads 2.5 um apart, each in the other's ROI: two rounds of removing the
-    neighbour's modelled light left part of it in the model (origin 30 nm off, model error
-    16.5 %); the rounds now go on until no bead moves."""
+    """Two beads 2.5 um apart, each in the other's ROI: a fixed two rounds of removing the
+    neighbour's modelled light leave part of it in the model, its origin off the beads; the
+    rounds go on until no bead moves."""
     pos = np.array([(4767.0, 5977.0), (7267.0, 6031.0)])
     cal = calibrate_beads(simulate_scan(model, pos, seed=3), PX, Z_STEP, offset=OFFSET)
     assert cal.n_used == 2

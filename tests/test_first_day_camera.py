@@ -778,10 +778,10 @@ def test_camera_on_single_frames_calls_its_offset_no_bound(movie):
 
 
 def test_a_stack_of_one_bead_on_a_wide_field_gives_the_gain():
-    """A z-stack of one bead on a field of background: one bin of the line spanned the bead's
-    dim wings to its peak and its clip, set by the bin's pooled variance, cut the peak's
-    noise: gain 3.4 e-/ADU for a true 1, and calibrate warned of a wrong --gain. Each
-    difference is now clipped on the line at its own light."""
+    """A z-stack of one bead on a field of background: one bin of the line spans the bead's
+    dim wings to its peak, and a clip set by the bin's pooled variance cuts the peak's noise
+    (a gain far too high, and calibrate warning of a wrong --gain). Each difference is
+    clipped on the line at its own light."""
     from sparseloc.camera import Camera, camera_mismatch, estimate_camera
     from sparseloc.psf import make_psf
     from sparseloc.simulate import bead_scan_truth, simulate

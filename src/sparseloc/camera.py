@@ -768,13 +768,14 @@ def _binned_line(
     instead, each bin's mean ``m`` is the mean of its pixels' light."""
     edges = np.quantile(near, np.linspace(0.0, 1.0, _TEMPORAL_BINS + 1))
     idx = np.clip(np.searchsorted(edges, near, side="right") - 1, 0, _TEMPORAL_BINS - 1)
-    centre, var, count = [], [], []
+    centre, var, count, members = [], [], [], []
     for k in range(_TEMPORAL_BINS):
-        dk = d[idx == k]
-        if dk.size > 2:
-            centre.append(float(np.mean(m[idx == k])))
-            var.append(_clipped_variance(dk) / scale)
-            count.append(dk.size)
+        inside_k = np.flatnonzero(idx == k)
+        if inside_k.size > 2:
+            members.append(inside_k)
+            centre.append(float(np.mean(m[inside_k])))
+            var.append(_clipped_variance(d[inside_k]) / scale)
+            count.append(inside_k.size)
     c, v = np.asarray(centre), np.asarray(var)
     if len(c) < 3 or np.ptp(c) <= 0:
         raise ValueError(
@@ -785,12 +786,12 @@ def _binned_line(
     # Again with each difference clipped at 4 standard deviations of its own light (``near``)
     # on that line: where most pixels are background, one bin spans the beads' dim wings to
     # their peaks, and a clip at the bin's pooled variance cuts the bright pixels' noise.
-    limit = 16.0 * scale * np.maximum(slope * near + intercept, np.min(v))
-    inside = d**2 <= limit
-    v = np.array(
-        [np.mean(d[(idx == k) & inside] ** 2) / scale for k in range(_TEMPORAL_BINS)
-         if np.sum(idx == k) > 2]
-    )  # fmt: skip
+    floor = np.min(v)
+    v = np.empty(len(members))
+    for j, k in enumerate(members):
+        dk = d[k]
+        limit = 16.0 * scale * np.maximum(slope * near[k] + intercept, floor)
+        v[j] = np.mean(dk[dk**2 <= limit] ** 2) / scale
     return _weighted_line(c, v, count)
 
 
