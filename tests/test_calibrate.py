@@ -992,3 +992,26 @@ def test_the_calibrations_noise_is_the_cameras():
     scmos = Camera(kind="scmos", offset=OFFSET, gain=0.5, qe=0.8, read_noise=1.5)
     assert photon_noise(scmos) == pytest.approx((1.0 / 0.8, (1.5 / 0.8) ** 2))
     assert photon_noise(None) == (1.0, 0.0)
+
+
+def test_the_robust_average_keeps_an_emccds_noise():
+    """The robust average's clip took the median absolute deviation of a handful of beads, at
+    least the square root of the voxel's light, for a voxel's noise: an EMCCD's skewed noise
+    on the frame's background lies far above that floor, so the clip cut 3.8 % of the voxels
+    of beads that hold no other light, and the model error, measured on the kept voxels,
+    missed a tenth of the noise it subtracts (0.0 % on double helices at 65 nm pixels). The
+    floor is now the camera's noise of the voxel, background included."""
+    from sparseloc.calibrate import CameraNoise, robust_keep
+
+    rng = np.random.default_rng(0)
+    bg, qe, em = 10.0, 0.9, 200.0
+    yy, xx = np.mgrid[-10:11, -10:11]
+    spot = np.exp(-(xx**2 + yy**2) / 8.0)
+    mu = np.broadcast_to(5000.0 * spot / spot.sum(), (9, 20, 21, 21)) + bg
+    electrons = rng.poisson(qe * mu)
+    photons = rng.gamma(np.maximum(electrons, 1e-9), em) * (electrons > 0) / (em * qe)
+    noise = CameraNoise(2.0 / qe, 0.0, np.full(20, bg))
+    keep = robust_keep(photons - bg, np.ones(9, bool), noise)
+    kept_power = np.sum((photons - mu)[keep] ** 2) / np.sum(noise.a * mu[keep])
+    assert keep.mean() > 0.98
+    assert kept_power > 0.94

@@ -396,6 +396,7 @@ def _calibrate_scan(
     residual = dict.fromkeys(range(nb), np.nan)
     stacks = _BeadStacks(scan.data, centres, used, half, p, step)
     stacks.tick = tick
+    stacks.noise = CameraNoise(*noise, scan.background)
     neighbours = _neighbour_pairs(centres, reason, roi)
     stacks.crowded = set(neighbours)
     avg = stacks.register(used, scan.zplanes, iterations, name)
@@ -836,6 +837,7 @@ class _BeadStacks:
         self.tick: Callable[[], None] = lambda: None  # called after each bead's registration
         # beads whose ROI holds another bead's light: their voxels may disagree with the PSF
         self.crowded: set[int] = set()
+        self.noise: CameraNoise | None = None  # the robust average's noise floor
 
     def positions(self, ids: list[int], centres: NDArray[np.float64]) -> NDArray[np.float64]:
         """Beads ``ids``' x, y, z (nm; frame x, y from the ROIs' centre pixels ``centres``
@@ -855,7 +857,8 @@ class _BeadStacks:
     def kept_in_rois(self, ids: list[int]) -> list[NDArray[np.bool_]]:
         """Each bead's voxels that agree with the other beads' (:func:`robust_keep` of the
         registered stacks), on its own ROI's pixels and planes."""
-        keep = robust_keep(np.stack([self.aligned(i) for i in ids]), self._suspects(ids))
+        stack = np.stack([self.aligned(i) for i in ids])
+        keep = robust_keep(stack, self._suspects(ids), self.noise)
         out = []
         for i, k in zip(ids, keep, strict=True):
             s = self.shifts[i]
@@ -866,7 +869,8 @@ class _BeadStacks:
     def average(self, ids: list[int]) -> NDArray[np.float64]:
         """The registered beads' average, robust where there are enough of them
         (:func:`robust_average`)."""
-        return robust_average(np.stack([self.aligned(i) for i in ids]), self._suspects(ids))
+        stack = np.stack([self.aligned(i) for i in ids])
+        return robust_average(stack, self._suspects(ids), self.noise)
 
     def _suspects(self, ids: list[int]) -> NDArray[np.bool_]:
         """Which of the beads ``ids`` have neighbours in their ROI."""
@@ -918,28 +922,51 @@ ROBUST_BEADS = 5
 ROBUST_CLIP = 3.0
 
 
-def robust_keep(stacks: NDArray[np.float64], suspects: NDArray[np.bool_]) -> NDArray[np.bool_]:
+def robust_keep(
+    stacks: NDArray[np.float64], suspects: NDArray[np.bool_], noise: CameraNoise | None = None
+) -> NDArray[np.bool_]:
     """Which voxels of registered bead stacks (B, Nz, R, R; photons less background) to
     average: light that a bead's ROI holds and the other beads' do not (a neighbour's, an
     undetected bead's) is not the PSF.
 
     A voxel of a bead of ``suspects`` (B,) (beads with a neighbour in their ROI) is left out
-    where it lies more than :data:`ROBUST_CLIP` robust standard deviations (the median
-    absolute deviation over the beads, at least the square root of the voxel's light, its
-    Poisson noise) from the beads' median, each stack scaled to the beads' mean total light;
-    the other beads' voxels are all kept, and every voxel where fewer than
-    :data:`ROBUST_BEADS` beads are averaged (the median of two or three says nothing about
-    outliers).
+    where it lies more than :data:`ROBUST_CLIP` robust standard deviations from the beads'
+    median, each stack scaled to the beads' mean total light; the other beads' voxels are all
+    kept, and every voxel where fewer than :data:`ROBUST_BEADS` beads are averaged (the
+    median of two or three says nothing about outliers). The robust standard deviation is
+    the median absolute deviation over the beads, at least the camera's noise of that bead's
+    voxel (``noise``: its light and the frame's background; photon counting without it):
+    the deviation of a handful of beads is itself noisy, and an EMCCD's skewed noise makes
+    it small beside the noise's tail, which a tighter clip would cut from the average and
+    from the model error's residuals.
     """
     keep = np.ones(stacks.shape, dtype=bool)
     if stacks.shape[0] < ROBUST_BEADS or not np.any(suspects):
         return keep
-    scaled = stacks * _light_scale(stacks)
+    scale = _light_scale(stacks)
+    scaled = stacks * scale
     med = np.median(scaled, axis=0)
     mad = 1.4826 * np.median(np.abs(scaled - med), axis=0)
-    sd = np.maximum(mad, np.sqrt(np.maximum(med, 1.0)))
-    keep[suspects] = np.abs(scaled[suspects] - med) <= ROBUST_CLIP * sd
+    sd = np.maximum(mad, (noise or CameraNoise()).sd(med / scale) * scale)
+    keep[suspects] = (np.abs(scaled - med) <= ROBUST_CLIP * sd)[suspects]
     return keep
+
+
+@dataclass(frozen=True)
+class CameraNoise:
+    """The camera's noise in a bead stack: variance ``a * mu + b`` (photons^2) for ``mu``
+    expected photons (:func:`photon_noise`), with each plane's frame ``background``
+    (photons/pixel, (Nz,)) on top of the light of the stacks, which have it subtracted."""
+
+    a: float = 1.0
+    b: float = 0.0
+    background: NDArray[np.float64] | None = None
+
+    def sd(self, light: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Standard deviation (photons) of voxels of ``light`` (..., Nz, R, R; photons less
+        background): at least that of one photon."""
+        bg = 0.0 if self.background is None else self.background[:, None, None]
+        return np.sqrt(self.a * np.maximum(light + bg, 1.0) + self.b)
 
 
 def _light_scale(stacks: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -948,12 +975,14 @@ def _light_scale(stacks: NDArray[np.float64]) -> NDArray[np.float64]:
     return total.mean() / total
 
 
-def robust_average(stacks: NDArray[np.float64], suspects: NDArray[np.bool_]) -> NDArray[np.float64]:
+def robust_average(
+    stacks: NDArray[np.float64], suspects: NDArray[np.bool_], noise: CameraNoise | None = None
+) -> NDArray[np.float64]:
     """The mean of registered bead stacks (B, Nz, R, R) over the voxels :func:`robust_keep`
     keeps: each voxel the sum of the kept beads' light over their share of the beads' total
     light, so brighter beads weigh more, as in the plain mean (which it equals where every
-    voxel is kept)."""
-    keep = robust_keep(stacks, suspects)
+    voxel is kept); ``noise`` as in :func:`robust_keep`."""
+    keep = robust_keep(stacks, suspects, noise)
     if keep.all():
         return stacks.mean(axis=0)
     share = 1.0 / _light_scale(stacks)  # each bead's light over the beads' mean
