@@ -997,10 +997,9 @@ def test_the_calibrations_noise_is_the_cameras():
 def test_the_robust_average_keeps_an_emccds_noise():
     """The robust average's clip took the median absolute deviation of a handful of beads, at
     least the square root of the voxel's light, for a voxel's noise: an EMCCD's skewed noise
-    on the frame's background lies far above that floor, so the clip cut 3.8 % of the voxels
-    of beads that hold no other light, and the model error, measured on the kept voxels,
-    missed a tenth of the noise it subtracts (0.0 % on double helices at 65 nm pixels). The
-    floor is now the camera's noise of the voxel, background included."""
+    on the frame's background lies far above that floor, so the clip cut voxels of beads that
+    hold no other light, and the model error, measured on the kept voxels, missed part of
+    the noise it subtracts. The floor is the camera's noise of the voxel, background included."""
     from sparseloc.calibrate import CameraNoise, robust_keep
 
     rng = np.random.default_rng(0)
