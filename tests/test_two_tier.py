@@ -95,13 +95,11 @@ def test_misfit_is_near_zero_for_the_true_model_and_large_for_a_missing_emitter(
     rng = np.random.default_rng(3)
     mu = np.full((25, 25), 10.0)
     mu[10:14, 10:14] += 50.0
-    scores = [
-        misfit(rng.poisson(mu).astype(float), mu, mu - 10.0, 1.0, 0.0, 0.0) for _ in range(200)
-    ]
+    scores = [misfit(rng.poisson(mu).astype(float), mu, None, 1.0, 0.0) for _ in range(200)]
     assert abs(np.mean(scores)) < 0.3 and 0.7 < np.std(scores) < 1.4
     y = rng.poisson(mu).astype(float)
     y[2:5, 2:5] += 40.0  # light the model does not have
-    assert misfit(y, mu, mu - 10.0, 1.0, 0.0, 0.0) > 5.0
+    assert misfit(y, mu, None, 1.0, 0.0) > 5.0
 
 
 def test_isolated_emitters_are_fitted_alone(astig):
@@ -378,3 +376,65 @@ def test_a_unit_started_from_unexplained_light_must_pass_the_addition_bar(astig)
         tier = _Tier1(f, bg, work, solver.fit_kwargs(), 1.0, np.zeros(SHAPE), 0.15)
         assert len(tier.fit(a).rows) == 1
         assert len(tier.fit(a, added=True).rows) == 0
+
+
+def test_a_units_misfit_reads_the_models_error_table(astig):
+    """A calibration's error table says where its model errs (a double helix errs most in its
+    dim wings, where ``(e * signal)^2`` is small). The misfit that promotes a unit must use
+    it, as the count selection's allowance does: else a unit whose data hold only that
+    known error looks like two emitters and goes to the crowds."""
+    import copy
+
+    from sparseloc.psf.spline import SplinePSF
+    from sparseloc.solvers.two_tier import _Tier1
+
+    work, _, solver = astig
+    model = copy.copy(work)
+    photons, c = 3000.0, 4e-6  # error variance per photon squared on each pixel of the table
+    lo, hi = work.z_range
+    model.error_table = SplinePSF(
+        c * np.ones((8, 21, 21)), PX, np.linspace(lo, hi, 8), normalise=False, name="error"
+    )
+    model.model_error = 0.0  # the scalar says nothing: the table alone holds the error
+    a = np.array([[3200.0, 3200.0, 0.0, photons]])
+    error_var = model.error_table.render(a[:, 0], a[:, 1], a[:, 2], a[:, 3] ** 2, SHAPE, PX)
+    assert 20.0 < error_var.max() < 60.0  # a few times the background's noise variance
+    scores = []
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        f = _frame(work, a, seed=seed) + rng.normal(0.0, np.sqrt(np.maximum(error_var, 0.0)))
+        f = np.maximum(f, 0.0)  # photon counts (a pixel below zero is rare here)
+        tier = _Tier1(
+            f, np.full(SHAPE, 10.0), model, solver.fit_kwargs(), 1.0, np.zeros(SHAPE), 0.15
+        )
+        scores.append(tier.fit(a).misfit)
+    assert abs(np.mean(scores)) < 1.0 and max(scores) < 3.0
+
+
+def test_a_units_removal_test_and_misfit_read_one_rendering_of_the_error(astig, monkeypatch):
+    """The removal test's allowance and the promotion's misfit use the same model error of
+    the same fit: the error table is rendered once for them, not once each."""
+    import copy
+
+    from sparseloc.psf.spline import SplinePSF
+    from sparseloc.solvers.two_tier import _Tier1
+
+    work, _, solver = astig
+    model = copy.copy(work)
+    lo, hi = work.z_range
+    model.error_table = SplinePSF(
+        1e-6 * np.ones((8, 21, 21)), PX, np.linspace(lo, hi, 8), normalise=False, name="error"
+    )
+    calls = []
+    render = model.error_table.render
+    monkeypatch.setattr(
+        model.error_table, "render", lambda *a, **k: calls.append(1) or render(*a, **k)
+    )
+    a = np.array([[3200.0, 3200.0, 0.0, 3000.0]])
+    tier = _Tier1(
+        _frame(work, a), np.full(SHAPE, 10.0), model, solver.fit_kwargs(), 1.0,
+        np.zeros(SHAPE), 0.0,
+    )  # fmt: skip
+    unit = tier.fit(a)
+    assert len(unit.rows) == 1 and np.isfinite(unit.misfit)
+    assert len(calls) == 1

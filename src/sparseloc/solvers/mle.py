@@ -134,6 +134,9 @@ class FitResult:
     z_range: tuple[float, float] = (-np.inf, np.inf)
     history: list[str] = field(default_factory=list)
     _derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    #: The model error's variance of the fit's window, kept when first computed
+    #: (:func:`sparseloc.solvers.refine.error_variance`).
+    _error: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def n_params(self) -> int:

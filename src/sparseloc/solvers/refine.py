@@ -199,27 +199,39 @@ def _addition_passes(
     )
 
 
+def error_variance(fit: FitResult, model: PSFModel, kw: dict) -> NDArray[np.float64] | None:
+    """The model error's variance (photons^2, the window's shape) at the fit ``fit``: the
+    model's error table rendered for the fit's own emitters where the model has one (the
+    neighbours' fixed light is not counted; docs/benchmarks/model_error_allowance.txt), else
+    ``(e * signal)^2`` of all the fit's light, the neighbours' included; None for an exact
+    model (:func:`~sparseloc.solvers.variance.model_error_variance`). Computed once per fit:
+    the removal test's allowance and the two tiers' misfit read the same. ``kw``:
+    :func:`fit_emitters`'s keywords, ``pixel_size`` and ``origin`` included."""
+    key = (id(model), id(getattr(model, "error_table", None)), model_error_of(model))
+    if key not in fit._error:
+        em = fit.emitters.as_array().reshape(-1, 4)
+        mu = fit.model_image
+        signal = mu - background_image(fit.background, mu.shape)
+        fit._error[key] = model_error_variance(
+            model, em, signal, kw["pixel_size"], kw.get("origin", (0.0, 0.0))
+        )
+    return fit._error[key]
+
+
 def _error_allowance(null: FitResult, model: PSFModel, kw: dict) -> float:
     """The model error's allowance on a ratio against the fit ``null`` (see
     :mod:`sparseloc.solvers.variance`): the camera's variance comes from that fit, the error
-    from the model's error table rendered for the fit's own emitters where the model has one
-    (the neighbours' fixed light is not counted; docs/benchmarks/model_error_allowance.txt),
-    else ``(e * signal)^2`` of all the fit's light, the neighbours' included. ``kw``:
-    :func:`fit_emitters`'s keywords, ``pixel_size`` and ``origin`` included."""
+    from :func:`error_variance`. ``kw``: :func:`fit_emitters`'s keywords, ``pixel_size`` and
+    ``origin`` included."""
     table = getattr(model, "error_table", None)
     if table is None and model_error_of(model) <= 0:
         return 0.0
-    em = null.emitters.as_array().reshape(-1, 4)
-    if table is not None and len(em) == 0:
+    if table is not None and len(null.emitters) == 0:
         return 0.0
     rv = kw.get("read_variance")
-    mu = null.model_image
     w = likelihood_weight(kw.get("noise", "poisson"), check_qe(kw.get("qe", 1.0)))
-    noise_var = mu / w + (0.0 if rv is None else np.asarray(rv, float))
-    signal = mu - background_image(null.background, mu.shape)
-    error_var = model_error_variance(
-        model, em, signal, kw["pixel_size"], kw.get("origin", (0.0, 0.0))
-    )
+    noise_var = null.model_image / w + (0.0 if rv is None else np.asarray(rv, float))
+    error_var = error_variance(null, model, kw)
     return 0.0 if error_var is None else error_allowance(noise_var, error_var)
 
 

@@ -85,7 +85,7 @@ from .frame_mp import FrameTemplates
 from .frame_windows import NeighbourLight, window_box, window_data, window_kwargs
 from .mle import fit_emitters
 from .mp import MIN_PHOTONS
-from .refine import weakest_removed
+from .refine import error_variance, weakest_removed
 from .variance import misfit, model_error_of, read_variance_crop
 
 log = logging.getLogger(__name__)
@@ -317,10 +317,10 @@ class _Tier1:
         fewer = weakest_removed(y, model, fit, kw, self.lr, MIN_PHOTONS, single)
         if fewer is not None:
             fit = fewer
-        nf, e, rv = self.noise
+        nf, _, rv = self.noise
         rv = rv[r0:r1, c0:c1] if np.ndim(rv) else rv
-        bad = misfit(y, fit.model_image, fit.model_image - fit.background[0], nf, e, rv)
         rows = fit.emitters.as_array().reshape(-1, 4)
+        bad = misfit(y, fit.model_image, error_variance(fit, model, kw), nf, rv)
         bg = float(fit.background[0])
         sd = np.sqrt(max(kw["background"], 1.0))
         # as the frame solver's memo: the linear response is computed when first needed

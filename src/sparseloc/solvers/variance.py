@@ -152,13 +152,16 @@ def noise_factor_of(noise: str) -> float:
     return 2.0 if noise == "emccd" else 1.0
 
 
-def misfit(y: NDArray, mu: NDArray, signal: NDArray, noise_factor: float, e: float, rv) -> float:
+def misfit(y: NDArray, mu: NDArray, error_var: NDArray | None, noise_factor: float, rv) -> float:
     """How far a window's Pearson chi-square ``X = sum((y - mu)^2 / V)`` lies above its
     expectation, in standard deviations: ``(X - n) / sqrt(sum(2 + 1 / mu))`` for ``n`` pixels
-    (the Poisson spread of ``X``), with ``V`` the variance rule (:func:`pixel_variance` on
-    ``signal``, the emitters' part of ``mu``) plus the read-noise variance ``rv`` (scalar or
-    the window's map)."""
-    var = pixel_variance(mu, noise_factor, signal, e) + rv
+    (the Poisson spread of ``X``), with ``V`` the camera's variance
+    (``noise_factor * max(mu, 1)`` plus the read-noise variance ``rv``, scalar or the window's
+    map) plus the model error's ``error_var`` (:func:`model_error_variance` of the window's
+    emitters, or None for an exact model)."""
+    var = noise_factor * np.maximum(mu, 1.0) + rv
+    if error_var is not None:
+        var = var + error_var
     x = float(np.sum((y - mu) ** 2 / var))
     spread = float(np.sum(2.0 + 1.0 / np.maximum(mu, 1.0)))
     return (x - y.size) / np.sqrt(spread)
