@@ -155,11 +155,11 @@ def noise_factor_of(noise: str) -> float:
 def misfit(y: NDArray, mu: NDArray, error_var: NDArray | None, noise_factor: float, rv) -> float:
     """How far a window's Pearson chi-square ``X = sum((y - mu)^2 / V)`` lies above its
     expectation, in standard deviations: ``(X - n) / sqrt(sum(2 + 1 / mu))`` for ``n`` pixels
-    (the Poisson spread of ``X``), with ``V`` the camera's variance
-    (``noise_factor * max(mu, 1)`` plus the read-noise variance ``rv``, scalar or the window's
-    map) plus the model error's ``error_var`` (:func:`model_error_variance` of the window's
-    emitters, or None for an exact model)."""
-    var = noise_factor * np.maximum(mu, 1.0) + rv
+    (the Poisson spread of ``X``), with ``V`` the camera's variance (:func:`pixel_variance`
+    plus the read-noise variance ``rv``, scalar or the window's map) plus the model error's
+    ``error_var`` (:func:`model_error_variance` of the window's emitters, or None for an exact
+    model)."""
+    var = pixel_variance(mu, noise_factor) + rv
     if error_var is not None:
         var = var + error_var
     x = float(np.sum((y - mu) ** 2 / var))
