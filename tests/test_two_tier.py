@@ -312,6 +312,9 @@ def test_the_detections_correlations_are_exact_with_templates_nearly_as_wide_as_
         # the documented centring: fftconvolve's "same" with the flipped template
         want = np.stack([fftconvolve(d, stack[j, ::-1, ::-1], mode="same") for j in range(2)])
         assert np.allclose(_correlations(d, stack, {}), want, rtol=1e-4, atol=1e-4)
+        # the variance map's double precision
+        exact = _correlations(d, stack, {}, np.float64)
+        assert exact.dtype == np.float64 and np.allclose(exact, want, rtol=1e-12, atol=1e-12)
 
 
 def test_units_refitted_after_the_crowds_see_each_emitters_light_once(astig, monkeypatch):

@@ -21,7 +21,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import fft as sfft
 from scipy import ndimage as ndi
-from scipy.signal import fftconvolve
 from scipy.special import ndtri
 
 from .engine import kernels
@@ -360,7 +359,7 @@ def detect_candidates(
     noise = float(noise_factor) * np.maximum(bg, 1e-3) + rv
     corr = _correlations(f - bg, stack, cache)
     sq, scale = _variance_weights(stack)
-    var = fftconvolve(noise, sq[::-1, ::-1], mode="same")
+    var = _correlations(noise, sq[None], cache, np.float64)[0]
     # corr_p / sqrt(var scale_p): the pixel's 1 / sqrt(var) is common to the planes, so the
     # best plane is the one of largest corr_p / sqrt(scale_p)
     weighted = corr * (1.0 / np.sqrt(scale))[:, None, None]
@@ -433,21 +432,24 @@ def circular_shape(shape: tuple[int, ...], width: int) -> tuple[int, ...]:
     return tuple(sfft.next_fast_len(int(n) + int(width) // 2, real=True) for n in shape)
 
 
-def _correlations(d: NDArray, stack: NDArray, cache: dict | None) -> NDArray[np.float64]:
+def _correlations(
+    d: NDArray, stack: NDArray, cache: dict | None, dtype: type = np.float32
+) -> NDArray[np.float64]:
     """Correlations (P, rows, cols) of ``d`` with each template of ``stack`` (P, T, T),
     centred as ``fftconvolve(..., mode="same")`` with the flipped template; the templates'
-    spectra are kept in ``cache`` per frame shape. In single precision: a signal-to-noise
-    needs a few digits, and the transforms take half the time."""
+    spectra are kept in ``cache`` per frame shape and precision. In single precision by
+    default: a signal-to-noise needs a few digits, and the transforms take half the time;
+    ``dtype=np.float64`` for the variance map, whose square root divides every plane."""
     rows, cols = d.shape
     h = (stack.shape[-1] - 1) // 2
     shape = circular_shape(d.shape, stack.shape[-1])
-    key = d.shape
+    key = (d.shape, np.dtype(dtype).name, stack.shape)
     spectra = None if cache is None else cache.get(key)
     if spectra is None:
-        spectra = sfft.rfft2(stack[:, ::-1, ::-1].astype(np.float32), shape)
+        spectra = sfft.rfft2(stack[:, ::-1, ::-1].astype(dtype), shape)
         if cache is not None:
             cache[key] = spectra
-    full = sfft.irfft2(sfft.rfft2(d.astype(np.float32), shape)[None] * spectra, shape)
+    full = sfft.irfft2(sfft.rfft2(d.astype(dtype), shape)[None] * spectra, shape)
     return full[:, h : h + rows, h : h + cols]
 
 
