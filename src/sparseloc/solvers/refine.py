@@ -200,13 +200,28 @@ def _addition_passes(
 
 
 def error_variance(fit: FitResult, model: PSFModel, kw: dict) -> NDArray[np.float64] | None:
-    """The model error's variance (photons^2, the window's shape) at the fit ``fit``: the
-    model's error table rendered for the fit's own emitters where the model has one (the
-    neighbours' fixed light is not counted; docs/benchmarks/model_error_allowance.txt), else
-    ``(e * signal)^2`` of all the fit's light, the neighbours' included; None for an exact
-    model (:func:`~sparseloc.solvers.variance.model_error_variance`). Computed once per fit:
-    the removal test's allowance and the two tiers' misfit read the same. ``kw``:
-    :func:`fit_emitters`'s keywords, ``pixel_size`` and ``origin`` included."""
+    """The model error's variance at a fit, computed once per fit and model: the count
+    selection's allowance and the two tiers' misfit read the same.
+
+    Parameters
+    ----------
+    fit : FitResult
+        A fit of :func:`fit_emitters`.
+    model : PSFModel
+        The model it was fitted with (its ``error_table`` and ``model_error``).
+    kw : dict
+        The keywords of :func:`fit_emitters` that ``fit`` was fitted with, ``pixel_size``
+        (nm) and ``origin`` (nm) included.
+
+    Returns
+    -------
+    ndarray, shape of the fit's window, or None
+        Photons^2 per pixel: the model's error table rendered for the fit's own emitters
+        where the model has one (the neighbours' fixed light is not counted;
+        docs/benchmarks/model_error_allowance.txt), else ``(e * signal)^2`` of all the fit's
+        light, the neighbours' included; None for an exact model
+        (:func:`~sparseloc.solvers.variance.model_error_variance`).
+    """
     key = (id(model), id(getattr(model, "error_table", None)), model_error_of(model))
     if key not in fit._error:
         em = fit.emitters.as_array().reshape(-1, 4)

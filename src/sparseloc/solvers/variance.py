@@ -155,10 +155,27 @@ def noise_factor_of(noise: str) -> float:
 def misfit(y: NDArray, mu: NDArray, error_var: NDArray | None, noise_factor: float, rv) -> float:
     """How far a window's Pearson chi-square ``X = sum((y - mu)^2 / V)`` lies above its
     expectation, in standard deviations: ``(X - n) / sqrt(sum(2 + 1 / mu))`` for ``n`` pixels
-    (the Poisson spread of ``X``), with ``V`` the camera's variance (:func:`pixel_variance`
-    plus the read-noise variance ``rv``, scalar or the window's map) plus the model error's
-    ``error_var`` (:func:`model_error_variance` of the window's emitters, or None for an exact
-    model)."""
+    (the Poisson spread of ``X``).
+
+    Parameters
+    ----------
+    y : ndarray, shape (rows, cols)
+        The window (photons).
+    mu : ndarray, shape (rows, cols)
+        The fit's expected photons per pixel.
+    error_var : ndarray, shape (rows, cols), or None
+        The model error's variance (photons^2; :func:`model_error_variance` of the window's
+        emitters), added to ``V``; None for an exact model.
+    noise_factor : float
+        The camera's variance per expected photon (:func:`pixel_variance`).
+    rv : float or ndarray
+        Read-noise variance (photons^2), scalar or the window's map.
+
+    Returns
+    -------
+    float
+        The excess of ``X`` in its standard deviations.
+    """
     var = pixel_variance(mu, noise_factor) + rv
     if error_var is not None:
         var = var + error_var
