@@ -192,6 +192,10 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
     res = run("localize", movie, "-o", tmp_path / "locs_t.parquet", "--config", cfg_s)
     assert res.exit_code == 0, res.output
     assert read_parquet(tmp_path / "locs_t.parquet")[1]["params"]["second_start"] is False
+    assert meta["params"]["haze"] is False  # the default
+    res = run("localize", movie, "-o", tmp_path / "locs_h.parquet", "--config", cfg, "--haze")
+    assert res.exit_code == 0, res.output
+    assert read_parquet(tmp_path / "locs_h.parquet")[1]["params"]["haze"] is True
     # bad input: wrong pixel size, offset above the data, missing folder, unknown config key
     for args, msg in [
         (["--config", cfg, "--pixel-size", "100"], "differs from the movie"),

@@ -700,6 +700,15 @@ def localize(
             "fit per region (default on; off: about 2x faster on crowded frames).",
         ),
     ] = None,
+    haze: Annotated[
+        bool | None,
+        typer.Option(
+            "--haze/--no-haze",
+            help="The sample has a haze (autofluorescence, out-of-focus light) broader than one "
+            "PSF image: the fits follow the background estimate's shape instead of a constant "
+            "per window, so the haze gives no false localizations (default off).",
+        ),
+    ] = None,
     relocate: Annotated[
         int | None,
         typer.Option(
@@ -805,6 +814,7 @@ def localize(
         "min_snr": min_snr,
         "refine": refine,
         "second_start": second_start,
+        "haze": haze,
         "relocate": relocate,
         "frame_schedule": frame_schedule,
         "background": background,

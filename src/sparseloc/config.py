@@ -135,6 +135,13 @@ class LocalizeParams:
         by region, the likelier of the two fits (:mod:`sparseloc.solvers.frame_compose`):
         more emitters found right in crowds, at the cost of the second fit where the two
         starts differ (``docs/benchmarks/second_start.txt``). False: the pursuit's start alone.
+    haze : bool
+        The sample adds a haze (autofluorescence, out-of-focus light) broader than one
+        emitter's image: the frame solver's window fits scale the background estimate's shape
+        (smoothed at the PSF's core radius) instead of fitting a constant, so the haze's slope
+        across a window is not explained by false emitters. Off by default: on a flat
+        background the estimate's shape holds some of the emitters' own light, which costs
+        a little in crowds (``docs/benchmarks/haze.txt``).
     """
 
     pixel_size: float
@@ -159,6 +166,7 @@ class LocalizeParams:
     relocate: int = RELOCATE
     frame_schedule: str = "auto"
     second_start: bool = True
+    haze: bool = False
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -469,5 +477,6 @@ def build_job(options: dict[str, Any], movie: Any) -> LocalizeJob:
         **({} if opts["relocate"] is None else {"relocate": opts["relocate"]}),
         **({} if opts["frame_schedule"] is None else {"frame_schedule": opts["frame_schedule"]}),
         second_start=opts["second_start"],
+        haze=opts["haze"],
     )
     return LocalizeJob(model, cam, params, start, stop, read_var if read_var.ndim == 2 else None)

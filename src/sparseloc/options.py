@@ -53,6 +53,7 @@ LOCALIZE_DEFAULTS: dict[str, Any] = {
     "background": "auto",
     "refine": True,
     "second_start": True,
+    "haze": False,
     "frames": None,
     "format": None,
     "workers": None,  # one per available core (see sparseloc.cli)
@@ -75,7 +76,7 @@ LOCALIZE_DEFAULTS: dict[str, Any] = {
 _NUMBERS = ("pixel_size", "offset", "gain", "em_gain", "qe", "z_min", "z_max", "min_snr")
 _NUMBERS += ("n_sample", "focal_depth", "read_noise", "na", "wavelength", "mask_radius", "blur")
 _WHOLE = ("window", "margin", "workers", "chunk_frames", "relocate")
-_FLAGS = ("refine", "second_start", "overwrite")
+_FLAGS = ("refine", "second_start", "haze", "overwrite")
 _TEXT = ("psf", "camera", "method", "background", "frames", "format", "engine", "scheduler")
 _TEXT += ("frame_schedule",)
 _PATHS = ("offset_map", "variance_map", "gain_map", "run_dir")

@@ -56,6 +56,7 @@ from .solvers.frame_compose import (
     subset,
 )
 from .solvers.frame_l1 import l1_templates, tiled_l1_starts
+from .solvers.frame_windows import background_shape
 from .solvers.refine import refine_solution
 from .solvers.two_tier import solve_two_tier
 from .solvers.variance import noise_factor_of, read_variance_crop
@@ -221,9 +222,19 @@ class _FrameSolver:
             correlators=self.correlators,
         )
 
-    def fit_kwargs(self, read_variance: Any = None) -> dict:
+    def background_shape(self, background: NDArray) -> NDArray | None:
+        """The shape the fits give a frame's (or crop's) background ``background``
+        (:func:`~sparseloc.solvers.frame_windows.background_shape`) where the run says the
+        sample has a haze (``haze``), else None (a constant)."""
+        if not self.p.haze:
+            return None
+        return background_shape(
+            np.asarray(background, dtype=np.float64), self.templates.core_radius
+        )
+
+    def fit_kwargs(self, read_variance: Any = None, shape: NDArray | None = None) -> dict:
         """Keywords of :func:`frame_fit` but the frame's own; the read variance is the run's
-        unless given (a crop's)."""
+        unless given (a crop's); ``shape``: the background's (:meth:`background_shape`)."""
         p = self.p
         kw = dict(
             pixel_size=p.pixel_size,
@@ -238,17 +249,19 @@ class _FrameSolver:
         )
         if read_variance is not None and "read_variance" in kw:
             kw["read_variance"] = read_variance
+        if shape is not None:
+            kw["background_shape"] = shape
         return kw
 
     def __call__(
         self, frame: NDArray, background: NDArray, start: NDArray | None = None
     ) -> FrameFit:
         """Solve one frame, from the pursuit's emitters or from ``start`` (K, 4) if given."""
+        shape = self.background_shape(background)
         if start is not None:
             emitters = Emitters.from_array(np.asarray(start, dtype=np.float64).reshape(-1, 4))
-            return frame_fit(
-                frame, self.model, emitters, background=background, **self.fit_kwargs()
-            )
+            kw = self.fit_kwargs(shape=shape)
+            return frame_fit(frame, self.model, emitters, background=background, **kw)
         if self.p.frame_schedule in ("two-tier", "auto"):
             fit = solve_two_tier(
                 frame,
@@ -256,7 +269,7 @@ class _FrameSolver:
                 self.model,
                 self.templates,
                 pursuit=self.start,
-                fit_options=self.fit_kwargs(),
+                fit_options=self.fit_kwargs(shape=shape),
                 min_snr=self.p.min_snr,
                 noise_factor=_variance_factor(self.p),
                 read_variance=self.noise_kw.get("read_variance", 0.0),
@@ -266,7 +279,7 @@ class _FrameSolver:
             )
             if fit is not None:
                 return fit
-        return self.whole(frame, background)
+        return self.whole(frame, background, shape=shape)
 
     def whole(
         self,
@@ -274,19 +287,20 @@ class _FrameSolver:
         background: NDArray,
         fixed_light: NDArray | None = None,
         read_variance: Any = None,
+        shape: NDArray | None = None,
     ) -> FrameFit:
         """The whole-frame solver on ``frame`` (or a crop of the frame, with its read
-        variance): the pursuit, the fits and the second start, with the light
-        ``fixed_light`` (photons/pixel, the image's shape) known."""
+        variance and background shape): the pursuit, the fits and the second start, with the
+        light ``fixed_light`` (photons/pixel, the image's shape) known."""
         seen = background if fixed_light is None else background + fixed_light
         start = self.start(frame, seen, read_variance)
-        kw = self.fit_kwargs(read_variance)
+        kw = self.fit_kwargs(read_variance, shape)
         first = frame_fit(
             frame, self.model, start, background=background, fixed_light=fixed_light, **kw
         )
         if self.l1 is None:
             return first
-        return self.second(frame, background, first, fixed_light, read_variance)
+        return self.second(frame, background, first, fixed_light, read_variance, shape)
 
     def second(
         self,
@@ -295,6 +309,7 @@ class _FrameSolver:
         first: FrameFit,
         fixed_light: NDArray | None = None,
         read_variance: Any = None,
+        shape: NDArray | None = None,
     ) -> FrameFit:
         """``first`` with each region where a fit from the L1 deconvolution's peaks places
         the emitters otherwise, and is likelier, replaced by that fit. Only the parts of the
@@ -310,7 +325,7 @@ class _FrameSolver:
         arr = first.emitters.as_array().reshape(-1, 4)
         redone = np.zeros(len(arr), bool)
         second = None
-        kw = self.fit_kwargs(read_variance)
+        kw = self.fit_kwargs(read_variance, shape)
         for box in boxes:
             mine = inside(arr, box, px)
             part = self.crop_fit(frame, background, box, arr[~mine], arr[mine], fixed_light, kw)
@@ -330,7 +345,11 @@ class _FrameSolver:
             group_distance=self.group_distance,
             pad=self.pad,
             penalty=add_threshold(None, p.qe),
-            fit_kwargs={k: v for k, v in kw.items() if k in ("noise", "qe", "read_variance")},
+            fit_kwargs={
+                k: v
+                for k, v in kw.items()
+                if k in ("noise", "qe", "read_variance", "background_shape")
+            },
             fixed_light=fixed_light,
         )
 
@@ -362,8 +381,9 @@ class _FrameSolver:
         if fixed_light is not None:
             light = light + fixed_light[r0:r1, c0:c1]
         kw = dict(kw)
-        if "read_variance" in kw:
-            kw["read_variance"] = read_variance_crop(kw["read_variance"], np.shape(frame), box)
+        for key in ("read_variance", "background_shape"):
+            if key in kw:
+                kw[key] = read_variance_crop(kw[key], np.shape(frame), box)
         starts = tiled_l1_starts(
             crop - light,
             bg,

@@ -205,6 +205,7 @@ def _response(model: PSFModel, y: NDArray, fit, kw: dict) -> NDArray[np.float64]
         1.0,
         kw.get("offset"),
         kw.get("qe", 1.0),
+        kw.get("background_shape"),
     )
     theta = np.concatenate([fit.emitters.as_array().ravel(), fit.background])
     jac = prob.jacobian(theta)
@@ -344,7 +345,10 @@ def frame_fit(
         Known light (photons/pixel) of emitters fitted elsewhere (the two-tier solver's
         singles), added to every window's offset and not fitted.
     **fit_kwargs
-        ``noise``, ``read_variance`` (a map is cropped to each window), ``plane``, ``qe``.
+        ``noise``, ``read_variance`` (a map is cropped to each window), ``plane``, ``qe``,
+        ``background_shape`` (the frame's, cropped to each window: the shape the fits scale
+        for their background, see :func:`~sparseloc.solvers.mle.fit_emitters`; default a
+        constant).
 
     Returns
     -------
@@ -355,11 +359,14 @@ def frame_fit(
     px = float(pixel_size)
     rv = fit_kwargs.pop("read_variance", None)
     fixed = None if fixed_light is None else np.broadcast_to(fixed_light, f.shape)
+    bg = np.broadcast_to(np.asarray(background, dtype=np.float64), f.shape)
+    if fit_kwargs.get("background_shape") is None:
+        fit_kwargs.pop("background_shape", None)
     sweep = _Sweep(
         f,
         model,
         px,
-        np.broadcast_to(np.asarray(background, dtype=np.float64), f.shape),
+        bg,
         rv,
         dict(
             group_distance=group_distance,
@@ -498,6 +505,8 @@ class _Sweep:
         )
         if self.rv is not None:
             kw["read_variance"] = read_variance_crop(self.rv, self.f.shape, box)
+        if "background_shape" in kw:
+            kw["background_shape"] = read_variance_crop(kw["background_shape"], self.f.shape, box)
         start = Emitters.from_array(start_em)
         if o["count_selection"]:
             fit = fit_with_count_selection(

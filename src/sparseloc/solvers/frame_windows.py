@@ -12,6 +12,7 @@ from .variance import read_variance_crop
 __all__ = [
     "FLIP_MEMORY_NM",
     "NeighbourLight",
+    "background_shape",
     "emitter_groups",
     "light_pieces",
     "lost_flip_near",
@@ -229,12 +230,39 @@ def window_data(f: NDArray, box: tuple[int, int, int, int], fit_kwargs: dict) ->
     return y if fit_kwargs.get("read_variance") is not None else np.maximum(y, 0.0)
 
 
+def background_shape(background: NDArray, radius: float) -> NDArray[np.float64]:
+    """The shape the window fits give their background (:func:`fit_emitters`'s
+    ``background_shape``): the run's background estimate of the frame (photons/pixel),
+    smoothed by a Gaussian of ``radius`` pixels, one image's core: the estimate's pixel
+    noise and what is left of its emitters' bumps go, a haze broader than an image stays.
+
+    Parameters
+    ----------
+    background : ndarray, shape (rows, cols)
+        The frame's background estimate (photons/pixel).
+    radius : float
+        Smoothing sigma (pixels): the PSF's core radius (the radius holding half the light
+        of its broadest plane, :attr:`~sparseloc.solvers.frame_mp.FrameTemplates.core_radius`).
+
+    Returns
+    -------
+    ndarray, shape (rows, cols)
+    """
+    from scipy.ndimage import gaussian_filter
+
+    bg = np.asarray(background, dtype=np.float64)
+    if bg.ndim != 2 or np.ptp(bg) == 0:
+        return bg
+    return gaussian_filter(bg, float(radius), mode="nearest")
+
+
 def window_kwargs(f, box, px, offset, background, fit_kwargs) -> dict:
-    """Keywords of :func:`fit_emitters` for a window of the frame; a read-variance map in
-    ``fit_kwargs`` is cropped to it."""
+    """Keywords of :func:`fit_emitters` for a window of the frame; a read-variance map and
+    the background's shape in ``fit_kwargs`` (the frame's) are cropped to it."""
     r0, _, c0, _ = box
     kw = dict(fit_kwargs, pixel_size=px, origin=(c0 * px, r0 * px), offset=offset)
     kw["background"] = background
-    if "read_variance" in kw:
-        kw["read_variance"] = read_variance_crop(kw["read_variance"], f.shape, box)
+    for key in ("read_variance", "background_shape"):
+        if key in kw:
+            kw[key] = read_variance_crop(kw[key], f.shape, box)
     return kw

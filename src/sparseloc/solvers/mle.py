@@ -2,7 +2,11 @@
 
 Model: ``mu = sum_k N_k psf(x_k, y_k, z_k) + b`` with a constant background ``b`` or a tilted
 plane ``b0 + bx * u + by * v`` (``u``, ``v``: pixel offsets from the window centre divided by
-half the window size, so the three background parameters share one scale).
+half the window size, so the three background parameters share one scale). Where the caller
+knows the background's shape over the window (``background_shape``: the run's background
+estimate, :func:`sparseloc.solvers.frame_windows.background_shape`), ``b`` scales that shape
+divided by its median instead of a constant: ``b`` is then the background at the window's
+median level, and a haze that varies across a wide window is not light for emitters to take.
 
 Likelihoods (``noise``):
 
@@ -70,7 +74,6 @@ __all__ = [
     "SIGMA_FLOOR_NM",
     "FitResult",
     "LikelihoodProblem",
-    "background_image",
     "check_qe",
     "fit_emitters",
     "fit_flags",
@@ -101,6 +104,8 @@ class FitResult:
         Background: ``b`` or ``(b0, bx, by)`` (photons/pixel; see the module notes).
     background_sigma : ndarray
         Standard errors of the background parameters.
+    background_image : ndarray, shape (rows, cols)
+        The fitted background over the window (photons/pixel).
     model_image : ndarray, shape (rows, cols)
         Expected photons per pixel at the fit.
     log_likelihood : float
@@ -133,6 +138,7 @@ class FitResult:
     window: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     z_range: tuple[float, float] = (-np.inf, np.inf)
     history: list[str] = field(default_factory=list)
+    background_image: NDArray[np.float64] | None = field(default=None, repr=False)
     _derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
     #: The model error's variance of the fit's window, kept when first computed
     #: (:func:`sparseloc.solvers.refine.error_variance`).
@@ -210,23 +216,23 @@ def check_read_variance(noise: str, read_variance: object) -> None:
         raise ValueError("read_variance is only used with noise='scmos' or 'emccd'")
 
 
-def background_basis(shape: tuple[int, int], plane: bool) -> list[NDArray[np.float64]]:
-    """The background's basis images over a window (see the module notes): a constant, and
-    with ``plane`` the two tilts ``u`` and ``v``."""
+def background_basis(
+    shape: tuple[int, int], plane: bool, background_shape: ArrayLike | None = None
+) -> list[NDArray[np.float64]]:
+    """The background's basis images over a window (see the module notes): a constant (or
+    ``background_shape`` divided by its median), and with ``plane`` the two tilts ``u`` and
+    ``v``."""
     rows, cols = shape
     u = (np.arange(cols) - (cols - 1) / 2) / max(cols / 2, 1)
     v = (np.arange(rows) - (rows - 1) / 2) / max(rows / 2, 1)
-    basis = [np.ones(shape)]
+    if background_shape is None:
+        basis = [np.ones(shape)]
+    else:
+        level = np.broadcast_to(np.asarray(background_shape, dtype=np.float64), shape)
+        basis = [level / max(float(np.median(level)), 1e-6)]
     if plane:
         basis += [np.broadcast_to(u[None, :], shape), np.broadcast_to(v[:, None], shape)]
     return basis
-
-
-def background_image(b: ArrayLike, shape: tuple[int, int]) -> NDArray[np.float64]:
-    """The background (photons/pixel) of parameters ``b`` (1 or 3 values) over a window."""
-    b = np.asarray(b, dtype=np.float64).ravel()
-    basis = background_basis(shape, b.size == 3)
-    return sum(bi * bb for bi, bb in zip(b, basis, strict=True))
 
 
 class LikelihoodProblem:
@@ -244,6 +250,7 @@ class LikelihoodProblem:
         xy_margin,
         offset=None,
         qe=1.0,
+        background_shape=None,
     ):
         if noise not in NOISE_MODELS:
             raise ValueError(f"noise must be one of {', '.join(NOISE_MODELS)}; got {noise!r}")
@@ -269,7 +276,7 @@ class LikelihoodProblem:
         rows, cols = y.shape
         self.plane = plane
         self.n_bg = 3 if plane else 1
-        self.bg_basis = background_basis(y.shape, plane)
+        self.bg_basis = background_basis(y.shape, plane, background_shape)
         self.zlo, self.zhi = model.z_range
         m = xy_margin * self.px
         self.xlo = self.origin[0] - m
@@ -350,6 +357,7 @@ def fit_emitters(
     xy_margin: float = 1.0,
     offset: ArrayLike | None = None,
     qe: float = 1.0,
+    background_shape: ArrayLike | None = None,
 ) -> FitResult:
     """Maximum-likelihood fit of K emitters plus a background in one window.
 
@@ -385,6 +393,9 @@ def fit_emitters(
     qe : float
         Quantum efficiency in (0, 1]: the frames hold photoelectrons divided by it, so their
         variance is ``mu / qe`` (see the module notes); 1 for photon-counting data.
+    background_shape : ndarray, shape (rows, cols), optional
+        The background's shape over the window (photons/pixel; its scale does not matter):
+        the fitted background scales it (see the module notes). Default: a constant.
 
     Returns
     -------
@@ -396,7 +407,17 @@ def fit_emitters(
     if np.any(y < -1e-9) and read_variance is None:
         raise ValueError("the window has negative photon counts; convert ADU to photons first")
     prob = LikelihoodProblem(
-        y, model, pixel_size, origin, noise, read_variance, plane, xy_margin, offset, qe
+        y,
+        model,
+        pixel_size,
+        origin,
+        noise,
+        read_variance,
+        plane,
+        xy_margin,
+        offset,
+        qe,
+        background_shape,
     )
     em0 = emitters.as_array()
     if background is None:
@@ -634,4 +655,5 @@ def _result(prob: LikelihoodProblem, theta, mu, f, fisher, converged, n_iter) ->
         fisher=np.asarray(fisher, dtype=np.float64).copy(),
         window=window,
         z_range=(prob.zlo, prob.zhi),
+        background_image=prob.background(b),
     )

@@ -39,7 +39,6 @@ from .emitters import Emitters, WindowSolution
 from .mle import (
     NOISE_MODELS,
     FitResult,
-    background_image,
     check_qe,
     fit_emitters,
     likelihood_weight,
@@ -226,7 +225,7 @@ def error_variance(fit: FitResult, model: PSFModel, kw: dict) -> NDArray[np.floa
     if key not in fit._error:
         em = fit.emitters.as_array().reshape(-1, 4)
         mu = fit.model_image
-        signal = mu - background_image(fit.background, mu.shape)
+        signal = mu - fit.background_image
         fit._error[key] = model_error_variance(
             model, em, signal, kw["pixel_size"], kw.get("origin", (0.0, 0.0))
         )

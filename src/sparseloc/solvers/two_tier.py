@@ -269,7 +269,8 @@ class _Tier1:
         self.f, self.bg, self.model, self.opts = f, bg, model, opts
         self.light = NeighbourLight(model, f.shape, opts["pixel_size"])
         self.px, self.pad = opts["pixel_size"], int(opts["pad"])
-        kw = {k: opts[k] for k in ("noise", "read_variance", "qe", "plane") if k in opts}
+        keys = ("noise", "read_variance", "qe", "plane", "background_shape")
+        kw = {k: opts[k] for k in keys if k in opts}
         if kw.get("read_variance") is None:
             kw.pop("read_variance", None)
         self.fit_kwargs = kw
@@ -390,11 +391,12 @@ def solve_two_tier(
         then solves the frame whole (its pursuit and second start find more where images
         overlap than the crowds' fits).
     whole : callable, optional
-        ``whole(image, background, fixed_light, read_variance) -> FrameFit``: the
-        whole-frame solver on a crop. Where given, a crowd of more than :data:`SMALL_CROWD`
-        starts is solved by it on a crop around the crowd, with the kept units' light
-        known, instead of sending the frame whole (the frame's size then does not decide
-        how much of it the whole-frame solver sees).
+        ``whole(image, background, fixed_light, read_variance, background_shape) ->
+        FrameFit``: the whole-frame solver on a crop (with the crop's background shape, or
+        None). Where given, a crowd of more than :data:`SMALL_CROWD` starts is solved by it
+        on a crop around the crowd, with the kept units' light known, instead of sending
+        the frame whole (the frame's size then does not decide how much of it the
+        whole-frame solver sees).
 
     Returns
     -------
@@ -863,7 +865,8 @@ def _pursuit_crop(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv
         fixed = _light(light, known_rows, (r0, r1, c0, c1))
         fit_rv = read_variance_crop(opts.get("read_variance"), f.shape, (r0, r1, c0, c1))
         if whole is not None:
-            fit = whole(f[win], bg[win], fixed, fit_rv)
+            shape = opts.get("background_shape")
+            fit = whole(f[win], bg[win], fixed, fit_rv, None if shape is None else shape[win])
             fits.append(shifted(fit, c0 * px, r0 * px))
             continue
         sub_rv = read_variance_crop(rv, f.shape, (r0, r1, c0, c1))
@@ -877,6 +880,8 @@ def _pursuit_crop(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv
         sub_opts = dict(opts)
         if "read_variance" in opts:
             sub_opts["read_variance"] = fit_rv
+        if opts.get("background_shape") is not None:
+            sub_opts["background_shape"] = opts["background_shape"][win]
         fit = frame_fit(
             f[win], model, Emitters.from_array(start), background=bg[win], fixed_light=fixed,
             **sub_opts,
