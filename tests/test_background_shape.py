@@ -1,5 +1,6 @@
-"""``haze``: the fits' background follows the shape of the background estimate (a haze broader
-than one emitter's image is background, not emitters)."""
+"""``haze``: the fits' background follows the shape of the background estimate where the data
+prefer it to a constant (a haze broader than one emitter's image is background, not
+emitters)."""
 
 from __future__ import annotations
 
@@ -54,6 +55,7 @@ def test_a_fit_that_scales_the_background_shape_is_not_biased_by_a_haze(astig):
         errors[shaped] = np.abs(np.mean(err, axis=0))
     assert errors[True][3] < 0.05 * truth[3] and np.all(errors[True][:2] < 15.0)
     assert errors[False][3] > 2 * errors[True][3]
+    assert fit.background_shape is not None  # the data chose the shape
     # the fitted background is the haze at the shape's median level
     assert abs(fit.background[0] - np.median(bg)) < 1.0
     assert np.allclose(fit.background_image, fit.background[0] * bg / np.median(bg))
@@ -88,7 +90,8 @@ def test_a_haze_in_a_movie_gives_no_false_emitters(astig):
 
 def test_the_haze_option_gives_the_fits_the_estimates_shape(astig):
     """Off (the default) the fits keep a constant background; on, every fit of the frame
-    solver scales the estimate smoothed at the PSF's core radius."""
+    solver is given the estimate smoothed at the PSF's core radius, to scale where the data
+    prefer it."""
     work, p = astig
     bg = 10.0 + _haze(20.0)
     assert _FrameSolver(work, replace(p, haze=False), SHAPE).background_shape(bg) is None
@@ -97,3 +100,55 @@ def test_the_haze_option_gives_the_fits_the_estimates_shape(astig):
     assert np.allclose(solver.background_shape(bg), want)
     assert solver.fit_kwargs(shape=want)["background_shape"] is want
     assert not LocalizeParams(pixel_size=PX).haze
+
+
+def _flank(work, amplitude: float, seed: int):
+    """One emitter on a 32 px window of a haze's flank: the data, the truth, the window's
+    background (photons/pixel) and a start near the truth."""
+    bg = 10.0 + _haze(amplitude)[8:40, 8:40]
+    truth = np.array([1600.0, 1600.0, 0.0, 2000.0])
+    rng = np.random.default_rng(seed)
+    y = rng.poisson(work.render(*truth[:, None], bg.shape, PX) + bg).astype(float)
+    start = truth[None] + rng.normal(0, 30, 4) * [1, 1, 1, 0]
+    return y, truth, bg, Emitters.from_array(start)
+
+
+def test_a_shape_the_data_do_not_ask_for_leaves_the_constant(astig):
+    """A flat background under a shape with a bump where the emitter is (an estimate from
+    crowded frames holds the emitters' own light): the fit keeps the constant, the very fit
+    made without the shape, and says so."""
+    work, _ = astig
+    r, c = np.mgrid[:32, :32]
+    bump = 10.0 + 15.0 * np.exp(-((r - 15.5) ** 2 + (c - 15.5) ** 2) / (2 * 3.0**2))
+    for seed in range(6):
+        y, _, _, start = _flank(work, 0.0, seed)
+        flat = fit_emitters(y, work, start, pixel_size=PX)
+        fit = fit_emitters(y, work, start, pixel_size=PX, background_shape=bump)
+        assert fit.background_shape is None
+        assert np.array_equal(fit.emitters.as_array(), flat.emitters.as_array())
+
+
+def test_the_shape_is_tried_only_where_the_constant_fits_slope_allows_it(astig, monkeypatch):
+    """The shape's fit runs only where the constant fit's score along the shape exceeds the
+    margin, and the choice is that of fitting both (the likelihood is concave along the
+    path from the constant to the shape): flat windows cost one fit, hazy ones two."""
+    from sparseloc.solvers import mle
+
+    work, _ = astig
+    calls = []
+    real = mle._fit
+    monkeypatch.setattr(mle, "_fit", lambda prob, *a: calls.append(prob) or real(prob, *a))
+    tried = {}
+    for amplitude in (0.0, 5.0, 20.0):
+        for seed in range(4):
+            y, _, bg, start = _flank(work, amplitude, seed)
+            calls.clear()
+            fit = fit_emitters(y, work, start, pixel_size=PX, background_shape=bg)
+            tried[amplitude, seed] = len(calls) == 2
+            args = (y, work, PX, (0.0, 0.0), "poisson", None, False, 1.0, None, 1.0)
+            flat = real(mle.LikelihoodProblem(*args), start, None, 60, 1e-6)
+            hazy = real(mle.LikelihoodProblem(*args, bg), start, None, 60, 1e-6)
+            both = hazy.log_likelihood > flat.log_likelihood + mle.SHAPE_MARGIN
+            assert (fit.background_shape is not None) == both, (amplitude, seed)
+    assert not any(tried[0.0, s] for s in range(4))
+    assert all(tried[20.0, s] for s in range(4))

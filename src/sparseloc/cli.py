@@ -705,8 +705,9 @@ def localize(
         typer.Option(
             "--haze/--no-haze",
             help="The sample has a haze (autofluorescence, out-of-focus light) broader than one "
-            "PSF image: the fits follow the background estimate's shape instead of a constant "
-            "per window, so the haze gives no false localizations (default off).",
+            "PSF image: each window's fit follows the background estimate's shape where the "
+            "data prefer it to a constant, so the haze gives no false localizations "
+            "(default off).",
         ),
     ] = None,
     relocate: Annotated[

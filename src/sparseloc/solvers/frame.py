@@ -205,7 +205,7 @@ def _response(model: PSFModel, y: NDArray, fit, kw: dict) -> NDArray[np.float64]
         1.0,
         kw.get("offset"),
         kw.get("qe", 1.0),
-        kw.get("background_shape"),
+        fit.background_shape,
     )
     theta = np.concatenate([fit.emitters.as_array().ravel(), fit.background])
     jac = prob.jacobian(theta)

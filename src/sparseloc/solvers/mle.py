@@ -4,9 +4,16 @@ Model: ``mu = sum_k N_k psf(x_k, y_k, z_k) + b`` with a constant background ``b`
 plane ``b0 + bx * u + by * v`` (``u``, ``v``: pixel offsets from the window centre divided by
 half the window size, so the three background parameters share one scale). Where the caller
 knows the background's shape over the window (``background_shape``: the run's background
-estimate, :func:`sparseloc.solvers.frame_windows.background_shape`), ``b`` scales that shape
-divided by its median instead of a constant: ``b`` is then the background at the window's
-median level, and a haze that varies across a wide window is not light for emitters to take.
+estimate, :func:`sparseloc.solvers.frame_windows.background_shape`), the data choose between
+the constant and that shape divided by its median, scaled by ``b`` (the background at the
+window's median level): the shape is kept where it makes the window likelier than the
+constant by :data:`SHAPE_MARGIN`, so that a haze varying across a wide window is not light
+for emitters to take, while a shape that holds the emitters' own light (an estimate from
+crowded frames) is not forced on windows whose background is flat. The shape's fit is only
+tried where the constant fit's score along the shape, ``dlog L / dbeta`` at ``beta = 0`` of
+the background ``b (1 + beta (s - 1))``, exceeds the margin: the likelihood is concave in the
+background along that path, so its slope there bounds what the shape can gain (the emitters'
+refit adds little; ``docs/benchmarks/haze.txt``).
 
 Likelihoods (``noise``):
 
@@ -71,6 +78,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "NOISE_MODELS",
+    "SHAPE_MARGIN",
     "SIGMA_FLOOR_NM",
     "FitResult",
     "LikelihoodProblem",
@@ -88,6 +96,11 @@ _MIN_BG = 1e-3
 SIGMA_FLOOR_NM = 0.01
 # Smallest squared Cholesky pivot of the unit-diagonal Fisher matrix that counts as informative.
 _FISHER_RCOND = 1e-12
+#: How much likelier (log-likelihood) the background estimate's shape must make a window than a
+#: constant for the fit to keep it: half the 0.1 % tail of a chi-square with one degree of
+#: freedom (10.83), the one direction the shape adds to a constant, at the count selection's
+#: false-alarm rate (:data:`~sparseloc.solvers.refine.LR_THRESHOLD`).
+SHAPE_MARGIN = 5.41
 
 
 @dataclass
@@ -106,6 +119,9 @@ class FitResult:
         Standard errors of the background parameters.
     background_image : ndarray, shape (rows, cols)
         The fitted background over the window (photons/pixel).
+    background_shape : ndarray, shape (rows, cols), or None
+        The shape the background scales where the data chose it (see the module notes),
+        None for a constant.
     model_image : ndarray, shape (rows, cols)
         Expected photons per pixel at the fit.
     log_likelihood : float
@@ -139,6 +155,8 @@ class FitResult:
     z_range: tuple[float, float] = (-np.inf, np.inf)
     history: list[str] = field(default_factory=list)
     background_image: NDArray[np.float64] | None = field(default=None, repr=False)
+    #: The background shape the fit scaled (the window's, as given), or None for a constant.
+    background_shape: NDArray[np.float64] | None = field(default=None, repr=False)
     _derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
     #: The model error's variance of the fit's window, kept when first computed
     #: (:func:`sparseloc.solvers.refine.error_variance`).
@@ -395,7 +413,8 @@ def fit_emitters(
         variance is ``mu / qe`` (see the module notes); 1 for photon-counting data.
     background_shape : ndarray, shape (rows, cols), optional
         The background's shape over the window (photons/pixel; its scale does not matter):
-        the fitted background scales it (see the module notes). Default: a constant.
+        the fitted background scales it where the data choose it over a constant (see the
+        module notes; :attr:`FitResult.background_shape` says which). Default: a constant.
 
     Returns
     -------
@@ -406,19 +425,32 @@ def fit_emitters(
         raise ValueError("fit_emitters takes one window (rows, cols)")
     if np.any(y < -1e-9) and read_variance is None:
         raise ValueError("the window has negative photon counts; convert ADU to photons first")
-    prob = LikelihoodProblem(
-        y,
-        model,
-        pixel_size,
-        origin,
-        noise,
-        read_variance,
-        plane,
-        xy_margin,
-        offset,
-        qe,
-        background_shape,
-    )
+    args = (y, model, pixel_size, origin, noise, read_variance, plane, xy_margin, offset, qe)
+    flat = LikelihoodProblem(*args)
+    fit = _fit(flat, emitters, background, max_iter, tol)
+    if background_shape is None or _shape_score(flat, fit, background_shape) <= SHAPE_MARGIN:
+        return fit
+    hazy = _fit(LikelihoodProblem(*args, background_shape), emitters, background, max_iter, tol)
+    if hazy.log_likelihood > fit.log_likelihood + SHAPE_MARGIN:
+        hazy.background_shape = np.broadcast_to(background_shape, y.shape)
+        return hazy
+    return fit
+
+
+def _shape_score(prob: LikelihoodProblem, fit: FitResult, shape: ArrayLike) -> float:
+    """``dlog L / dbeta`` at a constant-background fit, along the background
+    ``b (1 + beta (s - 1))`` with ``s`` the window's ``shape`` divided by its median: about how
+    much likelier the shape can make the window at most (see the module notes)."""
+    s = background_basis(prob.shape, False, shape)[0]
+    d = fit.background[0] * (s - 1.0)
+    return float(prob.weight * np.sum((prob.yv / (fit.model_image + prob.v) - 1.0) * d))
+
+
+def _fit(
+    prob: LikelihoodProblem, emitters: Emitters, background: float | None, max_iter: int, tol: float
+) -> FitResult:
+    """The fit of :func:`fit_emitters` on one likelihood problem (its background basis)."""
+    y = prob.y
     em0 = emitters.as_array()
     if background is None:
         resid = y - prob.mu(np.concatenate([em0.ravel(), np.zeros(prob.n_bg)]))
@@ -430,7 +462,7 @@ def fit_emitters(
         raise ValueError("the starting positions, photons and background must be finite")
     lo, hi = prob.bounds()
     clamp(theta, len(em0), lo, hi, _MIN_BG)
-    if isinstance(model, SplinePSF) and kernels() is not None:
+    if isinstance(prob.model, SplinePSF) and kernels() is not None:
         out = _numba_fit(prob, theta, lo, hi, max_iter, tol)
     else:
         out = _numpy_fit(prob, theta, lo, hi, max_iter, tol)
