@@ -463,7 +463,7 @@ def test_the_allowance_sums_the_error_table_where_the_model_has_one(analytic):
     emitters (photons squared), not ``(e * signal)^2``: the allowance is its sum over the
     camera's variance, whatever ``e`` says."""
     from sparseloc.psf.spline import SplinePSF
-    from sparseloc.solvers.refine import _error_allowance
+    from sparseloc.solvers.refine import error_allowance_at
 
     table_model = SplinePSF.from_model(analytic, PX, roi=W, z_step=20.0, oversample=1)
     truth = np.array([[850.0, 850.0, 0.0, 5000.0]])
@@ -471,7 +471,7 @@ def test_the_allowance_sums_the_error_table_where_the_model_has_one(analytic):
     fit = fit_emitters(window(analytic, truth), analytic, Emitters.from_array(truth), **kw)
     model = make_psf("dh-analytic")
     model.model_error = 0.1
-    by_e = _error_allowance(fit, model, kw)
+    by_e = error_allowance_at(fit, model, kw)
     signal = fit.model_image - fit.background[0]
     assert by_e == pytest.approx(np.sum((0.1 * signal) ** 2 / fit.model_image))
     c = 1e-3  # error variance per photon squared, as a share of the unit image
@@ -479,6 +479,6 @@ def test_the_allowance_sums_the_error_table_where_the_model_has_one(analytic):
                                   centre=table_model.centre)  # fmt: skip
     em = fit.emitters.as_array()
     var = c * analytic.render(em[:, 0], em[:, 1], em[:, 2], em[:, 3] ** 2, (W, W), PX)
-    by_table = _error_allowance(fit, model, kw)
+    by_table = error_allowance_at(fit, model, kw)
     assert by_table == pytest.approx(np.sum(var / fit.model_image), rel=0.05)
     assert not by_table == pytest.approx(by_e, rel=0.5)  # not the rule of e

@@ -7,9 +7,10 @@ knows the background's shape over the window (``background_shape``: the run's ba
 estimate, :func:`sparseloc.solvers.frame_windows.background_shape`), the data choose between
 the constant and that shape divided by its median, scaled by ``b`` (the background at the
 window's median level): the shape is kept where it makes the window likelier than the
-constant by :data:`SHAPE_MARGIN`, so that a haze varying across a wide window is not light
-for emitters to take, while a shape that holds the emitters' own light (an estimate from
-crowded frames) is not forced on windows whose background is flat. The shape's fit is only
+constant by :data:`SHAPE_MARGIN` and the model error's allowance, so that a haze varying
+across a wide window is not light for emitters to take, while a shape that holds the
+emitters' own light (an estimate from crowded frames) is not forced on windows whose
+background is flat. The shape's fit is only
 tried where the constant fit's score along the shape, ``dlog L / dbeta`` at ``beta = 0`` of
 the background ``b (1 + beta (s - 1))``, exceeds the margin: the likelihood is concave in the
 background along that path, so its slope there bounds what the shape can gain (the emitters'
@@ -99,7 +100,8 @@ _FISHER_RCOND = 1e-12
 #: How much likelier (log-likelihood) the background estimate's shape must make a window than a
 #: constant for the fit to keep it: half the 0.1 % tail of a chi-square with one degree of
 #: freedom (10.83), the one direction the shape adds to a constant, at the count selection's
-#: false-alarm rate (:data:`~sparseloc.solvers.refine.LR_THRESHOLD`).
+#: false-alarm rate (:data:`~sparseloc.solvers.refine.LR_THRESHOLD`); plus, as there, half the
+#: model error's allowance (:func:`~sparseloc.solvers.refine.error_allowance_at`).
 SHAPE_MARGIN = 5.41
 
 
@@ -428,10 +430,20 @@ def fit_emitters(
     args = (y, model, pixel_size, origin, noise, read_variance, plane, xy_margin, offset, qe)
     flat = LikelihoodProblem(*args)
     fit = _fit(flat, emitters, background, max_iter, tol)
-    if background_shape is None or _shape_score(flat, fit, background_shape) <= SHAPE_MARGIN:
+    if background_shape is None:
+        return fit
+    score = _shape_score(flat, fit, background_shape)
+    if score <= SHAPE_MARGIN:
+        return fit
+    # the count selection's allowance for the model's error, on the log-likelihood's scale
+    from .refine import error_allowance_at  # refine imports this module
+
+    kw = dict(pixel_size=pixel_size, origin=origin, noise=noise, qe=qe, read_variance=read_variance)
+    bar = SHAPE_MARGIN + 0.5 * error_allowance_at(fit, model, kw)
+    if score <= bar:
         return fit
     hazy = _fit(LikelihoodProblem(*args, background_shape), emitters, background, max_iter, tol)
-    if hazy.log_likelihood > fit.log_likelihood + SHAPE_MARGIN:
+    if hazy.log_likelihood > fit.log_likelihood + bar:
         hazy.background_shape = np.broadcast_to(background_shape, y.shape)
         return hazy
     return fit

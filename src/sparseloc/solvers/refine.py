@@ -53,6 +53,7 @@ __all__ = [
     "NOISE_MODELS",
     "FitResult",
     "check_qe",
+    "error_allowance_at",
     "fit_emitters",
     "fit_with_count_selection",
     "likelihood_weight",
@@ -232,7 +233,7 @@ def error_variance(fit: FitResult, model: PSFModel, kw: dict) -> NDArray[np.floa
     return fit._error[key]
 
 
-def _error_allowance(null: FitResult, model: PSFModel, kw: dict) -> float:
+def error_allowance_at(null: FitResult, model: PSFModel, kw: dict) -> float:
     """The model error's allowance on a ratio against the fit ``null`` (see
     :mod:`sparseloc.solvers.variance`): the camera's variance comes from that fit, the error
     from :func:`error_variance`. ``kw``: :func:`fit_emitters`'s keywords, ``pixel_size`` and
@@ -296,7 +297,7 @@ def weakest_removed(
     # sigma comes from the weighted Fisher matrix: (N / sigma)^2 is on the scale of the
     # (weighted) likelihood ratio; the model error raises the bar of both
     bar = removal_threshold(k, lr_threshold, single_threshold)
-    bar += _error_allowance(best, model, kw)
+    bar += error_allowance_at(best, model, kw)
     with np.errstate(divide="ignore", invalid="ignore"):
         walds = (arr[:, 3] / best.crlb[:, 3]) ** 2
     dim = arr[:, 3].min() < min_photons
@@ -385,7 +386,7 @@ def fit_with_count_selection(
                     more = trial
             if more is not None:
                 ratio = 2.0 * (more.log_likelihood - best.log_likelihood)
-                bar = lr_threshold + _error_allowance(best, model, kw)
+                bar = lr_threshold + error_allowance_at(best, model, kw)
                 if _addition_passes(more, ratio, bar, min_photons):
                     best = more
                     best.history.append(f"added one: K={k + 1}, LR={ratio:.1f}")
