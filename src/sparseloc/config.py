@@ -143,7 +143,7 @@ class LocalizeParams:
         haze's slope across a window is not explained by false emitters, and keeps the
         constant elsewhere. Off by default: where the estimate's shape holds light the model
         lacks (a calibration's halo in dense frames) the data choose it too, which costs up
-        to a point of Jaccard on some dense sets and gains on others, and each window with a
+        to 1.5 points of Jaccard on some dense sets and gains on others, and each window with a
         slope along the shape is fitted twice (``docs/benchmarks/haze.txt``).
     """
 
