@@ -10,11 +10,10 @@ window's median level): the shape is kept where it makes the window likelier tha
 constant by :data:`SHAPE_MARGIN` and the model error's allowance, so that a haze varying
 across a wide window is not light for emitters to take, while a shape that holds the
 emitters' own light (an estimate from crowded frames) is not forced on windows whose
-background is flat. The shape's fit is only
-tried where the constant fit's score along the shape, ``dlog L / dbeta`` at ``beta = 0`` of
-the background ``b (1 + beta (s - 1))``, exceeds the margin: the likelihood is concave in the
-background along that path, so its slope there bounds what the shape can gain (the emitters'
-refit adds little; ``docs/benchmarks/haze.txt``).
+background is flat. The shape's fit is only tried where the constant fit's score along the
+shape, ``dlog L / dbeta`` at ``beta = 0`` of the background ``b (1 + beta (s - 1))``, exceeds
+the margin: the likelihood is concave in the background along that path, so its slope there
+bounds what the shape can gain (the emitters' refit adds little; ``docs/benchmarks/haze.txt``).
 
 Likelihoods (``noise``):
 
