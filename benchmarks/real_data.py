@@ -43,8 +43,11 @@ import numpy as np
 import tifffile
 
 from sparseloc.camera import photon_transfer
+from sparseloc.detect import spatial_background
+from sparseloc.frame_residual import frame_residual, residual_figure
 from sparseloc.pipeline import LocalizeParams, localize
 from sparseloc.psf import make_psf
+from sparseloc.solvers.frame import ADD_THRESHOLD
 
 # DeepSTORM3D demo-2 optics: f_4f 100 mm, magnification 100, SLM pixel 30 um, NA 1.45.
 _BFP_RADIUS_PX = 100e3 * 1.45 / np.sqrt(100.0**2 - 1.45**2) / 30.0
@@ -54,6 +57,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", type=Path, default=Path("../shared/data/deepstorm3d"))
     ap.add_argument("--png", type=Path, default=Path("docs/real_tetrapod.png"))
+    ap.add_argument(
+        "--residual-png",
+        type=Path,
+        default=Path("docs/real_tetrapod_residual.png"),
+        help="frame, model and residual side by side",
+    )
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/real_data.json"))
     ap.add_argument("--blur", type=float, default=110.0, help="PSF blur sigma (nm)")
     ap.add_argument(
@@ -125,8 +134,10 @@ def main(argv: list[str] | None = None) -> dict:
     args.png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.png, dpi=80)
     print(f"wrote {args.png}")
+    check = _check(photons[0], t, model, params, args.residual_png)
     out = {
         "n_localizations": len(t),
+        **check,
         "seconds": secs,
         "z_median_nm": float(t.z_nm.median()),
         "gof_median": float(t.gof.median()),
@@ -135,6 +146,41 @@ def main(argv: list[str] | None = None) -> dict:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=2))
     return out
+
+
+def _check(frame, t, model, params, png: Path) -> dict:
+    """The localizations against the frame (:mod:`sparseloc.frame_residual`) over the
+    run's background estimate (the pipeline's spatial estimate of one frame); prints the
+    support of the weakest localizations and the unexplained peaks, writes the picture."""
+    rv = params.read_variance
+    bg = spatial_background(frame, read_variance=rv)
+    em = t[["x_nm", "y_nm", "z_nm", "photons"]].to_numpy()
+    res = frame_residual(
+        frame, bg, model, em, params.pixel_size, noise="scmos", read_variance=rv,
+        min_snr=params.min_snr, window_background=t.background.to_numpy(),
+    )  # fmt: skip
+    s = np.sort(res.support)
+    bar = float(ADD_THRESHOLD)
+    print(
+        f"support (2 delta log L with / without each localization, others fixed): median "
+        f"{np.median(s):.0f}, lowest {', '.join(f'{v:.0f}' for v in s[:5])}; "
+        f"{int(np.sum(s < bar))} below the count selection's bar {bar:g}"
+    )
+    print(
+        f"unexplained light: {len(res.unexplained)} peaks above {params.min_snr:g} noise SD in "
+        f"the frame less the localizations' light; residual |z| > 5 in "
+        f"{100 * np.mean(np.abs(res.residual) > 5):.2f} % of the pixels"
+    )
+    residual_figure(
+        frame, res, em, params.pixel_size, png, z_range=model.z_range,
+        title="DeepSTORM3D tetrapod frame: localizations, their model and the residual",
+    )  # fmt: skip
+    print(f"wrote {png}")
+    return {
+        "support_median": float(np.median(s)) if len(s) else None,
+        "support_below_bar": int(np.sum(s < bar)),
+        "unexplained_peaks": len(res.unexplained),
+    }
 
 
 if __name__ == "__main__":

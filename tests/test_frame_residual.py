@@ -1,0 +1,62 @@
+"""The frame check (sparseloc.frame_residual): a localization on empty background has no
+support, a PSF image without a localization is found in the residual, a right one is neither."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sparseloc.frame_residual import frame_residual, residual_figure
+from sparseloc.psf import make_psf
+
+PX = 100.0
+BG = 10.0
+
+
+@pytest.fixture(scope="module")
+def scene():
+    model = make_psf("astig")
+    a = np.array([1500.0, 1500.0, 0.0, 3000.0])
+    b = np.array([4200.0, 3400.0, 200.0, 3000.0])
+    shape = (56, 64)
+    light = model.render(*np.vstack([a, b]).T, shape, PX)
+    frame = np.random.default_rng(3).poisson(BG + light).astype(float)
+    return model, frame, a, b
+
+
+def test_marker_on_background_has_no_support_and_missed_image_is_found(scene):
+    model, frame, a, b = scene
+    fake = np.array([4800.0, 1200.0, 0.0, 2000.0])  # nothing there
+    check = frame_residual(frame, BG, model, np.vstack([a, fake]), PX)
+    assert check.support[0] > 1000.0
+    assert check.support[1] < 0.0
+    near = lambda p, xy: np.hypot(p[:, 1] - xy[0] / PX, p[:, 0] - xy[1] / PX) < 3  # noqa: E731
+    assert near(check.unexplained, b[:2]).any()
+    assert not near(check.unexplained, a[:2]).any()
+
+
+def test_right_localizations_leave_a_noise_residual(scene, tmp_path):
+    model, frame, a, b = scene
+    em = np.vstack([a, b])
+    check = frame_residual(frame, BG, model, em, PX)
+    assert np.all(check.support > 1000.0)
+    assert len(check.unexplained) == 0
+    assert abs(float(np.std(check.residual)) - 1.0) < 0.1
+    out = residual_figure(frame, check, em, PX, tmp_path / "check.png")
+    assert out.is_file() and out.stat().st_size > 0
+    assert not list(tmp_path.glob(".*tmp*"))
+
+
+def test_window_backgrounds_replace_the_estimate_in_their_boxes(scene):
+    model, frame, a, b = scene
+    em = np.vstack([a, b])
+    # an estimate that holds the emitters' light twice, as a spatial estimate over a dense
+    # cell can: the fits' own constants put the background back where they were fitted
+    high = np.full(frame.shape, BG + 3.0)
+    low = frame_residual(frame, high, model, em, PX)
+    fitted = frame_residual(frame, high, model, em, PX, window_background=[BG, BG])
+    assert np.all(fitted.support > low.support)
+    assert np.isclose(fitted.model_image[15, 15] - model.render(*em.T, frame.shape, PX)[15, 15],
+                      BG, rtol=0.05)  # fmt: skip
+    with pytest.raises(ValueError, match="one value per localization"):
+        frame_residual(frame, high, model, em, PX, window_background=[BG])
