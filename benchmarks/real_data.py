@@ -43,9 +43,8 @@ import numpy as np
 import tifffile
 
 from sparseloc.camera import photon_transfer
-from sparseloc.detect import spatial_background
-from sparseloc.frame_residual import frame_residual, residual_figure
-from sparseloc.pipeline import LocalizeParams, localize
+from sparseloc.frame_residual import residual_figure
+from sparseloc.pipeline import LocalizeParams, check_frame, localize
 from sparseloc.psf import make_psf
 from sparseloc.solvers.frame import ADD_THRESHOLD
 
@@ -134,7 +133,7 @@ def main(argv: list[str] | None = None) -> dict:
     args.png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.png, dpi=80)
     print(f"wrote {args.png}")
-    check = _check(photons[0], t, model, params, args.residual_png)
+    check = _check(photons, t, model, params, args.residual_png)
     out = {
         "n_localizations": len(t),
         **check,
@@ -148,31 +147,15 @@ def main(argv: list[str] | None = None) -> dict:
     return out
 
 
-def _check(frame, t, model, params, png: Path) -> dict:
-    """The localizations against the frame (:mod:`sparseloc.frame_residual`) over the
-    run's background estimate (the pipeline's spatial estimate of one frame); prints the
-    support of the weakest localizations and the unexplained peaks, writes the picture."""
-    rv = params.read_variance
-    bg = spatial_background(frame, read_variance=rv)
-    em = t[["x_nm", "y_nm", "z_nm", "photons"]].to_numpy()
-    res = frame_residual(
-        frame, bg, model, em, params.pixel_size, noise="scmos", read_variance=rv,
-        min_snr=params.min_snr, window_background=t.background.to_numpy(),
-    )  # fmt: skip
+def _check(photons, t, model, params, png: Path) -> dict:
+    """The frame check of the run (:func:`sparseloc.pipeline.check_frame`): prints the
+    localizations' support and the light they leave, writes the picture."""
+    res = check_frame(photons, 0, t, model, params)
     s = np.sort(res.support)
     bar = float(ADD_THRESHOLD)
-    print(
-        f"support (2 delta log L with / without each localization, others fixed): median "
-        f"{np.median(s):.0f}, lowest {', '.join(f'{v:.0f}' for v in s[:5])}; "
-        f"{int(np.sum(s < bar))} below the count selection's bar {bar:g}"
-    )
-    print(
-        f"unexplained light: {len(res.unexplained)} peaks above {params.min_snr:g} noise SD in "
-        f"the frame less the localizations' light; residual |z| > 5 in "
-        f"{100 * np.mean(np.abs(res.residual) > 5):.2f} % of the pixels"
-    )
+    print(f"frame check: {res.summary(bar, params.min_snr)}")
     residual_figure(
-        frame, res, em, params.pixel_size, png, z_range=model.z_range,
+        res, params.pixel_size, png, z_range=model.z_range,
         title="DeepSTORM3D tetrapod frame: localizations, their model and the residual",
     )  # fmt: skip
     print(f"wrote {png}")

@@ -42,7 +42,7 @@ def test_right_localizations_leave_a_noise_residual(scene, tmp_path):
     assert np.all(check.support > 1000.0)
     assert len(check.unexplained) == 0
     assert abs(float(np.std(check.residual)) - 1.0) < 0.1
-    out = residual_figure(frame, check, em, PX, tmp_path / "check.png")
+    out = residual_figure(check, PX, tmp_path / "check.png")
     assert out.is_file() and out.stat().st_size > 0
     assert not list(tmp_path.glob(".*tmp*"))
 
@@ -60,3 +60,21 @@ def test_window_backgrounds_replace_the_estimate_in_their_boxes(scene):
                       BG, rtol=0.05)  # fmt: skip
     with pytest.raises(ValueError, match="one value per localization"):
         frame_residual(frame, high, model, em, PX, window_background=[BG])
+
+
+def test_localize_check_writes_the_picture_and_refuses_a_bad_suffix(tmp_path):
+    from cli_checks import run
+
+    movie = tmp_path / "m.tif"
+    sim = ("--psf", "astig", "--frames", "2", "--rows", "32", "--cols", "32",
+           "--pixel-size", "100", "--density", "0.3", "--photons-min", "3000",
+           "--photons-max", "4000", "--seed", "3")  # fmt: skip
+    assert run("simulate", "-o", movie, *sim).exit_code == 0
+    out, png = tmp_path / "locs.parquet", tmp_path / "check.png"
+    args = ("localize", movie, "-o", out, "--psf", "astig", "--pixel-size", "100")
+    res = run(*args, "--check", png)
+    assert res.exit_code == 0, res.output
+    assert "check of frame 0:" in res.output and "below the count selection's bar" in res.output
+    assert png.is_file() and png.stat().st_size > 0
+    bad = run(*args, "--overwrite", "--check", tmp_path / "check.txt")
+    assert bad.exit_code == 2 and "the check's picture must be" in bad.output

@@ -108,3 +108,4 @@ def test_the_tetrapod_recipe_runs_as_the_readme_says(shared_data, tmp_path, monk
         for number in re.findall(r"(\d[\d.]*) (?:localizations|e-/ADU|e-)", comment):
             assert number in output, (comment, output)
     assert (tmp_path / "tetrapod_overlay.png").is_file()
+    assert (tmp_path / "tetrapod_check.png").is_file()

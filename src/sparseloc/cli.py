@@ -787,6 +787,14 @@ def localize(
         Path | None,
         typer.Option(help="TOML file: a [localize] table of these options and a [camera] table."),
     ] = None,
+    check: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also check the run's first frame: write its picture here (.png, .pdf or "
+            ".svg: the frame with its localizations, their model image and the residual) "
+            "and print each localization's support and the light they leave unexplained.",
+        ),
+    ] = None,
 ) -> None:
     """Localize a movie and write the localization table.
 
@@ -852,6 +860,9 @@ def localize(
             inputs=inputs,
             companions=_table_companions(output, opts["format"]),
         )
+        if check is not None:
+            _check_suffix(check, _FIGURE_SUFFIXES, "the check's picture")
+            check = _new_output(check, overwrite=bool(opts["overwrite"]), inputs=[*inputs, out])
         job = _run(build_job, opts, mov)
         if default_psf:
             # said before the work too: with the wrong PSF a run is long and its result void
@@ -862,13 +873,36 @@ def localize(
         asked = any(opts[k] is not None for k in ("run_dir", "chunk_frames", "scheduler"))
         if asked or resumable_by_default(job.stop - job.start):
             _localize_chunked(opts, out, mov, job, default_psf, auto=not asked)
-            return
-        workers = opts["workers"] or _auto_workers(job.stop - job.start)
-        res = _localize_in_processes(mov, job, workers)
-        _write_localized(res, out, opts, mov, job)
-    typer.echo(f"{res.summary()}, {workers} process{'es' if workers > 1 else ''}")
-    _run_notes(res.metadata, opts["psf"] if default_psf else None)
-    typer.echo(f"wrote {out}")
+        else:
+            workers = opts["workers"] or _auto_workers(job.stop - job.start)
+            res = _localize_in_processes(mov, job, workers)
+            _write_localized(res, out, opts, mov, job)
+            typer.echo(f"{res.summary()}, {workers} process{'es' if workers > 1 else ''}")
+            _run_notes(res.metadata, opts["psf"] if default_psf else None)
+            typer.echo(f"wrote {out}")
+        if check is not None:
+            _frame_check(check, out, mov, job)
+
+
+def _frame_check(path: Path, table_path: Path, mov, job) -> None:
+    """``localize --check``: the frame check of the run's first frame
+    (:func:`sparseloc.pipeline.check_frame`) on the table as written, printed and drawn."""
+    from .distributed import CameraFrames
+    from .frame_residual import residual_figure
+    from .pipeline import check_frame
+    from .solvers.frame import add_threshold
+
+    table, _ = _read_locs(table_path)
+    p = job.params
+    res = _run(
+        check_frame, CameraFrames(mov, job.camera), job.start, table, job.model, p,
+        job.read_variance_map,
+    )  # fmt: skip
+    typer.echo(f"check of frame {job.start}: {res.summary(add_threshold(None, p.qe), p.min_snr)}")
+    title = f"frame {job.start}: localizations, their model and the residual"
+    zr = p.z_range or job.model.z_range
+    _run(residual_figure, res, p.pixel_size, path, z_range=zr, title=title)
+    typer.echo(f"wrote {path}")
 
 
 @contextmanager

@@ -54,6 +54,10 @@ class FrameResidual:
 
     Attributes
     ----------
+    frame : ndarray, shape (rows, cols)
+        The frame (photons).
+    emitters : ndarray, shape (K, 4)
+        The localizations checked: x, y, z (nm), photons.
     model_image : ndarray, shape (rows, cols)
         Background plus the localizations' light (photons/pixel).
     residual : ndarray, shape (rows, cols)
@@ -65,10 +69,30 @@ class FrameResidual:
         strongest first.
     """
 
+    frame: NDArray[np.float64]
+    emitters: NDArray[np.float64]
     model_image: NDArray[np.float64]
     residual: NDArray[np.float64]
     support: NDArray[np.float64]
     unexplained: NDArray[np.float64]
+
+    def summary(self, bar: float, min_snr: float) -> str:
+        """Two sentences: the localizations' support against ``bar`` (the count selection's
+        threshold, ``2 delta log L``) and the peaks above ``min_snr`` left unexplained."""
+        s = np.sort(self.support)
+        if len(s):
+            lowest = ", ".join(f"{v:.0f}" for v in s[:3])
+            first = (
+                f"{len(s)} localizations: support (2 delta log L with and without each, the "
+                f"others fixed) median {np.median(s):.0f}, lowest {lowest}; "
+                f"{int(np.sum(s < bar))} below the count selection's bar of {bar:g}"
+            )
+        else:
+            first = "no localizations"
+        return (
+            f"{first}; {len(self.unexplained)} peaks above {min_snr:g} noise SD left in the "
+            "frame less their light"
+        )
 
 
 def frame_residual(
@@ -142,7 +166,7 @@ def frame_residual(
         noise_factor=factor,
         read_variance=rv,
     )
-    return FrameResidual(mu, residual, support, unexplained)
+    return FrameResidual(y, em, mu, residual, support, unexplained)
 
 
 def _lights(model: PSFModel, em: NDArray, shape: tuple[int, int], px: float, size: int):
@@ -194,9 +218,7 @@ def _support(y, mu, boxes, lights, rv, weight: float) -> NDArray[np.float64]:
 
 
 def residual_figure(
-    frame: ArrayLike,
     check: FrameResidual,
-    emitters: ArrayLike,
     pixel_size: float,
     path: str | Path,
     *,
@@ -209,12 +231,8 @@ def residual_figure(
 
     Parameters
     ----------
-    frame : array_like, shape (rows, cols)
-        The frame (photons).
     check : FrameResidual
-        :func:`frame_residual` of that frame.
-    emitters : array_like, shape (K, 4)
-        The localizations drawn (x, y, z nm, photons).
+        :func:`frame_residual` of a frame.
     pixel_size : float
         Pixel size (nm).
     path : str or Path
@@ -232,8 +250,7 @@ def residual_figure(
 
     from .render import DEPTH_CMAP
 
-    y = np.asarray(frame, dtype=np.float64)
-    em = np.asarray(emitters, dtype=np.float64).reshape(-1, 4)
+    y, em = check.frame, check.emitters
     rows, cols = y.shape
     extent = (0.0, cols * pixel_size / 1e3, rows * pixel_size / 1e3, 0.0)
     lo, hi = np.percentile(y, [0.5, 99.8])

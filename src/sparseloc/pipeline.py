@@ -38,6 +38,7 @@ from .detect import (
 from .dictionary import Dictionary
 from .digest import array_digest, psf_hash
 from .engine import resolve_engine, use_engine
+from .frame_residual import FrameResidual, frame_residual
 from .io.tables import LOCS_COLUMNS, empty_locs
 from .model_check import ModelCheck, check_fit
 from .pool import in_processes
@@ -67,6 +68,7 @@ __all__ = [
     "METHODS",
     "LocalizeParams",
     "LocalizeResult",
+    "check_frame",
     "check_model",
     "localize",
     "psf_hash",
@@ -509,7 +511,7 @@ def localize(
         raise ValueError(
             f"frame range {start}:{stop} (--frames) is empty (the movie has {n} frames)"
         )
-    get = frames.frames if hasattr(frames, "frames") else (lambda a, b: np.asarray(frames[a:b]))
+    get = _getter(frames)
     shape = np.asarray(get(start, start + 1), dtype=np.float64).shape[-2:]
     # The frame solver needs no tiles but frames of at least one window all the same.
     tiles(shape, params.window, params.margin)
@@ -533,6 +535,64 @@ def localize(
     if check:
         meta["model_check"] = check_model(table, work_args[0], params, shape).to_dict()
     return LocalizeResult(table, stop - start, n_windows, seconds, meta)
+
+
+def _getter(frames: Any) -> Callable[[int, int], Any]:
+    """``get(a, b)``: frames ``a`` to ``b - 1`` of a movie (its ``frames`` method) or array."""
+    return frames.frames if hasattr(frames, "frames") else (lambda a, b: np.asarray(frames[a:b]))
+
+
+def check_frame(
+    frames: Any,
+    index: int,
+    table: pd.DataFrame,
+    model: PSFModel,
+    params: LocalizeParams,
+    read_variance: NDArray | None = None,
+) -> FrameResidual:
+    """The frame check (:mod:`sparseloc.frame_residual`) of one frame of a run: what its
+    localizations leave unexplained, and the support of each.
+
+    Parameters
+    ----------
+    frames, model, params, read_variance
+        As given to :func:`localize` for the run that made ``table``.
+    index : int
+        The frame (0-based).
+    table : pandas.DataFrame
+        The run's localizations (``frame``, ``x_nm``, ``y_nm``, ``z_nm``, ``photons`` and,
+        where present, each window's fitted ``background``).
+
+    Returns
+    -------
+    FrameResidual
+        Of that frame in photons over the run's background estimate of it (the rule of
+        :func:`localize`), the localizations rendered with the model the fits used.
+    """
+    n = len(frames)
+    if not 0 <= index < n:
+        raise ValueError(f"frame {index} is outside the movie, whose frames are 0 to {n - 1}")
+    get = _getter(frames)
+    shape = np.asarray(get(index, index + 1), dtype=np.float64).shape[-2:]
+    if read_variance is not None:
+        read_variance = _checked_read_variance(read_variance, shape, params)
+    _, frame, bg = next(
+        _frames_and_backgrounds(get, n, index, index + 1, 1, params, model, read_variance)
+    )
+    rows = table[np.asarray(table["frame"]) == index]
+    fitted = rows["background"].to_numpy() if "background" in rows else None
+    return frame_residual(
+        frame,
+        bg,
+        work_model_for(model, params),
+        rows[["x_nm", "y_nm", "z_nm", "photons"]].to_numpy(),
+        params.pixel_size,
+        noise=params.noise,
+        qe=params.qe,
+        read_variance=_noise_kwargs(params, read_variance).get("read_variance", 0.0),
+        min_snr=params.min_snr,
+        window_background=fitted,
+    )
 
 
 def check_model(
