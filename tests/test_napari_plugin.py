@@ -250,6 +250,17 @@ def test_preview_is_localize_on_the_current_frame(qtbot, viewer, movie, tmp_path
     for col in ("photons", "sigma_x_nm", "sigma_y_nm", "sigma_z_nm"):
         assert col in feats
     assert points.face_colormap.name == "turbo"
+    # the frame check beside the points, hidden: the library's check of that frame
+    from sparseloc.config import build_job
+    from sparseloc.io.movie import Movie
+    from sparseloc.napari_plugin.localize_widget import check_job_frame
+
+    resid = viewer.layers[f"{layer.name} frame 1 residual"]
+    assert not resid.visible and resid.data.shape == layer.data.shape[-2:]
+    with Movie.open(movie) as mov:
+        job = build_job({**w.given_options(), "frames": "1:2"}, mov)
+        check = check_job_frame(job, mov, 1, table)
+    np.testing.assert_allclose(resid.data, check.residual)
 
 
 def test_run_writes_the_cli_table_and_cancel_writes_nothing(

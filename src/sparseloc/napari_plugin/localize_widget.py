@@ -32,7 +32,7 @@ from ._form import CameraFields, OptionalNumber, layer_choices
 from ._layers import current_frame, movie_of, points_for_table
 from ._worker import Task, notify_error, notify_info
 
-__all__ = ["LocalizeWidget", "localize_job"]
+__all__ = ["LocalizeWidget", "check_job_frame", "localize_job"]
 
 #: Built-in PSF models offered (``sparseloc.psf.PSF_NAMES``); "file" uses the PSF file field.
 PSF_CHOICES = ["dh", "astig", "clear", "dh-analytic", "astig-gauss", "file"]
@@ -60,6 +60,16 @@ def localize_job(job: Any, movie: Any, progress: Any) -> Any:
         workers=1,
         read_variance=job.read_variance_map,
     )
+
+
+def check_job_frame(job: Any, movie: Any, index: int, table: Any) -> Any:
+    """The frame check (:func:`sparseloc.pipeline.check_frame`) of frame ``index`` of
+    ``job``'s run that gave ``table``: what the localizations leave unexplained."""
+    from ..distributed import CameraFrames
+    from ..pipeline import check_frame
+
+    frames = CameraFrames(movie, job.camera)
+    return check_frame(frames, index, table, job.model, job.params, job.read_variance_map)
 
 
 @contextmanager
@@ -204,11 +214,18 @@ class LocalizeWidget(Container):
 
         def call(progress: Any) -> Any:
             with _closing(movie):
-                return localize_job(job, movie, progress)
+                res = localize_job(job, movie, progress)
+                return res, check_job_frame(job, movie, f, res.table)
 
-        def done(res: Any) -> None:
-            self._show_points(res.table, job, layer, f"{layer.name} frame {f}")
-            self.status.value = f"frame {f}: {len(res.table)} localizations in {res.seconds:.1f} s"
+        def done(out: Any) -> None:
+            res, check = out
+            name = f"{layer.name} frame {f}"
+            self._show_points(res.table, job, layer, name)
+            self._show_residual(check, layer, f"{name} residual")
+            self.status.value = (
+                f"frame {f}: {len(res.table)} localizations in {res.seconds:.1f} s; "
+                f"{len(check.unexplained)} peaks of light left (layer '{name} residual')"
+            )
 
         return self._start(call, done, 1)
 
@@ -294,6 +311,22 @@ class LocalizeWidget(Container):
         self.preview_button.enabled = not busy
         self.run_button.enabled = not busy
         self.cancel_button.enabled = busy
+
+    def _show_residual(self, check: Any, layer: Any, name: str) -> None:
+        """Add (or replace) the preview's residual, ``(frame - model) / noise SD``
+        (:mod:`sparseloc.frame_residual`), as an image layer over the frame's pixels; hidden,
+        so the frame and its points stay in view."""
+        if name in self.viewer.layers:
+            self.viewer.layers.remove(name)
+        self.viewer.add_image(
+            check.residual,
+            name=name,
+            colormap="RdBu_r",
+            contrast_limits=(-5.0, 5.0),
+            scale=tuple(layer.scale[-2:]),
+            translate=tuple(layer.translate[-2:]),
+            visible=False,
+        )
 
     def _show_points(self, table: Any, job: Any, layer: Any, name: str) -> None:
         """Add (or replace) the points layer of ``table`` over ``layer``."""
