@@ -31,8 +31,12 @@ def test_marker_on_background_has_no_support_and_missed_image_is_found(scene):
     assert check.support[0] > 1000.0
     assert check.support[1] < 0.0
     near = lambda p, xy: np.hypot(p[:, 1] - xy[0] / PX, p[:, 0] - xy[1] / PX) < 3  # noqa: E731
-    assert near(check.unexplained, b[:2]).any()
-    assert not near(check.unexplained, a[:2]).any()
+    found = near(check.unexplained, b[:2])
+    assert found.any() and not near(check.unexplained, a[:2]).any()
+    # a bright missed image is far above the count selection's bar, and the summary says so
+    assert check.unexplained_snr[found].max() > np.sqrt(80.0)
+    assert np.all(check.unexplained_snr > 4.5)  # the detection's own threshold, 5
+    assert "1 below the count selection's bar of 80" in check.summary(80.0, 5.0)
 
 
 def test_right_localizations_leave_a_noise_residual(scene, tmp_path):

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .detect import detect_candidates
+from .detect import detect_candidates, snr_at
 from .psf.base import PSFModel
 from .solvers.frame_mp import frame_templates
 from .solvers.mle import likelihood_weight
@@ -67,6 +67,8 @@ class FrameResidual:
     unexplained : ndarray, shape (M, 2)
         Pixels (row, col) of significant peaks in the frame less the localizations' light,
         strongest first.
+    unexplained_snr : ndarray, shape (M,)
+        Their signal-to-noise (the detection test's statistic, noise standard deviations).
     """
 
     frame: NDArray[np.float64]
@@ -75,10 +77,13 @@ class FrameResidual:
     residual: NDArray[np.float64]
     support: NDArray[np.float64]
     unexplained: NDArray[np.float64]
+    unexplained_snr: NDArray[np.float64]
 
     def summary(self, bar: float, min_snr: float) -> str:
         """Two sentences: the localizations' support against ``bar`` (the count selection's
-        threshold, ``2 delta log L``) and the peaks above ``min_snr`` left unexplained."""
+        threshold, ``2 delta log L``) and the peaks above ``min_snr`` left unexplained, with
+        those above ``sqrt(bar)`` (an emitter there would pass the bar, the matched filter's
+        squared signal-to-noise being its ratio at that place)."""
         s = np.sort(self.support)
         if len(s):
             lowest = ", ".join(f"{v:.0f}" for v in s[:3])
@@ -89,9 +94,10 @@ class FrameResidual:
             )
         else:
             first = "no localizations"
+        strong = int(np.sum(self.unexplained_snr > np.sqrt(bar)))
         return (
             f"{first}; {len(self.unexplained)} peaks above {min_snr:g} noise SD left in the "
-            "frame less their light"
+            f"frame less their light, {strong} of them above {np.sqrt(bar):.1f} SD"
         )
 
 
@@ -166,7 +172,12 @@ def frame_residual(
         noise_factor=factor,
         read_variance=rv,
     )
-    return FrameResidual(y, em, mu, residual, support, unexplained)
+    snr = (
+        snr_at(y - mu, variance, templates.images, unexplained.astype(np.intp))
+        if len(unexplained)
+        else np.zeros(0)
+    )
+    return FrameResidual(y, em, mu, residual, support, unexplained, snr)
 
 
 def _lights(model: PSFModel, em: NDArray, shape: tuple[int, int], px: float, size: int):
