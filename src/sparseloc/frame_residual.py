@@ -265,7 +265,7 @@ def residual_figure(
     rows, cols = y.shape
     extent = (0.0, cols * pixel_size / 1e3, rows * pixel_size / 1e3, 0.0)
     lo, hi = np.percentile(y, [0.5, 99.8])
-    fig = Figure(figsize=(15, 5.2 * rows / cols + 1.2), layout="constrained")
+    fig = Figure(figsize=(15, 5.2 * rows / cols + 2.2), layout="constrained")
     axes = fig.subplots(1, 3, sharex=True, sharey=True)
     axes[0].imshow(y, cmap="gray", vmin=lo, vmax=hi, extent=extent)
     zr = z_range or ((em[:, 2].min(), em[:, 2].max()) if len(em) else (0.0, 1.0))
@@ -274,9 +274,10 @@ def residual_figure(
         em[:, 0] / 1e3, em[:, 1] / 1e3, s=30, facecolors="none",
         edgecolors=depth.to_rgba(em[:, 2]), linewidths=1.0,
     )  # fmt: skip
-    fig.colorbar(depth, ax=axes[0], shrink=0.8).set_label("z (nm)")
+    fig.colorbar(depth, ax=axes[0], location="bottom", shrink=0.6).set_label("z (nm)")
     axes[0].set_title(f"frame, {len(em)} localizations")
-    axes[1].imshow(check.model_image, cmap="gray", vmin=lo, vmax=hi, extent=extent)
+    mid = axes[1].imshow(check.model_image, cmap="gray", vmin=lo, vmax=hi, extent=extent)
+    fig.colorbar(mid, ax=axes[1], location="bottom", shrink=0.6).set_label("photons / pixel")
     axes[1].set_title("model: background + localizations")
     im = axes[2].imshow(check.residual, cmap="RdBu_r", vmin=-5, vmax=5, extent=extent)
     u = check.unexplained
@@ -284,7 +285,9 @@ def residual_figure(
         (u[:, 1] + 0.5) * pixel_size / 1e3, (u[:, 0] + 0.5) * pixel_size / 1e3,
         s=160, facecolors="none", edgecolors="k", linewidths=1.2,
     )  # fmt: skip
-    fig.colorbar(im, ax=axes[2], shrink=0.8).set_label("(frame - model) / noise SD")
+    fig.colorbar(im, ax=axes[2], location="bottom", shrink=0.6).set_label(
+        "(frame - model) / noise SD"
+    )
     axes[2].set_title(f"residual; {len(u)} unexplained peaks ringed")
     for ax in axes:
         ax.set_xlabel("x (µm)")
