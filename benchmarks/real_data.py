@@ -44,9 +44,8 @@ import tifffile
 
 from sparseloc.camera import photon_transfer
 from sparseloc.frame_residual import residual_figure
-from sparseloc.pipeline import LocalizeParams, check_frame, localize
+from sparseloc.pipeline import LocalizeParams, addition_bar, check_frame, localize
 from sparseloc.psf import make_psf
-from sparseloc.solvers.frame import ADD_THRESHOLD
 
 # DeepSTORM3D demo-2 optics: f_4f 100 mm, magnification 100, SLM pixel 30 um, NA 1.45.
 _BFP_RADIUS_PX = 100e3 * 1.45 / np.sqrt(100.0**2 - 1.45**2) / 30.0
@@ -152,7 +151,7 @@ def _check(photons, t, model, params, png: Path) -> dict:
     localizations' support and the light they leave, writes the picture."""
     res = check_frame(photons, 0, t, model, params)
     s = np.sort(res.support)
-    bar = float(ADD_THRESHOLD)
+    bar = addition_bar(params)
     print(f"frame check: {res.summary(bar, params.min_snr)}")
     residual_figure(
         res, params.pixel_size, png, z_range=model.z_range,

@@ -66,6 +66,30 @@ def test_window_backgrounds_replace_the_estimate_in_their_boxes(scene):
         frame_residual(frame, high, model, em, PX, window_background=[BG])
 
 
+@pytest.mark.parametrize(
+    "noise, qe, rv", [("poisson", 1.0, None), ("scmos", 0.7, 9.0), ("emccd", 0.9, 4.0)]
+)
+def test_support_is_the_fits_likelihood_ratio_for_each_camera(scene, noise, qe, rv):
+    """The support is 2 delta log L of the fits' own likelihood (mle.LikelihoodProblem: the
+    weight qe / F, the read variance on its scale) with and without each localization."""
+    from sparseloc.solvers.mle import LikelihoodProblem
+
+    model, frame, a, b = scene
+    em = np.vstack([a, b])
+    check = frame_residual(frame, BG, model, em, PX, noise=noise, qe=qe,
+                           read_variance=0.0 if rv is None else rv)  # fmt: skip
+    prob = LikelihoodProblem(frame, model, PX, (0.0, 0.0), noise, rv, False, 2.0, qe=qe)
+    kw = dict(noise=noise, qe=qe, read_variance=0.0 if rv is None else rv)
+    for k in range(len(em)):
+        without = frame_residual(frame, BG, model, np.delete(em, k, axis=0), PX, **kw)
+        expected = 2.0 * (prob.nll(without.model_image) - prob.nll(check.model_image))
+        assert check.support[k] == pytest.approx(expected, rel=1e-9)
+    # the residual is in the likelihood's noise units: mu / w + v
+    w = qe / (2.0 if noise == "emccd" else 1.0)
+    var = check.model_image / w + (0.0 if rv is None else rv)
+    np.testing.assert_allclose(check.residual, (frame - check.model_image) / np.sqrt(var))
+
+
 def test_localize_check_writes_the_picture_and_refuses_a_bad_suffix(tmp_path):
     from cli_checks import run
 
@@ -82,3 +106,22 @@ def test_localize_check_writes_the_picture_and_refuses_a_bad_suffix(tmp_path):
     assert png.is_file() and png.stat().st_size > 0
     bad = run(*args, "--overwrite", "--check", tmp_path / "check.txt")
     assert bad.exit_code == 2 and "the check's picture must be" in bad.output
+
+
+def test_check_frame_leaves_out_unusable_rows_and_names_a_missing_column(scene):
+    import pandas as pd
+
+    from sparseloc.pipeline import LocalizeParams, addition_bar, check_frame
+    from sparseloc.solvers.frame import ADD_THRESHOLD
+    from sparseloc.solvers.refine import LR_THRESHOLD
+
+    model, frame, a, b = scene
+    rows = np.vstack([a, b, [np.nan, 1000.0, 0.0, 2000.0], [2000.0, 2000.0, 0.0, np.nan]])
+    table = pd.DataFrame(rows, columns=["x_nm", "y_nm", "z_nm", "photons"]).assign(frame=0)
+    params = LocalizeParams(pixel_size=PX)
+    check = check_frame(frame[None], 0, table, model, params)
+    assert len(check.support) == 2 and np.all(np.isfinite(check.support))
+    with pytest.raises(ValueError, match="no photons column"):
+        check_frame(frame[None], 0, table.drop(columns="photons"), model, params)
+    assert addition_bar(params) == ADD_THRESHOLD
+    assert addition_bar(LocalizeParams(pixel_size=PX, method="mp")) == LR_THRESHOLD

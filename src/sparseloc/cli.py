@@ -871,6 +871,7 @@ def localize(
         if wide:  # said before the work: it is the work that takes long
             typer.echo(f"note: {wide}", err=True)
         asked = any(opts[k] is not None for k in ("run_dir", "chunk_frames", "scheduler"))
+        table = None
         if asked or resumable_by_default(job.stop - job.start):
             _localize_chunked(opts, out, mov, job, default_psf, auto=not asked)
         else:
@@ -880,28 +881,32 @@ def localize(
             typer.echo(f"{res.summary()}, {workers} process{'es' if workers > 1 else ''}")
             _run_notes(res.metadata, opts["psf"] if default_psf else None)
             typer.echo(f"wrote {out}")
+            table = res.table
         if check is not None:
-            _frame_check(check, out, mov, job)
+            _frame_check(check, out, table, mov, job)
 
 
-def _frame_check(path: Path, table_path: Path, mov, job) -> None:
+def _frame_check(path: Path, table_path: Path, table, mov, job) -> None:
     """``localize --check``: the frame check of the run's first frame
-    (:func:`sparseloc.pipeline.check_frame`) on the table as written, printed and drawn."""
+    (:func:`sparseloc.pipeline.check_frame`) on the run's table (``table``, else the file
+    written), printed and drawn. The table is written already: a failure says so."""
     from .distributed import CameraFrames
     from .frame_residual import residual_figure
-    from .pipeline import check_frame
-    from .solvers.frame import add_threshold
+    from .messages import INPUT_ERRORS, one_sentence
+    from .pipeline import addition_bar, check_frame
 
-    table, _ = _read_locs(table_path)
+    if table is None:
+        table, _ = _read_locs(table_path)
     p = job.params
-    res = _run(
-        check_frame, CameraFrames(mov, job.camera), job.start, table, job.model, p,
-        job.read_variance_map,
-    )  # fmt: skip
-    typer.echo(f"check of frame {job.start}: {res.summary(add_threshold(None, p.qe), p.min_snr)}")
-    title = f"frame {job.start}: localizations, their model and the residual"
-    zr = p.z_range or job.model.z_range
-    _run(residual_figure, res, p.pixel_size, path, z_range=zr, title=title)
+    try:
+        frames = CameraFrames(mov, job.camera)
+        res = check_frame(frames, job.start, table, job.model, p, job.read_variance_map)
+        typer.echo(f"check of frame {job.start}: {res.summary(addition_bar(p), p.min_snr)}")
+        title = f"frame {job.start}: localizations, their model and the residual"
+        residual_figure(res, p.pixel_size, path, z_range=p.z_range or job.model.z_range,
+                        title=title)  # fmt: skip
+    except INPUT_ERRORS as exc:
+        _fail(f"wrote {table_path}, but the check failed: {_in_cli_terms(one_sentence(exc))}")
     typer.echo(f"wrote {path}")
 
 

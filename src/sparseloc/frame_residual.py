@@ -5,18 +5,27 @@ background), as numbers and a picture. The localizations of one frame, rendered 
 model over the frame's background estimate, make the frame's model image; then:
 
 - **support** of each localization: ``2 (log L - log L_without)``, the frame's likelihood
-  with its light against without it, the other localizations fixed (no refit, so at least the
-  ratio the count selection tested). A marker on empty background has little support.
+  with its light against without it, the other localizations fixed. Where the check's model
+  of a window is the fit's (the same background and light), refitting the others could only
+  lower the ratio, so it would bound the removal test's from above; the check's background
+  and light are only close to the fits' (below), so it approximates that bound. A marker on
+  empty background has little support.
 - **unexplained light**: the detection test (:func:`~sparseloc.detect.detect_candidates`)
   on the frame less the localizations' light, its variance with their shot noise: each
   significant peak is a PSF image, or part of one, that no localization explains.
 - the **residual** in noise standard deviations, ``(frame - model) / sqrt(variance)``, for
   the picture (:func:`residual_figure`).
 
+The variance is the likelihood's, ``mu / w + v`` (shot noise ``F mu / qe``, read variance
+``v``); the unexplained peaks' signal-to-noise is taken with it, so that its square
+approximates the likelihood ratio of an emitter added there (compare it with the count
+selection's bar). The peaks themselves are found by the run's detection test, on its own
+scale (``F mu + v``, :func:`~sparseloc.detect.detect_candidates`).
+
 The likelihood is the fits' (:mod:`sparseloc.solvers.mle`: Poisson in photons, weighted by
 ``qe / noise factor``, shifted by the read variance for sCMOS and EMCCD read noise). Each
-localization's light is counted within the frame solver's template around it (the pursuit's
-template size, :func:`~sparseloc.solvers.frame_mp.frame_templates`): as in the solver's
+localization's light is counted within a detection template's box around it (the run's
+templates where :func:`sparseloc.pipeline.check_frame` passes them): as in the solver's
 windows, the light of a model's far halo lies in the background estimate (a pupil model can
 spread a third of an emitter's photons beyond 2 µm). The background is the run's estimate, not
 each window's fitted constant, so a localization's support also carries the difference
@@ -81,9 +90,9 @@ class FrameResidual:
 
     def summary(self, bar: float, min_snr: float) -> str:
         """Two sentences: the localizations' support against ``bar`` (the count selection's
-        threshold, ``2 delta log L``) and the peaks above ``min_snr`` left unexplained, with
-        those above ``sqrt(bar)`` (an emitter there would pass the bar, the matched filter's
-        squared signal-to-noise being its ratio at that place)."""
+        threshold on ``2 delta log L``, the likelihood's scale) and the peaks above ``min_snr``
+        left unexplained, with those above ``sqrt(bar)`` (an emitter added there would about
+        pass the bar: the squared signal-to-noise approximates its ratio)."""
         s = np.sort(self.support)
         if len(s):
             lowest = ", ".join(f"{v:.0f}" for v in s[:3])
@@ -113,6 +122,7 @@ def frame_residual(
     read_variance: ArrayLike = 0.0,
     min_snr: float = 5.0,
     window_background: ArrayLike | None = None,
+    templates: ArrayLike | None = None,
 ) -> FrameResidual:
     """Check one frame's localizations against the frame (see the module notes).
 
@@ -141,6 +151,11 @@ def frame_residual(
     window_background : array_like, shape (K,), optional
         Each localization's fitted background (photons/pixel, the tables' ``background``):
         the background within its box instead of ``background``.
+    templates : array_like, shape (P, T, T), optional
+        Centred unit images the unexplained-light test correlates with (odd ``T``; each
+        localization's light is counted within ``T`` x ``T`` pixels): the run's detection
+        planes; default the model's over its z range, :data:`DETECTION_DZ` nm apart, at the
+        pursuit's default size.
 
     Returns
     -------
@@ -152,8 +167,10 @@ def frame_residual(
     bg = np.broadcast_to(np.asarray(background, dtype=np.float64), y.shape)
     em = np.asarray(emitters, dtype=np.float64).reshape(-1, 4)
     rv = np.broadcast_to(np.asarray(read_variance, dtype=np.float64), y.shape)
-    templates = frame_templates(model, pixel_size, dxy=pixel_size, dz=DETECTION_DZ)
-    boxes, lights = _lights(model, em, y.shape, pixel_size, templates.images.shape[-1])
+    if templates is None:
+        templates = frame_templates(model, pixel_size, dxy=pixel_size, dz=DETECTION_DZ).images
+    templates = np.asarray(templates, dtype=np.float64)
+    boxes, lights = _lights(model, em, y.shape, pixel_size, templates.shape[-1])
     light = np.zeros(y.shape)
     for (r0, r1, c0, c1), lk in zip(boxes, lights, strict=True):
         light[r0:r1, c0:c1] += lk
@@ -161,19 +178,20 @@ def frame_residual(
         bg = _fitted_background(bg, boxes, np.asarray(window_background, dtype=np.float64))
     mu = np.maximum(bg + light, 1e-9)
     factor = noise_factor_of(noise)
-    variance = factor * mu + rv
+    w = likelihood_weight(noise, qe)
+    variance = mu / w + rv
     residual = (y - mu) / np.sqrt(variance)
-    support = _support(y, mu, boxes, lights, rv, likelihood_weight(noise, qe))
+    support = _support(y, mu, boxes, lights, w * rv, w)
     unexplained = detect_candidates(
         y,
         bg + light,
-        templates.images,
+        templates,
         threshold=min_snr,
         noise_factor=factor,
         read_variance=rv,
     )
     snr = (
-        snr_at(y - mu, variance, templates.images, unexplained.astype(np.intp))
+        snr_at(y - mu, variance, templates, unexplained.astype(np.intp))
         if len(unexplained)
         else np.zeros(0)
     )
@@ -216,15 +234,17 @@ def _fitted_background(bg: NDArray, boxes: list, fitted: NDArray) -> NDArray[np.
     return np.where(count > 0, total / np.maximum(count, 1), bg)
 
 
-def _support(y, mu, boxes, lights, rv, weight: float) -> NDArray[np.float64]:
+def _support(y, mu, boxes, lights, v, weight: float) -> NDArray[np.float64]:
     """``2 w sum((y + v) log((mu + v) / (mu - l_k + v)) - l_k)`` for each localization's
-    light ``l_k``: the likelihood ratio of the frame with and without it, others fixed."""
-    yv = np.maximum(y + rv, 0.0)
+    light ``l_k``, ``v`` the read variance on the likelihood's scale (``w`` times it, see
+    :mod:`sparseloc.solvers.mle`): the likelihood ratio of the frame with and without it,
+    others fixed."""
     out = np.empty(len(lights))
     for k, ((r0, r1, c0, c1), lk) in enumerate(zip(boxes, lights, strict=True)):
-        m = mu[r0:r1, c0:c1] + rv[r0:r1, c0:c1]
+        m = mu[r0:r1, c0:c1] + v[r0:r1, c0:c1]
         without = np.maximum(m - lk, 1e-9)
-        out[k] = 2.0 * weight * float(np.sum(yv[r0:r1, c0:c1] * np.log(m / without) - lk))
+        yv = y[r0:r1, c0:c1] + v[r0:r1, c0:c1]
+        out[k] = 2.0 * weight * float(np.sum(yv * np.log(m / without) - lk))
     return out
 
 
@@ -296,6 +316,9 @@ def residual_figure(
         fig.suptitle(title)
     out = Path(path)
     tmp = out.with_name(f".{out.stem}.tmp{out.suffix}")
-    fig.savefig(tmp, dpi=dpi)
-    tmp.replace(out)
+    try:
+        fig.savefig(tmp, dpi=dpi)
+        tmp.replace(out)
+    finally:
+        tmp.unlink(missing_ok=True)
     return out

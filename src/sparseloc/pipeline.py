@@ -58,8 +58,8 @@ from .solvers.frame_compose import (
 )
 from .solvers.frame_l1 import l1_templates, tiled_l1_starts
 from .solvers.frame_windows import background_shape
-from .solvers.refine import refine_solution
-from .solvers.two_tier import solve_two_tier
+from .solvers.refine import LR_THRESHOLD, refine_solution
+from .solvers.two_tier import detection_planes, solve_two_tier
 from .solvers.variance import noise_factor_of, read_variance_crop
 
 log = logging.getLogger(__name__)
@@ -68,10 +68,12 @@ __all__ = [
     "METHODS",
     "LocalizeParams",
     "LocalizeResult",
+    "addition_bar",
     "check_frame",
     "check_model",
     "localize",
     "psf_hash",
+    "run_templates",
     "work_model_for",
 ]
 
@@ -181,6 +183,25 @@ GROUP_SPAN = 2.0
 PAD_CAP = 12.0
 
 
+def run_templates(model: PSFModel, params: LocalizeParams):
+    """The frame solver's templates for a run: the pursuit's dictionary over the run's z range
+    at its coarse steps (:func:`~sparseloc.solvers.frame_mp.frame_templates`)."""
+    zr = params.z_range or model.z_range
+    return frame_templates(
+        model, params.pixel_size, dxy=params.coarse[0], dz=params.coarse[1], z_range=zr
+    )
+
+
+def addition_bar(params: LocalizeParams) -> float:
+    """The count selection's bar on the likelihood ratio of one emitter more, for a run: the
+    frame solver's (:func:`~sparseloc.solvers.frame.add_threshold`) or the windowed methods'
+    (:data:`~sparseloc.solvers.refine.LR_THRESHOLD`); without the model error's allowance,
+    which each window adds to it."""
+    if params.method == "frame":
+        return add_threshold(None, params.qe)
+    return float(LR_THRESHOLD)
+
+
 class _FrameSolver:
     """Templates and FFTs built once per frame shape; solves one whole frame."""
 
@@ -194,10 +215,7 @@ class _FrameSolver:
         self.model = model
         self.p = params
         self.noise_kw = _noise_kwargs(params, read_variance)
-        zr = params.z_range or model.z_range
-        self.templates = frame_templates(
-            model, params.pixel_size, dxy=params.coarse[0], dz=params.coarse[1], z_range=zr
-        )
+        self.templates = run_templates(model, params)
         self.correlators: dict = {}  # per frame (or tile) shape, see tiled_pursuit
         # Groups: emitters whose half-light discs (of a typical plane) intersect are fitted
         # together: their images overlap enough to trade light.
@@ -561,13 +579,17 @@ def check_frame(
         The frame (0-based).
     table : pandas.DataFrame
         The run's localizations (``frame``, ``x_nm``, ``y_nm``, ``z_nm``, ``photons`` and,
-        where present, each window's fitted ``background``).
+        where present, each window's fitted ``background``); rows with a non-finite position
+        or photon count are left out.
 
     Returns
     -------
     FrameResidual
         Of that frame in photons over the run's background estimate of it (the rule of
-        :func:`localize`), the localizations rendered with the model the fits used.
+        :func:`localize`), the localizations rendered with the model the fits used, the
+        unexplained light found with the run's detection planes
+        (:func:`~sparseloc.solvers.two_tier.detection_planes`). Compare its support and
+        signal-to-noise with :func:`addition_bar`.
     """
     n = len(frames)
     if not 0 <= index < n:
@@ -579,19 +601,26 @@ def check_frame(
     _, frame, bg = next(
         _frames_and_backgrounds(get, n, index, index + 1, 1, params, model, read_variance)
     )
+    cols = ["x_nm", "y_nm", "z_nm", "photons"]
+    missing = [c for c in ("frame", *cols) if c not in table]
+    if missing:
+        raise ValueError(f"the table has no {', '.join(missing)} column: the check needs them")
     rows = table[np.asarray(table["frame"]) == index]
+    rows = rows[np.all(np.isfinite(rows[cols].to_numpy(dtype=np.float64)), axis=1)]
     fitted = rows["background"].to_numpy() if "background" in rows else None
+    work = work_model_for(model, params)
     return frame_residual(
         frame,
         bg,
-        work_model_for(model, params),
-        rows[["x_nm", "y_nm", "z_nm", "photons"]].to_numpy(),
+        work,
+        rows[cols].to_numpy(),
         params.pixel_size,
         noise=params.noise,
         qe=params.qe,
         read_variance=_noise_kwargs(params, read_variance).get("read_variance", 0.0),
         min_snr=params.min_snr,
         window_background=fitted,
+        templates=detection_planes(run_templates(work, params)),
     )
 
 

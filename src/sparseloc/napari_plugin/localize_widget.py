@@ -213,18 +213,26 @@ class LocalizeWidget(Container):
             return self._refuse(exc, movie)
 
         def call(progress: Any) -> Any:
+            from ..messages import INPUT_ERRORS, one_sentence
+
             with _closing(movie):
                 res = localize_job(job, movie, progress)
-                return res, check_job_frame(job, movie, f, res.table)
+                try:  # the points stand without the check
+                    return res, check_job_frame(job, movie, f, res.table)
+                except INPUT_ERRORS as exc:
+                    return res, one_sentence(exc)
 
         def done(out: Any) -> None:
             res, check = out
             name = f"{layer.name} frame {f}"
             self._show_points(res.table, job, layer, name)
+            said = f"frame {f}: {len(res.table)} localizations in {res.seconds:.1f} s"
+            if isinstance(check, str):
+                self.status.value = f"{said}; the check failed: {check}"
+                return
             self._show_residual(check, layer, f"{name} residual")
             self.status.value = (
-                f"frame {f}: {len(res.table)} localizations in {res.seconds:.1f} s; "
-                f"{len(check.unexplained)} peaks of light left (layer '{name} residual')"
+                f"{said}; {len(check.unexplained)} peaks of light left (layer '{name} residual')"
             )
 
         return self._start(call, done, 1)
