@@ -125,3 +125,17 @@ def test_check_frame_leaves_out_unusable_rows_and_names_a_missing_column(scene):
         check_frame(frame[None], 0, table.drop(columns="photons"), model, params)
     assert addition_bar(params) == ADD_THRESHOLD
     assert addition_bar(LocalizeParams(pixel_size=PX, method="mp")) == LR_THRESHOLD
+
+
+def test_each_support_takes_its_own_windows_background(scene):
+    """Two windows fitted with different constants: each localization's support is the
+    ratio over its box with its own constant, as in its fit, not the boxes' mean."""
+    model, frame, a, b = scene
+    near = b.copy()
+    near[:2] = a[:2] + 600.0  # boxes overlap
+    em = np.vstack([a, near])
+    own = np.array([BG - 1.0, BG + 3.0])
+    both = frame_residual(frame, BG, model, em, PX, window_background=own)
+    for k in range(2):
+        alone = frame_residual(frame, own[k], model, em, PX)
+        assert both.support[k] == pytest.approx(alone.support[k], rel=1e-9)

@@ -31,7 +31,8 @@ spread a third of an emitter's photons beyond 2 µm). The background is the run'
 each window's fitted constant, so a localization's support also carries the difference
 between the two where they differ: where ``window_background`` gives each localization's
 fitted constant (the tables' ``background``), that constant is the background within its
-template's box (the mean where boxes overlap), as in its fit; the estimate elsewhere. (A
+template's box, as in its fit (its own for its support; the mean where boxes overlap for the
+picture and the unexplained light); the estimate elsewhere. (A
 spatial estimate over a dense cell holds much of its emitters' light, which the fits' free
 backgrounds leave out.)
 """
@@ -150,7 +151,8 @@ def frame_residual(
         as the run's ``min_snr``.
     window_background : array_like, shape (K,), optional
         Each localization's fitted background (photons/pixel, the tables' ``background``):
-        the background within its box instead of ``background``.
+        the background within its box instead of ``background`` (the mean where boxes
+        overlap; each localization's support takes its own).
     templates : array_like, shape (P, T, T), optional
         Centred unit images the unexplained-light test correlates with (odd ``T``; each
         localization's light is counted within ``T`` x ``T`` pixels): the run's detection
@@ -174,14 +176,16 @@ def frame_residual(
     light = np.zeros(y.shape)
     for (r0, r1, c0, c1), lk in zip(boxes, lights, strict=True):
         light[r0:r1, c0:c1] += lk
+    own = None
     if window_background is not None:
-        bg = _fitted_background(bg, boxes, np.asarray(window_background, dtype=np.float64))
+        own = np.asarray(window_background, dtype=np.float64)
+        bg = _fitted_background(bg, boxes, own)
     mu = np.maximum(bg + light, 1e-9)
     factor = noise_factor_of(noise)
     w = likelihood_weight(noise, qe)
     variance = mu / w + rv
     residual = (y - mu) / np.sqrt(variance)
-    support = _support(y, mu, boxes, lights, w * rv, w)
+    support = _support(y, mu, bg, own, boxes, lights, w * rv, w)
     unexplained = detect_candidates(
         y,
         bg + light,
@@ -234,14 +238,18 @@ def _fitted_background(bg: NDArray, boxes: list, fitted: NDArray) -> NDArray[np.
     return np.where(count > 0, total / np.maximum(count, 1), bg)
 
 
-def _support(y, mu, boxes, lights, v, weight: float) -> NDArray[np.float64]:
-    """``2 w sum((y + v) log((mu + v) / (mu - l_k + v)) - l_k)`` for each localization's
-    light ``l_k``, ``v`` the read variance on the likelihood's scale (``w`` times it, see
+def _support(y, mu, bg, own, boxes, lights, v, weight: float) -> NDArray[np.float64]:
+    """``2 w sum((y + v) log((mu + v) / (mu - l_k + v)) - l_k)`` over each localization's box,
+    ``l_k`` its light, ``v`` the read variance on the likelihood's scale (``w`` times it, see
     :mod:`sparseloc.solvers.mle`): the likelihood ratio of the frame with and without it,
-    others fixed."""
+    others fixed. Where ``own`` gives its window's fitted background, ``mu`` holds that
+    constant in its box, as its fit did, not the mean the picture shows."""
     out = np.empty(len(lights))
     for k, ((r0, r1, c0, c1), lk) in enumerate(zip(boxes, lights, strict=True)):
-        m = mu[r0:r1, c0:c1] + v[r0:r1, c0:c1]
+        m = mu[r0:r1, c0:c1]
+        if own is not None and np.isfinite(own[k]):
+            m = np.maximum(m - bg[r0:r1, c0:c1] + own[k], 1e-9)
+        m = m + v[r0:r1, c0:c1]
         without = np.maximum(m - lk, 1e-9)
         yv = y[r0:r1, c0:c1] + v[r0:r1, c0:c1]
         out[k] = 2.0 * weight * float(np.sum(yv * np.log(m / without) - lk))
