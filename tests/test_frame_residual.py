@@ -7,10 +7,18 @@ import numpy as np
 import pytest
 
 from sparseloc.frame_residual import frame_residual, residual_figure
+from sparseloc.pipeline import LocalizeParams, run_templates
 from sparseloc.psf import make_psf
+from sparseloc.solvers.two_tier import detection_planes
 
 PX = 100.0
 BG = 10.0
+
+
+def _check(frame, background, model, em, px, **kw):
+    """The check with the run's detection planes for these settings, as check_frame passes."""
+    planes = detection_planes(run_templates(model, LocalizeParams(pixel_size=px)))
+    return frame_residual(frame, background, model, em, px, templates=planes, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +35,7 @@ def scene():
 def test_marker_on_background_has_no_support_and_missed_image_is_found(scene):
     model, frame, a, b = scene
     fake = np.array([4800.0, 1200.0, 0.0, 2000.0])  # nothing there
-    check = frame_residual(frame, BG, model, np.vstack([a, fake]), PX)
+    check = _check(frame, BG, model, np.vstack([a, fake]), PX)
     assert check.support[0] > 1000.0
     assert check.support[1] < 0.0
     near = lambda p, xy: np.hypot(p[:, 1] - xy[0] / PX, p[:, 0] - xy[1] / PX) < 3  # noqa: E731
@@ -42,7 +50,7 @@ def test_marker_on_background_has_no_support_and_missed_image_is_found(scene):
 def test_right_localizations_leave_a_noise_residual(scene, tmp_path):
     model, frame, a, b = scene
     em = np.vstack([a, b])
-    check = frame_residual(frame, BG, model, em, PX)
+    check = _check(frame, BG, model, em, PX)
     assert np.all(check.support > 1000.0)
     assert len(check.unexplained) == 0
     assert abs(float(np.std(check.residual)) - 1.0) < 0.1
@@ -57,13 +65,13 @@ def test_window_backgrounds_replace_the_estimate_in_their_boxes(scene):
     # an estimate that holds the emitters' light twice, as a spatial estimate over a dense
     # cell can: the fits' own constants put the background back where they were fitted
     high = np.full(frame.shape, BG + 3.0)
-    low = frame_residual(frame, high, model, em, PX)
-    fitted = frame_residual(frame, high, model, em, PX, window_background=[BG, BG])
+    low = _check(frame, high, model, em, PX)
+    fitted = _check(frame, high, model, em, PX, window_background=[BG, BG])
     assert np.all(fitted.support > low.support)
     assert np.isclose(fitted.model_image[15, 15] - model.render(*em.T, frame.shape, PX)[15, 15],
                       BG, rtol=0.05)  # fmt: skip
     with pytest.raises(ValueError, match="one value per localization"):
-        frame_residual(frame, high, model, em, PX, window_background=[BG])
+        _check(frame, high, model, em, PX, window_background=[BG])
 
 
 @pytest.mark.parametrize(
@@ -76,12 +84,12 @@ def test_support_is_the_fits_likelihood_ratio_for_each_camera(scene, noise, qe, 
 
     model, frame, a, b = scene
     em = np.vstack([a, b])
-    check = frame_residual(frame, BG, model, em, PX, noise=noise, qe=qe,
+    check = _check(frame, BG, model, em, PX, noise=noise, qe=qe,
                            read_variance=0.0 if rv is None else rv)  # fmt: skip
     prob = LikelihoodProblem(frame, model, PX, (0.0, 0.0), noise, rv, False, 2.0, qe=qe)
     kw = dict(noise=noise, qe=qe, read_variance=0.0 if rv is None else rv)
     for k in range(len(em)):
-        without = frame_residual(frame, BG, model, np.delete(em, k, axis=0), PX, **kw)
+        without = _check(frame, BG, model, np.delete(em, k, axis=0), PX, **kw)
         expected = 2.0 * (prob.nll(without.model_image) - prob.nll(check.model_image))
         assert check.support[k] == pytest.approx(expected, rel=1e-9)
     # the residual is in the likelihood's noise units: mu / w + v
@@ -135,7 +143,7 @@ def test_each_support_takes_its_own_windows_background(scene):
     near[:2] = a[:2] + 600.0  # boxes overlap
     em = np.vstack([a, near])
     own = np.array([BG - 1.0, BG + 3.0])
-    both = frame_residual(frame, BG, model, em, PX, window_background=own)
+    both = _check(frame, BG, model, em, PX, window_background=own)
     for k in range(2):
-        alone = frame_residual(frame, own[k], model, em, PX)
+        alone = _check(frame, own[k], model, em, PX)
         assert both.support[k] == pytest.approx(alone.support[k], rel=1e-9)

@@ -24,17 +24,13 @@ scale (``F mu + v``, :func:`~sparseloc.detect.detect_candidates`).
 
 The likelihood is the fits' (:mod:`sparseloc.solvers.mle`: Poisson in photons, weighted by
 ``qe / noise factor``, shifted by the read variance for sCMOS and EMCCD read noise). Each
-localization's light is counted within a detection template's box around it (the run's
-templates where :func:`sparseloc.pipeline.check_frame` passes them): as in the solver's
-windows, the light of a model's far halo lies in the background estimate (a pupil model can
-spread a third of an emitter's photons beyond 2 µm). The background is the run's estimate, not
-each window's fitted constant, so a localization's support also carries the difference
-between the two where they differ: where ``window_background`` gives each localization's
-fitted constant (the tables' ``background``), that constant is the background within its
-template's box, as in its fit (its own for its support; the mean where boxes overlap for the
-picture and the unexplained light); the estimate elsewhere. (A
-spatial estimate over a dense cell holds much of its emitters' light, which the fits' free
-backgrounds leave out.)
+localization's light is counted within a detection template's box around it: as in the
+solver's windows, the light of a model's far halo lies in the background estimate. The
+background is the run's estimate except within each localization's box, where the table gives
+its window's fitted constant (``window_background``): a spatial estimate over a dense cell
+holds much of its emitters' light, which the fits' free backgrounds leave out. Each support
+takes its own window's constant, as its fit did; the picture and the unexplained light take
+the mean where boxes overlap.
 """
 
 from __future__ import annotations
@@ -47,15 +43,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from .detect import detect_candidates, snr_at
 from .psf.base import PSFModel
-from .solvers.frame_mp import frame_templates
 from .solvers.mle import likelihood_weight
 from .solvers.variance import noise_factor_of
 
 __all__ = ["FrameResidual", "frame_residual", "residual_figure"]
-
-#: Axial step (nm) of the centred templates the unexplained-light test correlates with, at
-#: most; each template stands for the planes within half a step of it.
-DETECTION_DZ = 100.0
 
 
 @dataclass(frozen=True)
@@ -78,7 +69,8 @@ class FrameResidual:
         Pixels (row, col) of significant peaks in the frame less the localizations' light,
         strongest first.
     unexplained_snr : ndarray, shape (M,)
-        Their signal-to-noise (the detection test's statistic, noise standard deviations).
+        Their signal-to-noise with the likelihood's variance (noise standard deviations): its
+        square approximates the likelihood ratio of an emitter added there.
     """
 
     frame: NDArray[np.float64]
@@ -121,9 +113,9 @@ def frame_residual(
     noise: str = "poisson",
     qe: float = 1.0,
     read_variance: ArrayLike = 0.0,
+    templates: ArrayLike,
     min_snr: float = 5.0,
     window_background: ArrayLike | None = None,
-    templates: ArrayLike | None = None,
 ) -> FrameResidual:
     """Check one frame's localizations against the frame (see the module notes).
 
@@ -153,12 +145,10 @@ def frame_residual(
         Each localization's fitted background (photons/pixel, the tables' ``background``):
         the background within its box instead of ``background`` (the mean where boxes
         overlap; each localization's support takes its own).
-    templates : array_like, shape (P, T, T), optional
+    templates : array_like, shape (P, T, T)
         Centred unit images the unexplained-light test correlates with (odd ``T``; each
         localization's light is counted within ``T`` x ``T`` pixels): the run's detection
-        planes; default the model's over its z range, :data:`DETECTION_DZ` nm apart, at the
-        pursuit's default size.
-
+        planes (:func:`sparseloc.pipeline.check_frame` passes them).
     Returns
     -------
     FrameResidual
@@ -169,8 +159,6 @@ def frame_residual(
     bg = np.broadcast_to(np.asarray(background, dtype=np.float64), y.shape)
     em = np.asarray(emitters, dtype=np.float64).reshape(-1, 4)
     rv = np.broadcast_to(np.asarray(read_variance, dtype=np.float64), y.shape)
-    if templates is None:
-        templates = frame_templates(model, pixel_size, dxy=pixel_size, dz=DETECTION_DZ).images
     templates = np.asarray(templates, dtype=np.float64)
     boxes, lights = _lights(model, em, y.shape, pixel_size, templates.shape[-1])
     light = np.zeros(y.shape)
