@@ -1425,8 +1425,8 @@ def evaluate(
     frames: Annotated[
         str | None,
         typer.Option(
-            help="Score against the truth of frames START:STOP only (0-based, STOP excluded; "
-            "default: the table's recorded range, else all)."
+            help="Score frames START:STOP only, of the table and the truth (0-based, STOP "
+            "excluded; default: the table's recorded range of the truth, else all)."
         ),
     ] = None,
     overwrite: Annotated[bool, typer.Option(help=_OVERWRITE_HELP)] = False,
@@ -1434,7 +1434,7 @@ def evaluate(
     """Match localizations to the truth and print Jaccard, RMSE, bias and efficiency."""
     from .config import frame_range
     from .evaluate import evaluate as run_evaluation
-    from .evaluate import result_cautions, scoring_cautions, truth_in_frames
+    from .evaluate import result_cautions, rows_in_frames, scoring_cautions
     from .io.tables import read_table_and_metadata
 
     for p in (locs, truth):
@@ -1452,10 +1452,11 @@ def evaluate(
     if frames is not None:
         n = int(truth_df["frame"].max()) + 1 if len(truth_df) else 0
         start, stop = _run(frame_range, frames, max(n, _frames_stop(frames)))
-        truth_df = _run(truth_in_frames, truth_df, (start, stop))
-        typer.echo(f"scored against the truth of frames {start}:{stop}")
+        truth_df = _run(rows_in_frames, truth_df, (start, stop))
+        loc_df = _run(rows_in_frames, loc_df, (start, stop)).reset_index(drop=True)
+        typer.echo(f"scored frames {start}:{stop} of the table and the truth")
     elif recorded is not None:
-        truth_df = _run(truth_in_frames, truth_df, recorded)
+        truth_df = _run(rows_in_frames, truth_df, recorded)
         typer.echo(
             f"scored against the truth of frames {recorded[0]}:{recorded[1]}, the table's range"
         )

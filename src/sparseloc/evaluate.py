@@ -432,17 +432,19 @@ class Evaluation:
         return "\n".join(lines)
 
 
-def truth_in_frames(truth: pd.DataFrame, frames: Sequence[int] | None) -> pd.DataFrame:
-    """The rows of ``truth`` in the frame range ``(start, stop)`` (0-based, stop excluded) that a
-    table was localized over (its metadata's ``frames``); all rows when ``frames`` is None."""
+def rows_in_frames(table: pd.DataFrame, frames: Sequence[int] | None) -> pd.DataFrame:
+    """The rows of ``table`` (a truth or a localization table, with ``frame``) in the frame
+    range ``(start, stop)`` (0-based, stop excluded): the range a table was localized over (its
+    metadata's ``frames``) or the one ``evaluate --frames`` scores; all rows when ``frames`` is
+    None."""
     if frames is None:
-        return truth
+        return table
     try:
         start, stop = (int(v) for v in frames)
     except (TypeError, ValueError):
         raise ValueError(f"the table's frame range {frames!r} is not (start, stop)") from None
-    f = truth["frame"].to_numpy()
-    return truth[(f >= start) & (f < stop)]
+    f = table["frame"].to_numpy()
+    return table[(f >= start) & (f < stop)]
 
 
 def _near_counts(
