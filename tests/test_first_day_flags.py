@@ -586,3 +586,20 @@ def test_render_says_when_the_frc_plot_it_was_asked_for_is_not_written(tmp_path)
     assert "FRC not computed" in r.output
     assert "--frc frc.png was not written" in r.output
     assert not frc_png.exists() and (tmp_path / "r.png").exists()
+
+
+def test_a_calibrations_pixel_size_against_the_movies_names_the_calibration():
+    """A hidden-data trial was told "--pixel-size 100 nm differs from the movie's metadata
+    (65 nm)" without having given --pixel-size: the 100 nm came from the calibration file."""
+    from types import SimpleNamespace
+
+    from sparseloc.config import LOCALIZE_DEFAULTS, resolve_pixel_size
+
+    opts = {**LOCALIZE_DEFAULTS, "psf": "beads_100nm.h5"}
+    with pytest.raises(ValueError) as err:
+        resolve_pixel_size(opts, SimpleNamespace(pixel_size=100.0), 65.0)
+    said = str(err.value)
+    assert "calibration 'beads_100nm.h5' was made at 100 nm" in said and "65 nm" in said
+    assert "--pixel-size" not in said
+    with pytest.raises(ValueError, match="--pixel-size 100 nm differs"):
+        resolve_pixel_size({**opts, "pixel_size": 100.0}, SimpleNamespace(pixel_size=None), 65.0)

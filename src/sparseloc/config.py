@@ -422,8 +422,14 @@ def resolve_pixel_size(options: dict[str, Any], model: PSFModel, movie_pixel: fl
     source = "the calibration's pixel size" if cal_px is not None else "the movie's pixel size"
     px = check_pixel_size(px, "--pixel-size" if options["pixel_size"] is not None else source)
     if movie_pixel and pixel_sizes_differ(px, movie_pixel):
+        if options["pixel_size"] is not None:
+            raise ValueError(
+                f"--pixel-size {px:g} nm differs from the movie's metadata ({movie_pixel:g} nm)"
+            )
         raise ValueError(
-            f"--pixel-size {px:g} nm differs from the movie's metadata ({movie_pixel:g} nm)"
+            f"the calibration {str(options.get('psf'))!r} was made at {px:g} nm pixels but the "
+            f"movie's metadata says {movie_pixel:g} nm: calibrate beads imaged at the movie's "
+            "pixel size"
         )
     return float(px)
 
