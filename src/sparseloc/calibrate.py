@@ -329,7 +329,10 @@ def calibrate_beads(
     camera : Camera, optional
         The camera that ``offset`` and ``gain`` describe: its gain is checked against the
         stack's own noise (:func:`sparseloc.camera.camera_mismatch`), a disagreement kept in
-        ``params["camera_warning"]`` ("" where they agree).
+        ``params["camera_warning"]`` ("" where they agree). An sCMOS camera's per-pixel maps
+        convert the stack (``offset`` and ``gain`` are then their medians,
+        :func:`~sparseloc.calibrate_scan.scan_conversion`); that check, which reads one
+        offset and gain from the stack's mean-variance line, is left out there.
 
     Returns
     -------
@@ -341,7 +344,9 @@ def calibrate_beads(
         For a stack that is not 3-D or has one frame, a bad z step, no usable beads, fewer
         than ``min_beads``, all beads saturated, NaNs; each message says what to try.
     """
-    scan = read_scan(stack, pixel_size, z_step, z, valid, z0_slice, offset, gain, saturation)
+    scan = read_scan(
+        stack, pixel_size, z_step, z, valid, z0_slice, offset, gain, saturation, camera
+    )
     if detect_sigma is None:
         detect_sigma = detection_sigma(scan.pixel_size)
     cal = _calibrate_scan(
@@ -359,7 +364,7 @@ def calibrate_beads(
     )
     if fit_pupil:
         cal.pupil = _fit_pupil_in_frame(cal.psf, cal.z, cal.pixel_size, pupil_options)
-    if camera is not None:
+    if camera is not None and camera.map_shape is None:
         cal.params["camera_warning"] = camera_mismatch(stack, camera)
     log.info("calibrated from %d of %d beads, %d planes", cal.n_used, len(cal.beads), cal.z.size)
     return cal

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
-from .camera import CAMERA_MAP_OPTIONS, Camera, camera_from_options, to_photons
+from .camera import Camera, camera_from_options, to_photons
 from .units import check_pixel_size, check_z_step
 
 __all__ = ["BeadScan", "read_bead_positions", "read_scan", "read_z_file", "scan_conversion"]
@@ -38,32 +38,37 @@ def scan_conversion(camera: Camera | dict[str, Any]) -> tuple[float, float]:
     Returns
     -------
     offset, photons_per_adu : float
-        The ``offset`` and ``gain`` arguments of :func:`sparseloc.calibrate.calibrate_beads`.
+        The ``offset`` and ``gain`` arguments of :func:`sparseloc.calibrate.calibrate_beads`:
+        for an sCMOS camera with per-pixel maps, the maps' medians (the conversion itself
+        then takes the maps, see :func:`read_scan`'s ``camera``).
 
     Raises
     ------
     ValueError
-        For invalid camera settings, or per-pixel sCMOS maps (a bead scan is converted with
-        one offset and gain).
+        For invalid camera settings.
     """
     if isinstance(camera, dict):
-        maps = [k for k in CAMERA_MAP_OPTIONS if camera.get(k)]
-        if maps:
-            flags = ", ".join("--" + k.replace("_", "-") for k in maps)
-            raise ValueError(
-                f"{flags}: calibrate converts the bead stack with one offset and gain "
-                "(--offset, --gain); per-pixel maps are for localize"
-            )
         camera = camera_from_options(camera)
-    if camera.map_shape is not None:
-        raise ValueError("calibrate converts the bead stack with one offset and gain, not maps")
-    return camera.offset, camera.photons_per_adu
+    if camera.map_shape is None:
+        return camera.offset, camera.photons_per_adu
+    offset, gain = camera._pixel_params(camera.map_shape)
+    return float(np.median(offset)), float(np.median(gain)) / (camera.em_gain * camera.qe)
 
 
-def _adu_to_photons(raw: NDArray, offset: float, photons_per_adu: float) -> NDArray[np.float64]:
+def _adu_to_photons(
+    raw: NDArray, offset: float, photons_per_adu: float, camera: Camera | None = None
+) -> NDArray[np.float64]:
     """``(ADU - offset) * photons_per_adu``: :func:`~sparseloc.camera.to_photons` of a camera
     whose gain is ``photons_per_adu`` (its EM gain and QE folded in by
-    :func:`scan_conversion`)."""
+    :func:`scan_conversion`); with the per-pixel maps of ``camera`` where it has them."""
+    if camera is not None and camera.map_shape is not None:
+        if tuple(raw.shape[-2:]) != camera.map_shape:
+            rows, cols = camera.map_shape
+            raise ValueError(
+                f"the camera maps are {rows}x{cols} pixels but the bead stack's frames are "
+                f"{raw.shape[-2]}x{raw.shape[-1]}"
+            )
+        return to_photons(raw, camera)
     return to_photons(raw, Camera(offset=offset, gain=photons_per_adu))
 
 
@@ -175,9 +180,12 @@ def read_scan(
     offset: float,
     gain: float,
     saturation: float | None,
+    camera: Camera | None = None,
 ) -> BeadScan:
     """Check the stack, place its planes in z, convert it to photons and subtract each
-    frame's background (its median: beads cover a small fraction of the field)."""
+    frame's background (its median: beads cover a small fraction of the field). Where
+    ``camera`` has sCMOS maps, they convert the stack (``offset`` and ``gain`` are then their
+    medians, :func:`scan_conversion`)."""
     if z is not None and z0_slice is not None:
         raise ValueError(
             "--z0-slice places z = 0 in an even scan (--z-step); with each frame's z given "
@@ -185,9 +193,13 @@ def read_scan(
         )
     raw, p, saturation = _checked_stack(stack, pixel_size, gain, saturation)
     if z is not None:
-        photons, sat_frames, zplanes, step = _planes_from_z(raw, z, valid, z_step, offset, gain)
+        photons, sat_frames, zplanes, step = _planes_from_z(
+            raw, z, valid, z_step, offset, gain, camera
+        )
     else:
-        photons, sat_frames, zplanes, step = _even_planes(raw, z_step, z0_slice, offset, gain)
+        photons, sat_frames, zplanes, step = _even_planes(
+            raw, z_step, z0_slice, offset, gain, camera
+        )
     if photons.shape[0] < 4:
         raise ValueError(f"a calibration needs at least 4 z planes, got {photons.shape[0]}")
     bg = _frame_background(photons)
@@ -232,6 +244,7 @@ def _planes_from_z(
     z_step: float | None,
     offset: float,
     gain: float,
+    camera: Camera | None = None,
 ) -> tuple[NDArray[np.float64], NDArray, NDArray[np.float64], float]:
     """Photons, the ADU frames used, plane z (nm) and step of a scan with the z of each
     frame: valid frames sorted by z, resampled onto an even grid when the steps are uneven
@@ -256,7 +269,7 @@ def _planes_from_z(
         step = check_z_step(z_step)
     else:
         step = check_z_step(float(np.median(steps)), "the z file's median step")
-    photons = _adu_to_photons(raw[keep], offset, gain)
+    photons = _adu_to_photons(raw[keep], offset, gain, camera)
     sat_frames = raw[keep]
     if np.ptp(steps) > 1e-3 * step or z_step:
         grid = np.arange(zk[0], zk[-1] + 1e-6 * step, step)
@@ -271,7 +284,12 @@ def _planes_from_z(
 
 
 def _even_planes(
-    raw: NDArray, z_step: float | None, z0_slice: float | None, offset: float, gain: float
+    raw: NDArray,
+    z_step: float | None,
+    z0_slice: float | None,
+    offset: float,
+    gain: float,
+    camera: Camera | None = None,
 ) -> tuple[NDArray[np.float64], NDArray, NDArray[np.float64], float]:
     """Photons, the ADU frames, plane z (nm) and step of a scan in even steps, z = 0 at
     ``z0_slice`` (default the middle slice)."""
@@ -283,7 +301,7 @@ def _even_planes(
     if not 0 <= z0 <= n - 1:
         raise ValueError(f"--z0-slice {z0_slice} is outside the stack's 0..{n - 1} slices")
     zplanes = (np.arange(n) - z0) * step
-    photons = _adu_to_photons(raw, offset, gain)
+    photons = _adu_to_photons(raw, offset, gain, camera)
     return photons, raw, zplanes, step
 
 
