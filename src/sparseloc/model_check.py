@@ -61,7 +61,8 @@ _CROWDED = (
 _CAUSES_HIGH = (
     "likely causes: the wrong PSF (a calibration or mask of another microscope, or the "
     "built-in default where another was meant), wrong camera settings (offset, gain in "
-    "e-/ADU), read noise not given for an sCMOS camera, or an EMCCD camera not declared"
+    "e-/ADU), read noise not given for an sCMOS camera, an EMCCD camera not declared or "
+    "its EM gain not given (--em-gain)"
 )
 _CAUSES_LOW = (
     "likely causes: an offset set too low (the camera's dark level then counts as light), a "
