@@ -319,6 +319,23 @@ def test_camera_gain_from_a_bead_stack(kind, gain, em_gain, rel):
     assert est.offset == pytest.approx(200.0, abs=15.0)
 
 
+def test_the_camera_command_asks_about_an_emccd_unless_the_camera_is_given(tmp_path):
+    """A hidden-data trial followed the camera command's flags for an EMCCD bead stack and
+    got half the photons: the line of an EMCCD holds its excess noise, which the command
+    cannot tell from the gain unless told the camera."""
+    from sparseloc.camera import Camera
+    from sparseloc.io.tiff import write_tiff
+
+    cam = Camera(kind="emccd", offset=200.0, gain=50.0, em_gain=300.0, read_noise=1.5)
+    tif = write_tiff(tmp_path / "beads.tif", _bead_stack(cam), pixel_size=100.0)
+    res = run("camera", tif)
+    assert res.exit_code == 0, res.output
+    assert "--camera emccd --em-gain G" in res.output
+    res = run("camera", tif, "--camera", "emccd", "--em-gain", 300)
+    assert res.exit_code == 0, res.output
+    assert "an EMCCD?" not in res.output
+
+
 @pytest.mark.parametrize("kind", ["scmos", "emccd"])
 def test_the_transfer_line_is_not_biased_by_binning_on_its_own_noise(kind):
     """The second walk-through: EMCCD gains 7-17 % low with the offset's bound above the true

@@ -1380,6 +1380,13 @@ def camera_cmd(
             "read noise not measured without --offset: for a camera with read noise (an sCMOS) "
             "add --camera scmos --read-noise R (e- rms, from its data sheet)"
         )
+    if camera is None:
+        # the line's slope of an EMCCD is 2 x EM gain / gain: read as a camera without EM
+        # gain, its photons would be half the true ones
+        typer.echo(
+            "an EMCCD? run again with --camera emccd --em-gain G: its excess noise doubles the "
+            "variance per photon, and the gain above would then count half the photons"
+        )
     flags = f"--camera {suggested} " if suggested != _D["camera"] else ""
     flags += "--offset " + (f"{est.offset:.1f}" if placed else "DARK_LEVEL")
     # a line of flags reads as advice to copy: single frames' noise biases the gain low by a
