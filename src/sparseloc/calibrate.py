@@ -43,6 +43,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from .calibrate_crowd import LightProfile, light_profile, neighbour_light, plane_photons
 from .calibrate_error import MAX_MODEL_ERROR, bead_errors, bead_model_error
+from .calibrate_oversample import (
+    OVERSAMPLE,
+    oversampled_model,
+    undersampled,
+    worth_oversampling,
+)
 from .calibrate_scan import BeadScan, read_bead_positions, read_scan, read_z_file
 from .camera import Camera, camera_mismatch, noise_variance
 from .psf.spline import SplinePSF
@@ -81,7 +87,8 @@ class Calibration:
     psf : SplinePSF
         The measured model (unit photons per plane, at ``pixel_size``).
     average : ndarray, shape (Nz, R, R)
-        Registered, averaged, background-subtracted bead stack, each plane summing to one.
+        Registered, averaged, background-subtracted bead stack at the camera's pixels, each
+        plane summing to one (the model refines it on a finer grid, see ``psf.oversample``).
     z : ndarray, shape (Nz,)
         Plane positions (nm).
     pixel_size : float
@@ -363,7 +370,7 @@ def calibrate_beads(
         photon_noise(camera),
     )
     if fit_pupil:
-        cal.pupil = _fit_pupil_in_frame(cal.psf, cal.z, cal.pixel_size, pupil_options)
+        cal.pupil = _fit_pupil_in_frame(cal, pupil_options)
     if camera is not None and camera.map_shape is None:
         cal.params["camera_warning"] = camera_mismatch(stack, camera)
     log.info("calibrated from %d of %d beads, %d planes", cal.n_used, len(cal.beads), cal.z.size)
@@ -429,7 +436,7 @@ def _calibrate_scan(
         centre, origin = _centre_on_beads(table, used, known, centres, p, centre)
     cr, cc = centre
     origin["centroid_over_z_nm"] = _centroid_over_z(clean, centre, half, p)
-    psf = SplinePSF(clean, p, zplanes, centre=(cr, cc), name=name)
+    psf = _spline_model(clean, stacks, used, sl, zwin, zplanes, centre, name)
     tick()
     error = _model_error(psf, stacks, used, scan, noise)
     psf.model_error = error.overall  # the solvers' allowance (sparseloc.solvers.variance)
@@ -454,7 +461,7 @@ def _calibrate_scan(
     }
     return Calibration(
         psf=psf,
-        average=psf.stack,
+        average=clean,
         z=zplanes,
         pixel_size=p,
         beads=_bead_table(centres, used, reason, residual, stacks, (cr, cc), half),
@@ -1064,6 +1071,39 @@ def _bead_errors(
     return dict(zip(used, (float(e) for e in errors), strict=True))
 
 
+def _spline_model(
+    clean: NDArray[np.float64],
+    stacks: _BeadStacks,
+    used: list[int],
+    sl: slice,
+    zwin: int,
+    zplanes: NDArray[np.float64],
+    centre: tuple[float, float],
+    name: str,
+) -> SplinePSF:
+    """The spline model: where the pixels undersample the beads' PSF and there are enough
+    beads, the average ``clean`` refined on a grid finer than the pixels by the used beads
+    (:mod:`sparseloc.calibrate_oversample`; a crowded bead's ROI holds it less its neighbours'
+    modelled light) and smoothed along z as the average was; else the average itself."""
+    p, step = stacks.p, stacks.step
+    beads = [
+        (_shift_stack(stacks.rois[i], np.array([0.0, 0.0, stacks.shifts[i][2]]), p, step)[sl],
+         stacks.shifts[i][1] / p, stacks.shifts[i][0] / p)
+        for i in used
+    ]  # fmt: skip
+    cr, cc = centre
+    rois = [stacks.rois[i] for i in used]
+    if not (worth_oversampling(len(beads)) and undersampled(rois)):
+        return SplinePSF(clean, p, zplanes, centre=(cr, cc), name=name)
+    o = OVERSAMPLE
+    grid = oversampled_model(clean, beads, o)
+    if zwin:
+        from scipy.signal import savgol_filter
+
+        grid = np.maximum(savgol_filter(grid, zwin, 3, axis=0, mode="interp"), 0.0)
+    return SplinePSF(grid, p, zplanes, centre=(cr * o, cc * o), name=name, oversample=o)
+
+
 def _model_stack(
     avg: NDArray[np.float64],
     zplanes: NDArray[np.float64],
@@ -1201,19 +1241,19 @@ def _centre_on_beads(
     return (cr - dy / p, cc - dx / p), record
 
 
-def _fit_pupil_in_frame(
-    psf: SplinePSF, zplanes: NDArray[np.float64], p: float, pupil_options: dict[str, Any] | None
-) -> Any:
-    """The pupil phase fitted to the model's stack, with its ``frame_model`` in the spline's
-    frame: an emitter at (x, y, z) renders its image where the spline puts it (lateral origin
-    at the spline's centre, z = 0 at the scan's zero)."""
+def _fit_pupil_in_frame(cal: Calibration, pupil_options: dict[str, Any] | None) -> Any:
+    """The pupil phase fitted to the registered average (at the camera's pixels), with its
+    ``frame_model`` in the spline's frame: an emitter at (x, y, z) renders its image where
+    the spline puts it (lateral origin at the spline's centre, z = 0 at the scan's zero)."""
     from .psf.base import ShiftedPSF
     from .psf.retrieval import fit_pupil as _fit_pupil
 
+    zplanes, p = cal.z, cal.pixel_size
     opts = dict(pupil_options or {})
     opts.setdefault("z_range", (float(zplanes[0]) - 500.0, float(zplanes[-1]) + 500.0))
-    res = _fit_pupil(psf.stack, zplanes, p, **opts)
-    xc, yc = (psf.centre[1] + 0.5) * p, (psf.centre[0] + 0.5) * p
+    res = _fit_pupil(cal.average, zplanes, p, **opts)
+    cr, cc = cal.psf.pixel_centre
+    xc, yc = (cc + 0.5) * p, (cr + 0.5) * p
     res.frame_model = ShiftedPSF(
         res.psf, res.x0 - xc, res.y0 - yc, res.z0, z_range=(zplanes[0], zplanes[-1])
     )

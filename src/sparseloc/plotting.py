@@ -526,8 +526,8 @@ def _calibration_model(cal, idx: NDArray) -> tuple[str, NDArray, NDArray]:
     z = cal.z
     nr, nc = cal.average.shape[1:]
     p = cal.pixel_size
-    x0 = (psf.centre[1] + 0.5) * p
-    y0 = (psf.centre[0] + 0.5) * p
+    cr, cc = psf.pixel_centre
+    x0, y0 = (cc + 0.5) * p, (cr + 0.5) * p
     if cal.pupil is not None:
         mod = cal.pupil.frame_model.images(
             np.full(idx.size, x0), np.full(idx.size, y0), z[idx], (nr, nc), p

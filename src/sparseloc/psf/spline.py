@@ -264,6 +264,12 @@ class SplinePSF(PSFBase):
         return out
 
     @property
+    def pixel_centre(self) -> tuple[float, float]:
+        """The emitter's position (row, col) in pixels of the stack's frame: ``centre`` over
+        ``oversample`` (an image of ``stack.shape / oversample`` pixels holds it there)."""
+        return (self.centre[0] / self.oversample, self.centre[1] / self.oversample)
+
+    @property
     def content_hash(self) -> str:
         """SHA-256 (16 hex digits) of the stack, z and pixel size: identifies a calibration."""
         h = hashlib.sha256()
