@@ -145,8 +145,8 @@ NEAR_NYQUIST = 0.45
 SIGNIFICANCE = 5.0
 #: The beads' power in that band over the noise's at least: their light there at least equals
 #: the noise (a signal-to-noise ratio of one per frequency). Below it the aliased light is
-#: fainter than one bead's noise, and a grid fitted to a few beads gained nothing (the SMLM
-#: 2016 challenge's bead stacks at 100 nm, 1.1-1.2: docs/benchmarks/calibration_pixel_phase.txt).
+#: fainter than one bead's noise, and a grid fitted to a few beads cost precision (the SMLM
+#: 2016 challenge's bead stacks at 100 nm; docs/benchmarks/calibration_pixel_phase.txt).
 BAND_POWER = 2.0
 
 
