@@ -1086,15 +1086,14 @@ def _spline_model(
     (:mod:`sparseloc.calibrate_oversample`; a crowded bead's ROI holds it less its neighbours'
     modelled light) and smoothed along z as the average was; else the average itself."""
     p, step = stacks.p, stacks.step
+    cr, cc = centre
+    if not (worth_oversampling(len(used)) and undersampled([stacks.rois[i] for i in used])):
+        return SplinePSF(clean, p, zplanes, centre=(cr, cc), name=name)
     beads = [
         (_shift_stack(stacks.rois[i], np.array([0.0, 0.0, stacks.shifts[i][2]]), p, step)[sl],
          stacks.shifts[i][1] / p, stacks.shifts[i][0] / p)
         for i in used
     ]  # fmt: skip
-    cr, cc = centre
-    rois = [stacks.rois[i] for i in used]
-    if not (worth_oversampling(len(beads)) and undersampled(rois)):
-        return SplinePSF(clean, p, zplanes, centre=(cr, cc), name=name)
     o = OVERSAMPLE
     grid = oversampled_model(clean, beads, o)
     if zwin:
