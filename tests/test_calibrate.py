@@ -820,7 +820,7 @@ def test_the_model_error_is_kept_pixel_by_pixel_and_saved(tmp_path, cal):
 def test_calibration_too_far_from_its_beads_is_refused(monkeypatch, scan):
     import sparseloc.calibrate as calibrate_module
 
-    # the pixel model (its error about 1 %, the finer grid's near 0) against a bar below it
+    # the pixel model, whatever the grid's rule decides, against a bar below its error
     monkeypatch.setattr(calibrate_module, "worth_oversampling", lambda n: False)
     monkeypatch.setattr(calibrate_module, "MAX_MODEL_ERROR", 0.001)
     with pytest.raises(ValueError, match=r"depart from their average by \d+ %"):

@@ -141,12 +141,11 @@ def _back_project(coef, values, gy, gx, acc, cnt) -> None:
 #: The band of spatial frequencies (cycles per pixel, along either axis) next to the pixels'
 #: Nyquist frequency of 0.5 where a well-sampled PSF holds no light.
 NEAR_NYQUIST = 0.45
-#: Standard errors by which the beads' power in that band must exceed the camera's noise.
+#: Standard errors by which the beads' power in that band must exceed the noise's.
 SIGNIFICANCE = 5.0
-#: The beads' power in that band over the noise's at least: their light there at least equals
-#: the noise (a signal-to-noise ratio of one per frequency). Below it the aliased light is
-#: fainter than one bead's noise, and a grid fitted to a few beads cost precision (the SMLM
-#: 2016 challenge's bead stacks at 100 nm; docs/benchmarks/calibration_pixel_phase.txt).
+#: The beads' power in that band over the noise's at least: a ratio of 2 means their light
+#: there equals the noise (a signal-to-noise ratio of one per frequency). Fainter aliased
+#: light than one bead's noise is not worth the grid's freedom, which a few beads' noise fills.
 BAND_POWER = 2.0
 
 
