@@ -448,3 +448,32 @@ def test_a_calibration_given_as_the_movie_is_named_as_swapped(movie, tmp_path):
     )
     res = run("overlay", cal, table, "-o", tmp_path / "o.png", "--pixel-size", "160")
     refused(res, "PSF.h5", "HDF5 file", "the movie goes first")
+
+
+def test_a_movie_given_as_the_mask_and_evaluates_mistakes_are_refused(movie, tmp_path):
+    """A new user's trial: a camera movie given as --psf was read as a phase mask (its counts as
+    radians) and the run sat at 0 % for minutes; `evaluate --frames` past both the table and
+    the truth printed NaN scores with exit 0; the truth given first was "not a recognised
+    localization table", with no word of the order."""
+    import tifffile
+
+    path, cfg = movie
+    frame = tmp_path / "frame.tif"  # one camera frame: a 2-D image, as a mask is
+    tifffile.imwrite(frame, tifffile.imread(path)[0])
+    out = tmp_path / "l.parquet"
+    res = run("localize", frame, "-o", out, "--psf", frame, "--pixel-size", "160")
+    refused(res, "frame.tif", "whole numbers", "not a mask")
+    assert not out.exists()
+    table = tmp_path / "t.parquet"
+    assert run("localize", path, "-o", table, "--config", cfg).exit_code == 0
+    truth = path.with_name("m_truth.csv")
+    refused(run("evaluate", table, truth, "--frames", "3:9"), "--frames 3:9", "(0:2)")
+    assert run("evaluate", table, truth, "--frames", "1:9").exit_code == 0
+    # storm-analysis's truth (pixels, frame_0based) given first
+    t = pd.read_csv(truth)
+    sa = tmp_path / "gt.csv"
+    pd.DataFrame(
+        {"frame_0based": t["frame"], "x_px": t["x_nm"] / 160.0 - 0.5,
+         "y_px": t["y_nm"] / 160.0 - 0.5, "z_um": t["z_nm"] / 1e3, "photons_sum": t["photons"]}
+    ).to_csv(sa, index=False)  # fmt: skip
+    refused(run("evaluate", sa, table), "gt.csv", "ground truth", "the table goes first")

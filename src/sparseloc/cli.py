@@ -938,6 +938,25 @@ def _run_notes(meta: dict, default_psf: str | None) -> None:
         )
 
 
+def _table_not_truth(locs: Path, truth: Path) -> tuple[Any, Any]:
+    """The table and metadata of ``locs``; where it is not a table but reads as a ground
+    truth, a ValueError saying the arguments are swapped."""
+    from .io.tables import read_table_and_metadata
+    from .io.truth import read_truth_csv
+
+    try:
+        return read_table_and_metadata(locs)
+    except ValueError as exc:
+        try:
+            read_truth_csv(locs, pixel_size=100.0)
+        except Exception:
+            raise exc from None
+        raise ValueError(
+            f"{locs.name} reads as a ground truth, not a localization table: the table goes "
+            f"first, the truth second (sparseloc evaluate LOCS {truth.name})"
+        ) from None
+
+
 def _read_truth(truth: Path, pixel_size: float | None, meta: Any) -> tuple[Any, list[str]]:
     """The truth table and what to say of its pixel size: truth in pixels is of the movie the
     table was localized from, so its pixel size is the table's unless given (evaluate and
@@ -1442,7 +1461,6 @@ def evaluate(
     from .config import frame_range
     from .evaluate import evaluate as run_evaluation
     from .evaluate import result_cautions, rows_in_frames, scoring_cautions
-    from .io.tables import read_table_and_metadata
 
     for p in (locs, truth):
         if not p.is_file():
@@ -1451,14 +1469,16 @@ def evaluate(
         _run(check_length_nm, value, flag, TOLERANCE_RANGE_NM)
     if json_out is not None:
         _new_output(json_out, overwrite=overwrite, inputs=[locs, truth])
-    loc_df, meta = _run(read_table_and_metadata, locs)
+    loc_df, meta = _run(_table_not_truth, locs, truth)
     if pixel_size is not None:
         _run(check_pixel_size, pixel_size)
     truth_df, cautions = _read_truth(truth, pixel_size, meta)
     recorded = meta.get("frames") if isinstance(meta, dict) else None
     if frames is not None:
-        n = int(truth_df["frame"].max()) + 1 if len(truth_df) else 0
+        n = max(int(df["frame"].max()) + 1 if len(df) else 0 for df in (truth_df, loc_df))
         start, stop = _run(frame_range, frames, max(n, _frames_stop(frames)))
+        if start >= n:
+            _fail(f"--frames {frames} lies past the table's and the truth's frames (0:{n})")
         truth_df = _run(rows_in_frames, truth_df, (start, stop))
         loc_df = _run(rows_in_frames, loc_df, (start, stop)).reset_index(drop=True)
         typer.echo(f"scored frames {start}:{stop} of the table and the truth")

@@ -237,6 +237,13 @@ def load_mask(
             raise ValueError(f"the mask in {p.name} must be 2-D, got shape {arr.shape}{hint}")
         if arr.dtype.kind not in "biufc":
             raise ValueError(f"the mask in {p.name} holds {arr.dtype} values, not numbers")
+        if arr.dtype.kind in "biu":
+            # phases are real numbers; whole numbers are a camera's counts or an SLM's levels
+            raise ValueError(
+                f"the mask in {p.name} holds whole numbers ({arr.dtype}, {arr.min()}-"
+                f"{arr.max()}), not phases in radians: a camera frame is a movie, not a mask, "
+                "and an SLM's grey levels need converting to radians first"
+            )
         return ArrayMask(arr, centre, radius, flip=flip)
     except ValueError as exc:
         if str(exc).startswith("the mask in"):
