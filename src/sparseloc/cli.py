@@ -948,7 +948,7 @@ def _table_not_truth(locs: Path, truth: Path) -> tuple[Any, Any]:
         return read_table_and_metadata(locs)
     except ValueError as exc:
         try:
-            read_truth_csv(locs, pixel_size=100.0)
+            read_truth_csv(locs, pixel_size=100.0)  # any size: whether it reads as a truth
         except Exception:
             raise exc from None
         raise ValueError(
