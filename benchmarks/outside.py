@@ -5,8 +5,9 @@ from a bead calibration of the same data set, as a microscopist would:
 
 - storm-analysis's double-helix frames (its grid frame and the 0.5 and 1 /um^2 random frames),
   calibrated from its bead z-scan;
-- storm-analysis's astigmatic grid frame (1,000 photons, background 20), calibrated from its
-  bead z-scan, with the RMSE over the Cramer-Rao bound of the calibrated model at the truth;
+- storm-analysis's astigmatic grid frames (10 frames of 126 emitters, 1,000 photons,
+  background 20), calibrated from its bead z-scan, with the RMSE over the Cramer-Rao bound of
+  the calibrated model at the truth;
 - the SMLM 2016 challenge's 64 real LD astigmatic frames, calibrated from the challenge's
   astigmatic bead stack with the challenge's EMCCD camera: once with the model centred on its
   light's centroid (the default) and once on the beads' known positions (``--beads``);
@@ -93,10 +94,12 @@ def storm_rows(data: Path) -> list[dict]:
             folder / "beads_zscan.tif", PX, z_file=folder / "beads_zscan_z.csv", offset=100.0
         )
         for label, name in frames.items():
-            frame = tifffile.imread(folder / f"{name}.tif").astype(np.float64) - 100.0
-            frame = frame.reshape(-1, *frame.shape[-2:])
+            # every page: the astigmatic grid's TIFF holds its 10 frames as 10 one-page
+            # series, of which tifffile.imread reads the first only
+            with tifffile.TiffFile(folder / f"{name}.tif") as tif:
+                frame = np.stack([page.asarray() for page in tif.pages]).astype(np.float64)
+            frame -= 100.0
             truth = read_truth_csv(folder / f"{name}_groundtruth.csv", pixel_size=PX)
-            # the astigmatic grid's truth lists 10 frames; its TIFF holds the first
             truth = truth[truth["frame"] < len(frame)]
             t0 = time.perf_counter()
             params = LocalizeParams(pixel_size=PX)
