@@ -302,7 +302,7 @@ def test_version_and_the_camera_defaults_in_help():
     text = " ".join(wide.output.split())
     for flag, shown in (("offset", "ADU; default"), ("gain", "e-/ADU; default")):
         assert f"{shown} {LOCALIZE_DEFAULTS[flag]:g}" in text, text
-    assert f"(default {LOCALIZE_DEFAULTS['psf']}," in text
+    assert "--psf" in text and "Needed: PSF.h5 from 'calibrate'" in text
     # the solver's and the camera's defaults are shown too, from the same configuration
     from sparseloc.config import LocalizeParams
 

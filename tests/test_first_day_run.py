@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cli_checks import run
+from cli_checks import refused, run
 from sparseloc.pipeline import LocalizeParams, localize
 from sparseloc.psf import make_psf
 
@@ -179,20 +179,18 @@ def _warnings(caplog) -> str:
     return " ".join(r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING)
 
 
-def test_the_command_line_prints_the_check_and_the_default_psf(
-    tmp_path, movie, monkeypatch, caplog
-):
+def test_the_command_line_prints_the_check_and_needs_the_psf(tmp_path, movie, caplog):
     """The run summary holds the check's verdict, the table's metadata the check, and the
-    log its warning (on stderr from the command line; here pytest captures the log)."""
+    log its warning (on stderr from the command line; here pytest captures the log). A run
+    without --psf is refused before any work: a built-in model stood in for a forgotten
+    calibration, and with a wrong PSF a frame can take minutes to give a void table."""
     from sparseloc.io.tables import read_parquet
-    from sparseloc.options import LOCALIZE_DEFAULTS
 
     base = ["--pixel-size", "160", "--z-min", "-300", "--z-max", "300", "--workers", "1"]
     out = tmp_path / "a.parquet"
     res = run("localize", movie, "-o", out, "--psf", "dh-analytic", *base)
     assert res.exit_code == 0, res.output
     assert "model check: ok" in res.output and not _warnings(caplog)
-    assert "--psf was not given" not in res.output
     assert read_parquet(out)[1]["model_check"]["verdict"] == "ok"
     # the wrong gain: a warning with its causes, the verdict in the summary and the table
     out = tmp_path / "b.parquet"
@@ -207,15 +205,11 @@ def test_the_command_line_prints_the_check_and_the_default_psf(
     assert res.exit_code == 0, res.output
     assert "model check: ok" in res.output
     assert read_parquet(out)[1]["model_check"]["verdict"] == "ok"
-    # --psf not given: the summary names the built-in model it used
-    monkeypatch.setitem(LOCALIZE_DEFAULTS, "psf", "dh-analytic")
-    res = run("localize", movie, "-o", tmp_path / "d.parquet", *base)
-    assert res.exit_code == 0, res.output
-    assert "PSF: the built-in 'dh-analytic'" in res.output
-    assert "--psf was not given" in res.output
-    # ... and before the work, on stderr
-    assert res.stderr.startswith("using the built-in PSF 'dh-analytic' as --psf was not given")
-    assert "--psf" in run("localize", "--help").output
+    # --psf not given: refused in one sentence, nothing written
+    out = tmp_path / "d.parquet"
+    res = run("localize", movie, "-o", out, *base)
+    refused(res, "--psf is needed", "sparseloc calibrate", "dh, astig")
+    assert not out.exists()
 
 
 # ------------------------------------------------------ item 12: the spline table's cache

@@ -71,12 +71,12 @@ def test_localize_pixel_size_refusals_name_the_cause(movie, tmp_path):
     res = run("localize", movie, "-o", out, "--psf", "dh-analytic", "--pixel-size", 0)
     refused(res, "--pixel-size must be a positive number")
     assert "metadata" not in res.output
-    # no --psf: the built-in model has no pixel size, and this movie records none
+    # a built-in model has no pixel size, and this movie records none
     import tifffile
 
     plain = tmp_path / "plain.tif"
     tifffile.imwrite(plain, tifffile.imread(movie))
-    res = run("localize", plain, "-o", out)
+    res = run("localize", plain, "-o", out, "--psf", "dh")
     refused(res, "--pixel-size", "'dh'", "sparseloc calibrate", "nor does the movie's metadata")
     assert not out.exists()
 

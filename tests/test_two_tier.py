@@ -254,7 +254,7 @@ def test_an_unknown_schedule_is_refused(tmp_path):
     import tifffile
 
     tifffile.imwrite(movie, np.full((2, 40, 40), 110, np.uint16))
-    res = run("localize", movie, "-o", tmp_path / "l.csv", "--pixel-size", 100,
+    res = run("localize", movie, "-o", tmp_path / "l.csv", "--pixel-size", 100, "--psf", "dh",
               "--frame-schedule", "fast")  # fmt: skip
     refused(res, "--frame-schedule")
     assert not (tmp_path / "l.csv").exists()

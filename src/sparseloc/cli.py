@@ -612,8 +612,8 @@ def localize(
     psf: Annotated[
         str | None,
         typer.Option(
-            help=f"PSF.h5 from 'calibrate', dh, astig, ... or a mask file (default {_D['psf']}, "
-            "the built-in pupil double helix; the run's summary says when it was used)."
+            help="Needed: PSF.h5 from 'calibrate', a phase-mask file, or a built-in pupil "
+            "model (dh, astig, clear) for simulated data."
         ),
     ] = None,
     pixel_size: Annotated[
@@ -849,10 +849,9 @@ def localize(
     cfg = _load_config(config)
     opts = {**LOCALIZE_DEFAULTS, **cfg}
     opts.update({k: v for k, v in given.items() if v is not None})
-    default_psf = psf is None and cfg.get("psf") is None
     mov = _open_movie(movie, "the movie goes first, the calibration after --psf")
     with mov, _info_from("sparseloc.psf.spline"):
-        inputs = [*mov.paths, config, Path(str(opts["psf"]))]
+        inputs = [*mov.paths, config, *([Path(str(opts["psf"]))] if opts["psf"] else [])]
         inputs += [opts[k] for k in ("offset_map", "variance_map", "gain_map")]
         out = _new_output(
             output,
@@ -864,22 +863,19 @@ def localize(
             _check_suffix(check, _FIGURE_SUFFIXES, "the check's picture")
             check = _new_output(check, overwrite=bool(opts["overwrite"]), inputs=[*inputs, out])
         job = _run(build_job, opts, mov)
-        if default_psf:
-            # said before the work too: with the wrong PSF a run is long and its result void
-            typer.echo(f"using the built-in PSF '{opts['psf']}' as --psf was not given", err=True)
         wide = _wide_window_note(job.params)
         if wide:  # said before the work: it is the work that takes long
             typer.echo(f"note: {wide}", err=True)
         asked = any(opts[k] is not None for k in ("run_dir", "chunk_frames", "scheduler"))
         table = None
         if asked or resumable_by_default(job.stop - job.start):
-            _localize_chunked(opts, out, mov, job, default_psf, auto=not asked)
+            _localize_chunked(opts, out, mov, job, auto=not asked)
         else:
             workers = opts["workers"] or _auto_workers(job.stop - job.start)
             res = _localize_in_processes(mov, job, workers)
             _write_localized(res, out, opts, mov, job)
             typer.echo(f"{res.summary()}, {workers} process{'es' if workers > 1 else ''}")
-            _run_notes(res.metadata, opts["psf"] if default_psf else None)
+            _run_notes(res.metadata)
             typer.echo(f"wrote {out}")
             table = res.table
         if check is not None:
@@ -924,18 +920,13 @@ def _info_from(name: str):
         logger.setLevel(level)
 
 
-def _run_notes(meta: dict, default_psf: str | None) -> None:
-    """The run summary's model check and, when ``--psf`` was not given, the PSF used."""
+def _run_notes(meta: dict) -> None:
+    """The run summary's model check."""
     from .model_check import ModelCheck
 
     check = meta.get("model_check")
     if check:
         typer.echo(ModelCheck(**check).summary())
-    if default_psf is not None:
-        typer.echo(
-            f"PSF: the built-in '{default_psf}' (the default, as --psf was not given; pass "
-            "--psf for a calibration, another built-in model or a mask file)"
-        )
 
 
 def _table_not_truth(locs: Path, truth: Path) -> tuple[Any, Any]:
@@ -1035,7 +1026,7 @@ def _localize_in_processes(mov, job, workers: int):
             raise typer.Exit(code=130) from None
 
 
-def _localize_chunked(opts, out, mov, job, default_psf: bool = False, auto: bool = False) -> None:
+def _localize_chunked(opts, out, mov, job, auto: bool = False) -> None:
     """The chunked path of ``localize``: run, save parts, join, or report what is missing.
 
     ``auto``: chunked because the movie is long, not because the user asked (the workers
@@ -1089,7 +1080,7 @@ def _localize_chunked(opts, out, mov, job, default_psf: bool = False, auto: bool
     _write_localized(res, out, opts, mov, job)
     if opts["run_dir"] is None:  # a folder the user did not ask for (docs/long_movies.md)
         _remove_run_dir(run_dir)
-    _run_notes(res.metadata, opts["psf"] if default_psf else None)
+    _run_notes(res.metadata)
     typer.echo(f"wrote {out}")
 
 

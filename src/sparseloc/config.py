@@ -332,6 +332,14 @@ def psf_option(spec: str, **kwargs: Any) -> PSFModel:
         raise ValueError(f"--psf: {exc}") from exc
 
 
+#: The refusal of a run without a PSF.
+PSF_NEEDED = (
+    "--psf is needed: the PSF.h5 that 'sparseloc calibrate' made from a bead z-stack of this "
+    "microscope, a phase-mask file with its optics, or a built-in pupil model (dh, astig, "
+    "clear) for simulated data"
+)
+
+
 def build_model(options: dict[str, Any]) -> PSFModel:
     """The PSF model of ``options["psf"]``, with the sample's optics, the pupil's optics
     (``na``, ``wavelength``, ``blur``; ``mask_radius`` for mask files) and the user's z range
@@ -340,6 +348,8 @@ def build_model(options: dict[str, Any]) -> PSFModel:
     from .psf.pupil import PupilPSF
 
     spec = options["psf"]
+    if spec is None:
+        raise ValueError(PSF_NEEDED)
     optics = {k: float(options[k]) for k in ("n_sample", "focal_depth") if options[k] is not None}
     pupil = {
         arg: float(options[key])

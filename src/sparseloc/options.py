@@ -41,7 +41,9 @@ _CAMERA_TABLE_KEYS = {"kind": "camera"}
 #: The options of ``sparseloc localize`` (and keys of a TOML file's ``[localize]`` table) with
 #: their defaults; ``None`` means "derived" (from the PSF, the movie or the machine).
 LOCALIZE_DEFAULTS: dict[str, Any] = {
-    "psf": "dh",
+    # no default: a built-in model is hardly ever the microscope's, and with a wrong PSF a
+    # run is long and its table void (config.build_model refuses a missing one)
+    "psf": None,
     "pixel_size": None,
     **CAMERA_DEFAULTS,
     "method": "frame",

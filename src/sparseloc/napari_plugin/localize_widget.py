@@ -96,7 +96,7 @@ class LocalizeWidget(Container):
         self.movie = ComboBox(
             name="movie", label="movie layer", choices=layer_choices(viewer, "Image")
         )
-        self.psf = ComboBox(name="psf", label="PSF", choices=PSF_CHOICES, value=d["psf"])
+        self.psf = ComboBox(name="psf", label="PSF", choices=PSF_CHOICES, value=d["psf"] or "file")
         self.psf_file = FileEdit(
             name="psf_file", label="PSF file", mode="r", filter="*.h5 *.hdf5 *.mat *.npy *.tif"
         )
