@@ -769,6 +769,52 @@ def test_a_pair_seen_as_one_bead_is_the_only_outlier_in_a_crowded_field(model):
     found = outliers[["x_nm", "y_nm"]].to_numpy()[0]
     assert min(np.hypot(*(found - pos[5])), np.hypot(*(found - pos[5] - [700.0, 0.0]))) < 300.0
     assert cal.n_used == 15
+    # the pair is gone and the 15 beads' cleaned ROIs hold no repeated image
+    assert cal.params["cluster_warning"] == ""
+
+
+def test_a_cluster_found_as_one_bead_is_named(model, cal, one_bead):
+    """Beads closer than the detection can part are found as one bead, and alone they make
+    a model of the cluster: the calibration says so (the image repeats at the beads' fixed
+    offset in every plane), where a single bead and a field of separate beads say nothing."""
+    from sparseloc.calibrate_output import calibration_summary
+
+    grid = [(6000.0 + dx, 6000.0 + dy) for dx in (-400.0, 400.0) for dy in (-400.0, 400.0)]
+    cluster = calibrate_beads(simulate_scan(model, grid, seed=4), PX, Z_STEP, offset=OFFSET)
+    assert cluster.n_used == 1
+    said = cluster.params["cluster_warning"]
+    assert "the bead used holds one image" in said and "repeated 800 nm away" in said, said
+    assert "warning: the bead used holds one image" in "\n".join(calibration_summary(cluster))
+    assert cal.params["cluster_warning"] == ""
+    single = calibrate_beads(one_bead, PX, Z_STEP, offset=OFFSET)
+    assert single.params["cluster_warning"] == ""
+
+
+def test_repeated_light_sees_fixed_offsets_not_moving_lobes():
+    """Two lobes turning with z (one double helix) repeat at no fixed offset; the same image
+    twice, 7 px apart (two equal beads), repeats at half the central peak; a spot that
+    stretches with z (astigmatism) has no side peak at all."""
+    from sparseloc.calibrate_crowd import REPEATED_LIGHT, repeated_light
+
+    yy, xx = np.mgrid[:31, :31] - 15.0
+    angles = np.linspace(0.0, np.pi, 41)
+
+    def lobes(a, cx=0.0):
+        dx, dy = 4.0 * np.cos(a), 4.0 * np.sin(a)
+        g = lambda x0, y0: np.exp(-((xx - x0) ** 2 + (yy - y0) ** 2) / 4.0)  # noqa: E731
+        return g(cx + dx, dy) + g(cx - dx, -dy)
+
+    one = np.stack([lobes(a) for a in angles])
+    two = np.stack([lobes(a, -3.5) + lobes(a, 3.5) for a in angles])
+    stretch = np.stack(
+        [np.exp(-(xx**2) / (2 * (1.5 + t) ** 2) - yy**2 / (2 * (3.5 - t) ** 2)) for t in
+         np.linspace(0.0, 2.0, 41)]
+    )  # fmt: skip
+    share_one, _ = repeated_light(one)
+    share_two, lag_two = repeated_light(two)
+    assert share_one < REPEATED_LIGHT < share_two
+    assert abs(share_two - 0.5) < 0.05 and abs(lag_two - 7.0) < 0.5
+    assert repeated_light(stretch)[0] < 0.05
 
 
 def test_two_beads_that_see_each_other_give_a_model_centred_on_them(model):

@@ -41,7 +41,14 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
-from .calibrate_crowd import LightProfile, light_profile, neighbour_light, plane_photons
+from .calibrate_crowd import (
+    REPEATED_LIGHT,
+    LightProfile,
+    light_profile,
+    neighbour_light,
+    plane_photons,
+    repeated_light,
+)
 from .calibrate_error import MAX_MODEL_ERROR, bead_errors, bead_model_error
 from .calibrate_oversample import (
     OVERSAMPLE,
@@ -457,6 +464,7 @@ def _calibrate_scan(
         "model_error": error.overall,
         "model_error_z": [float(v) for v in error.per_plane],
         "bead_warning": ONE_BEAD_WARNING if len(used) == 1 else "",
+        "cluster_warning": _cluster_warning(stacks, used, centres),
         **origin,
     }
     return Calibration(
@@ -468,6 +476,32 @@ def _calibrate_scan(
         projection=scan.projection,
         params=params,
         bead_ncc=bead_ncc,
+    )
+
+
+def _cluster_warning(stacks: _BeadStacks, used: list[int], centres: NDArray[np.float64]) -> str:
+    """A sentence naming the used beads whose ROI, cleaned of the neighbours found, holds one
+    image repeated at a fixed offset in every plane (:func:`repeated_light`): beads closer
+    than the detection can tell apart, found as one; "" where none does."""
+    p = stacks.p
+    found = []
+    for i in used:
+        share, lag = repeated_light(stacks.rois[i])
+        if share > REPEATED_LIGHT:
+            r, c = centres[i]
+            x, y = (c + 0.5) * p, (r + 0.5) * p
+            found.append(f"at x {x:.0f}, y {y:.0f} nm, repeated {lag * p:.0f} nm away")
+    if not found:
+        return ""
+    which = (
+        f"the bead used holds one image ({found[0]})"
+        if len(used) == 1
+        else f"{len(found)} of the {len(used)} beads used hold one image ({'; '.join(found)})"
+    )
+    whole = "the model is that cluster's image" if len(found) == len(used) else "the model holds it"
+    return (
+        f"{which} in every plane: several beads closer than the detection can part, found as "
+        f"one, and {whole}; check PSF.png, and image a sparser bead sample"
     )
 
 

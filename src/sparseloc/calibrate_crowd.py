@@ -10,6 +10,12 @@ Real bead slides are crowded, and an engineered PSF (double helix, tetrapod) is 
   ROI is cleaned of its neighbours' modelled light (the current model at the neighbours'
   fitted positions and per-plane brightness), and the beads are registered again; only beads
   whose cores overlap (closer than two core radii) are rejected.
+- **Clusters**: beads closer than the detection's scale are found as one bead. One bead's
+  image changes with z (lobes turn, spread or stretch), so each plane's autocorrelation has
+  its side peaks at lags that move; a cluster's image is the same PSF repeated at offsets
+  fixed for every plane, so the autocorrelation averaged over the planes keeps a side peak
+  there, of height ``b1 b2 / (b1^2 + b2^2)`` of the central one (0.5 for two equal beads).
+  :func:`repeated_light` measures it and :data:`REPEATED_LIGHT` bounds it.
 """
 
 from __future__ import annotations
@@ -18,11 +24,20 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.ndimage import maximum_filter
 
 from .calibrate_error import plane_fits
 from .psf.spline import SplinePSF
 
-__all__ = ["ROI_ENERGY", "LightProfile", "light_profile", "neighbour_light", "plane_photons"]
+__all__ = [
+    "REPEATED_LIGHT",
+    "ROI_ENERGY",
+    "LightProfile",
+    "light_profile",
+    "neighbour_light",
+    "plane_photons",
+    "repeated_light",
+]
 
 #: Fraction of a plane's light the automatic ROI holds (on average over the planes): light left
 #: outside the model is missing from every fit's photons and costs precision.
@@ -147,3 +162,43 @@ def plane_photons(
     idx, _, scale, _ = plane_fits(model, roi, shift, zplanes)
     out[idx] = np.maximum(scale, 0.0)
     return out
+
+
+#: The autocorrelation's side peak (a fraction of its central one, averaged over the planes)
+#: above which a bead's ROI holds the same image repeated at a fixed offset, several beads:
+#: two equal beads give 0.5, a brighter and a dimmer one less; single beads of the double
+#: helices, astigmatic and tetrapod PSFs measured give 0.0-0.3 (their lobes move with z).
+REPEATED_LIGHT = 0.45
+
+
+def repeated_light(stack: NDArray[np.float64]) -> tuple[float, float]:
+    """How much of a bead's image repeats at one fixed offset over the planes.
+
+    Parameters
+    ----------
+    stack : ndarray, shape (Nz, R, R)
+        The bead's ROI in photons less the background.
+
+    Returns
+    -------
+    (float, float)
+        The highest side peak (a local maximum at least 2 px from the centre) of the
+        planes' autocorrelations, each over its central value, averaged over the planes;
+        and its lag (px). (0, 0) where there is none.
+    """
+    s = np.asarray(stack, dtype=np.float64)
+    n_r, n_c = s.shape[1:]
+    f = np.fft.rfft2(s, s=(2 * n_r, 2 * n_c))  # zero-padded: no wrap-around
+    auto = np.fft.irfft2(np.abs(f) ** 2, s=(2 * n_r, 2 * n_c))
+    centre = auto[:, :1, :1]
+    planes = centre[:, 0, 0] > 0
+    if not planes.any():
+        return 0.0, 0.0
+    mean = np.fft.fftshift((auto[planes] / centre[planes]).mean(axis=0))
+    rows, cols = np.indices(mean.shape)
+    lag = np.hypot(rows - n_r, cols - n_c)
+    side = (mean == maximum_filter(mean, size=3)) & (lag >= 2.0)
+    if not side.any():
+        return 0.0, 0.0
+    i = int(np.argmax(np.where(side, mean, -np.inf)))
+    return float(max(mean.flat[i], 0.0)), float(lag.flat[i])
