@@ -166,8 +166,8 @@ def plane_photons(
 
 #: The autocorrelation's side peak (a fraction of its central one, averaged over the planes)
 #: above which a bead's ROI holds the same image repeated at a fixed offset, several beads:
-#: two equal beads give 0.5, a brighter and a dimmer one less; single beads of the double
-#: helices, astigmatic and tetrapod PSFs measured give 0.0-0.3 (their lobes move with z).
+#: two equal beads give 0.5, a brighter and a dimmer one less; a single bead far less, its
+#: lobes moving with z (docs/benchmarks/repeated_light.txt).
 REPEATED_LIGHT = 0.45
 
 
