@@ -168,6 +168,26 @@ def test_emccd_read_noise_reaches_simulate_and_localize(movie, tmp_path):
     assert meta["camera"]["kind"] == "emccd" and meta["camera"]["read_noise"] == 50.0
 
 
+def test_an_emccd_without_its_em_gain_is_refused(movie, tmp_path):
+    """A forgotten --em-gain made every count read as EM-gain times the photons: a run of
+    about an hour (minutes per frame of emitters 300 times too bright) before its check said
+    so. Now every command refuses it in one sentence; --em-gain 1 describes the conventional
+    output."""
+    out = tmp_path / "l.parquet"
+    res = run("localize", movie, "-o", out, *LOCALIZE, "--camera", "emccd")
+    refused(res, "--camera emccd needs --em-gain", "1 for the camera's conventional output")
+    assert not out.exists()
+    cfg = tmp_path / "cam.toml"
+    cfg.write_text('[camera]\nkind = "emccd"\n')
+    refused(run("localize", movie, "-o", out, *LOCALIZE, "--config", cfg), "--em-gain")
+    res = run("simulate", "-o", tmp_path / "m.tif", "--psf", "dh-analytic", "--frames", 1,
+              "--rows", 16, "--cols", 16, "--camera", "emccd")  # fmt: skip
+    refused(res, "--em-gain")
+    res = run("localize", movie, "-o", out, *LOCALIZE, "--workers", 1, "--camera", "emccd",
+              "--em-gain", 1)  # fmt: skip
+    assert res.exit_code == 0, res.output
+
+
 def test_simulate_reads_the_camera_section(tmp_path):
     cfg = tmp_path / "cam.toml"
     cfg.write_text("[camera]\noffset = 300.0\ngain = 0.5\n")

@@ -413,6 +413,13 @@ CAMERA_MAP_OPTIONS: dict[str, str] = {
 }
 
 
+#: The refusal of an EMCCD described without its EM gain.
+EM_GAIN_NEEDED = (
+    "--camera emccd needs --em-gain, the EM register's gain (for example 300; 1 for the "
+    "camera's conventional output): without it every count reads as that many times the photons"
+)
+
+
 def camera_from_options(options: dict[str, Any]) -> Camera:
     """The :class:`Camera` that options describe: the one reading of the camera's options by
     every command (``calibrate``, ``localize``, ``simulate``) and the TOML file.
@@ -432,13 +439,16 @@ def camera_from_options(options: dict[str, Any]) -> Camera:
     Raises
     ------
     ValueError
-        For invalid values, or maps without ``camera = "scmos"`` (one sentence naming the flag).
+        For invalid values, an EMCCD without its EM gain, or maps without ``camera = "scmos"``
+        (one sentence naming the flag).
     """
     kw = {
         field: options[key]
         for key, field in CAMERA_OPTION_FIELDS.items()
         if options.get(key) is not None
     }
+    if kw.get("kind") == "emccd" and "em_gain" not in kw:
+        raise ValueError(EM_GAIN_NEEDED)
     maps = {arg: options[key] for key, arg in CAMERA_MAP_OPTIONS.items() if options.get(key)}
     if maps and kw.get("kind", "ideal") != "scmos":
         raise ValueError("--offset-map, --variance-map and --gain-map need --camera scmos")

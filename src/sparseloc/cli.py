@@ -322,7 +322,7 @@ _GainFlag = Annotated[
 ]
 _EmGainFlag = Annotated[
     float | None,
-    typer.Option("--em-gain", help=f"EM gain of an EMCCD (default {_D['em_gain']:g})."),
+    typer.Option("--em-gain", help="EM gain of an EMCCD: needed with --camera emccd."),
 ]
 _QeFlag = Annotated[
     float | None,

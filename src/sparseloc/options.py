@@ -27,7 +27,9 @@ CAMERA_DEFAULTS: dict[str, Any] = {
     "camera": "ideal",
     "offset": 100.0,
     "gain": 1.0,
-    "em_gain": 1.0,
+    # none for an EMCCD (camera_from_options refuses it: forgotten, every count reads as that
+    # many times the photons); 1 for the other cameras
+    "em_gain": None,
     "qe": 1.0,
     "read_noise": 0.0,
     "offset_map": None,
