@@ -250,6 +250,38 @@ def one_bead(model):
     return simulate_scan(model, [(6037.0, 5963.0)], seed=2)
 
 
+def _departure(cal, model):
+    """The calibrated model's relative departure from the simulator's PSF over its z range,
+    each plane scaled to its best match, at the best z offset (the model's z origin is the
+    beads' mean height): the model's systematic error and the noise it holds."""
+    z = cal.z[3:-3]
+    b = centred(model, z, 31)
+
+    def departure(dz):
+        a = centred(cal.psf, z - dz, 31)
+        scale = np.sum(a * b, axis=(1, 2)) / np.sum(a * a, axis=(1, 2))
+        return float(np.sqrt(np.sum((a * scale[:, None, None] - b) ** 2) / np.sum(b**2)))
+
+    return min(departure(dz) for dz in np.arange(-50.0, 50.1, 2.5))
+
+
+def test_the_model_error_of_an_exact_psf_does_not_grow_with_fewer_beads(model, scan, cal):
+    """A model follows part of each bead's own noise; how much depends on the number of beads
+    and on the smoothing, so it is measured, not assumed. Beads rendered from the PSF itself
+    leave the model no systematic error: two beads and nine read the same small one, below
+    the model's whole departure from the PSF (mostly the noise it holds). A plain average's
+    ``n / (n - 1)`` read two beads' error as twice their departure."""
+    two = calibrate_beads(
+        simulate_scan(model, scan["positions"][[0, 8]], seed=1), PX, Z_STEP, offset=OFFSET
+    )
+    assert two.n_used == 2
+    errors = [c.params["model_error"] for c in (two, cal)]
+    assert abs(errors[0] - errors[1]) < 0.01, errors
+    for c in (two, cal):
+        assert c.params["model_error"] < 0.5 * _departure(c, model), c.n_used
+        assert 0.0 < c.params["model_self_influence"] < 1.0 / c.n_used
+
+
 def test_one_bead_calibrates_and_says_its_model_error_is_not_cross_checked(scan, one_bead, cal):
     """A z-stack of a single bead is a common calibration: it gives the bead's model, close
     to the many beads' one, with a warning that no other bead measured its error."""
@@ -863,14 +895,17 @@ def test_the_model_error_is_kept_pixel_by_pixel_and_saved(tmp_path, cal):
     assert error_var(mixed) > 10 * error_var(cal)
 
 
-def test_calibration_too_far_from_its_beads_is_refused(monkeypatch, scan):
+def test_calibration_too_far_from_its_beads_is_refused(monkeypatch):
     import sparseloc.calibrate as calibrate_module
 
-    # the pixel model, whatever the grid's rule decides, against a bar below its error
-    monkeypatch.setattr(calibrate_module, "worth_oversampling", lambda n: False)
-    monkeypatch.setattr(calibrate_module, "MAX_MODEL_ERROR", 0.001)
+    # beads of two PSFs (wider and narrower lobes): the model errs, above a low bar
+    positions = np.array([(x, y) for y in (25.0, 60.0, 95.0) for x in (25.0, 60.0)]) * PX
+    narrow = simulate_scan(make_psf("dh-analytic"), positions[::2], seed=3)
+    wide = simulate_scan(make_psf("dh-analytic", lobe_sigma=190.0), positions[1::2], seed=4)
+    movie = (narrow.astype(np.int64) + wide.astype(np.int64) - int(OFFSET)).astype(np.uint16)
+    monkeypatch.setattr(calibrate_module, "MAX_MODEL_ERROR", 0.01)
     with pytest.raises(ValueError, match=r"depart from their average by \d+ %"):
-        calibrate_beads(scan["movie"], PX, Z_STEP, offset=OFFSET)
+        calibrate_beads(movie, PX, Z_STEP, offset=OFFSET)
 
 
 @pytest.mark.parametrize(

@@ -31,6 +31,7 @@ of the z-averaged bead image.
 
 from __future__ import annotations
 
+import copy
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -49,7 +50,7 @@ from .calibrate_crowd import (
     plane_photons,
     repeated_light,
 )
-from .calibrate_error import MAX_MODEL_ERROR, bead_errors, bead_model_error
+from .calibrate_error import MAX_MODEL_ERROR, bead_errors, bead_model_error, self_influence
 from .calibrate_oversample import (
     OVERSAMPLE,
     oversampled_model,
@@ -445,7 +446,15 @@ def _calibrate_scan(
     origin["centroid_over_z_nm"] = _centroid_over_z(clean, centre, half, p)
     psf = _spline_model(clean, stacks, used, sl, zwin, zplanes, centre, name)
     tick()
-    error = _model_error(psf, stacks, used, scan, noise)
+
+    def rebuild(rois: list[NDArray[np.float64]]) -> SplinePSF:
+        """The model made again, as ``psf`` was, from the used beads' ROIs ``rois``."""
+        again = copy.copy(stacks)
+        again.rois = {**stacks.rois, **dict(zip(used, rois, strict=True))}
+        smooth = _model_stack(again.average(used), scan.zplanes, max_dz, step, z_smooth)[0]
+        return _spline_model(smooth, again, used, sl, zwin, zplanes, centre, name)
+
+    error = _model_error(psf, stacks, used, scan, noise, rebuild)
     psf.model_error = error.overall  # the solvers' allowance (sparseloc.solvers.variance)
     params = {
         "pixel_size_nm": p,
@@ -463,6 +472,7 @@ def _calibrate_scan(
         "n_beads_with_neighbours": sum(1 for i in used if neighbours.get(i)),
         "model_error": error.overall,
         "model_error_z": [float(v) for v in error.per_plane],
+        "model_self_influence": float(error.influence),
         "bead_warning": ONE_BEAD_WARNING if len(used) == 1 else "",
         "cluster_warning": _cluster_warning(stacks, used, centres),
         **origin,
@@ -523,18 +533,29 @@ def _model_error(
     used: list[int],
     scan: BeadScan,
     noise: tuple[float, float] = (1.0, 0.0),
+    rebuild: Callable[[list[NDArray[np.float64]]], SplinePSF] | None = None,
 ):
     """The finished model's error on its beads (:mod:`sparseloc.calibrate_error`) beyond the
     camera's ``noise`` (:func:`photon_noise`), overall and as the model's ``error_table``;
-    ``ValueError`` when it is too large to trust."""
+    ``ValueError`` when it is too large to trust. ``rebuild(rois)`` makes the model again
+    from the used beads' ROIs: with two beads or more, how much of each bead's noise the
+    model follows is measured with it (:func:`~sparseloc.calibrate_error.self_influence`)."""
     bg = scan.background if scan.background is not None else np.zeros(scan.zplanes.size)
     rois = [stacks.rois[i] for i in used]
     shifts = [_fit_shift(psf, roi, scan.zplanes)[0] for roi in rois]
     # the voxels the average left out of a bead (another's light) are no error of the model
     masks = stacks.kept_in_rois(used)
-    error = bead_model_error(psf, rois, shifts, scan.zplanes, bg, masks, noise)
+    h = 0.0
+    if rebuild is not None and len(used) > 1:
+        h = self_influence(psf, rebuild, rois, shifts, scan.zplanes, bg, masks, noise)
+    error = bead_model_error(psf, rois, shifts, scan.zplanes, bg, masks, noise, h)
     psf.error_table = error.table
-    log.info("model error: %.1f %% of the signal per pixel (rms over planes)", 100 * error.overall)
+    log.info(
+        "model error: %.1f %% of the signal per pixel (rms over planes); the model follows "
+        "%.2f of a bead's own noise",
+        100 * error.overall,
+        error.influence,
+    )
     if not error.overall <= MAX_MODEL_ERROR:
         hint = _not_a_scan(scan, rois) or (
             "check the z step or z file, the camera offset, and that the beads are single and "

@@ -4,9 +4,16 @@ Each used bead is fitted with the finished model (one shift for the whole stack,
 an offset per plane). Per plane, the residual power left over the Poisson variance expected
 from the fitted light and the frame's background, divided by the power of the fitted signal,
 is the squared relative model error ``e(z)^2``: the model error a localization meets is a
-per-pixel standard deviation of about ``e * signal``. The model is the beads' average, so each
-bead's own deviation is partly in it: the residual power is scaled by ``n / (n - 1)`` for
-``n`` beads.
+per-pixel standard deviation of about ``e * signal``.
+
+The model is made from the beads, so it follows part of each bead's own noise: a fraction
+``h`` (its self-influence) at that bead: ``1 / n`` for a plain average of ``n`` beads, less
+where the model is smoothed along z, more where it is refined on a grid finer than the pixels
+(each fine sample rests on a few beads). A bead's expected residual power is then
+``var (1 - h)`` plus the power of the model's systematic departure from the true PSF, which
+is what this module measures: ``h`` is measured on the finished model (:func:`self_influence`)
+rather than assumed. (The noise the model holds, ``h var`` per pixel, is left out: it is
+fine-grained, and the count selection's allowance is for structure that reads as an emitter.)
 
 The error is also kept pixel by pixel (:attr:`ModelError.table`): a model's error is not
 proportional to its signal everywhere (a calibrated double helix errs most in its dim wings),
@@ -15,6 +22,7 @@ and the solvers' allowance for it (:mod:`sparseloc.solvers.variance`) sums it wh
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +31,14 @@ from scipy.ndimage import gaussian_filter
 
 from .psf.spline import SplinePSF
 
-__all__ = ["MAX_MODEL_ERROR", "ModelError", "bead_errors", "bead_model_error", "plane_fits"]
+__all__ = [
+    "MAX_MODEL_ERROR",
+    "ModelError",
+    "bead_errors",
+    "bead_model_error",
+    "plane_fits",
+    "self_influence",
+]
 
 #: A calibration whose model error exceeds this fraction of the signal is refused: its model
 #: would leave more than a quarter of a bead's signal power unexplained.
@@ -45,11 +60,15 @@ class ModelError:
         Poisson noise, per photon squared, tabulated like the PSF (an emitter of ``N`` photons
         at ``x, y, z`` has error variance ``table.render(x, y, z, N**2)`` photons^2 per
         pixel); None where fewer than 4 planes are covered.
+    influence : float
+        The model's self-influence the error was measured with (``influence`` of
+        :func:`bead_model_error`).
     """
 
     overall: float
     per_plane: NDArray[np.float64]
     table: SplinePSF | None = None
+    influence: float = 0.0
 
 
 def bead_model_error(
@@ -60,6 +79,7 @@ def bead_model_error(
     background: NDArray[np.float64],
     masks: list[NDArray[np.bool_]] | None = None,
     noise: tuple[float, float] = (1.0, 0.0),
+    influence: float = 0.0,
 ) -> ModelError:
     """Measure the model error of ``psf`` on the beads it was made from.
 
@@ -82,6 +102,10 @@ def bead_model_error(
         The camera's variance in photons^2 as ``a * mu + b`` for ``mu`` expected photons
         (default photon counting): an EMCCD's excess noise or read noise is not the model's
         error either.
+    influence : float
+        The model's self-influence ``h`` (:func:`self_influence`): each bead's residual
+        power less ``var (1 - h)`` is the model's error at that bead. 0 where the model is
+        not cross-checked (one bead: its residual then says nothing of its error).
 
     Returns
     -------
@@ -91,18 +115,18 @@ def bead_model_error(
     excess = np.zeros(nz)
     signal = np.zeros(nz)
     maps, count = np.zeros((nz, *rois[0].shape[1:])), np.zeros((nz, *rois[0].shape[1:]))
-    n = len(rois)
     if masks is None:
         masks = [np.ones(roi.shape, dtype=bool) for roi in rois]
+    kept = 1.0 - influence  # the share of a bead's noise variance its residual holds
     for roi, shift, mask in zip(rois, shifts, masks, strict=True):
         res2, var, sig2, ok, bead_map = _bead_residual(
-            psf, roi, shift, zplanes, background, mask, noise
+            psf, roi, shift, zplanes, background, mask, noise, kept
         )
-        excess[ok] += res2[ok] * (n / (n - 1) if n > 1 else 1.0) - var[ok]
+        excess[ok] += res2[ok] - kept * var[ok]
         signal[ok] += sig2[ok]
         maps[ok] += bead_map[ok]
         count[ok] += mask[ok]
-    table = _error_table(psf, maps, count, n, zplanes, shifts)
+    table = _error_table(psf, maps, count, zplanes, shifts)
     covered = signal > 0
     per_plane = np.full(nz, np.nan)
     per_plane[covered] = np.sqrt(np.maximum(excess[covered], 0.0) / signal[covered])
@@ -110,7 +134,7 @@ def bead_model_error(
     overall = float(np.sqrt(max(excess[covered].sum(), 0.0) / total)) if total > 0 else np.nan
     lo, hi = psf.z_range
     inside = (zplanes >= lo - 1e-6) & (zplanes <= hi + 1e-6)
-    return ModelError(overall, per_plane[inside], table)
+    return ModelError(overall, per_plane[inside], table, influence)
 
 
 def bead_errors(
@@ -123,8 +147,9 @@ def bead_errors(
     noise: tuple[float, float] = (1.0, 0.0),
 ) -> NDArray[np.float64]:
     """Each bead's own model error: :func:`bead_model_error`'s overall figure measured on
-    that bead alone (scaled by ``n / (n - 1)`` for the ``n`` beads the model averages),
-    so a bead unlike the others (two beads seen as one, dirt) stands out.
+    that bead alone, so a bead unlike the others (two beads seen as one, dirt) stands out.
+    ``psf`` here is the beads' plain average (the outlier test's), which follows ``1 / n``
+    of each of its ``n`` beads' noise: the residual power is scaled by ``n / (n - 1)``.
 
     Parameters are those of :func:`bead_model_error` (``masks`` required).
 
@@ -141,6 +166,66 @@ def bead_errors(
         if sig2[ok].sum() > 0:
             out[k] = np.sqrt(max((res2[ok] * scale - var[ok]).sum(), 0.0) / sig2[ok].sum())
     return out
+
+
+#: The perturbation that measures the model's self-influence, in standard deviations of the
+#: camera's noise: small, so that the model's non-linear steps (the robust average, the clip
+#: at zero) meet it as they meet a little more noise.
+PERTURBATION = 0.3
+
+
+def self_influence(
+    psf: SplinePSF,
+    rebuild: Callable[[list[NDArray[np.float64]]], SplinePSF],
+    rois: list[NDArray[np.float64]],
+    shifts: list[NDArray[np.float64]],
+    zplanes: NDArray[np.float64],
+    background: NDArray[np.float64],
+    masks: list[NDArray[np.bool_]],
+    noise: tuple[float, float] = (1.0, 0.0),
+    seed: int = 0,
+) -> float:
+    """The share ``h`` of a bead's own noise that the model follows at that bead, measured:
+    each bead's ROI gets independent Gaussian noise of :data:`PERTURBATION` times the
+    camera's standard deviation, the model is made again from the perturbed ROIs, and ``h``
+    is how much of the perturbation each bead's plane fits (:func:`plane_fits`) follow, over
+    the voxels of ``masks``, weighted as the residual power is (by the noise variance).
+
+    Parameters are those of :func:`bead_model_error`; ``rebuild(rois)`` makes the model from
+    the ROIs ``rois`` (the same beads, shifts and steps as ``psf``).
+
+    Returns
+    -------
+    float
+        ``h`` in [0, 1]: about ``1 / n`` for a plain average of ``n`` beads, less where the
+        model averages over neighbouring planes, more on a grid finer than the pixels.
+    """
+    rng = np.random.default_rng(seed)
+    before, perturbed = [], []
+    for roi, shift in zip(rois, shifts, strict=True):
+        idx, fit = _plane_model(psf, roi, shift, zplanes)
+        var = noise[0] * np.maximum(fit + background[idx, None, None], 0.0) + noise[1]
+        d = np.zeros(roi.shape)
+        d[idx] = PERTURBATION * np.sqrt(var) * rng.standard_normal(fit.shape)
+        before.append((idx, fit))
+        perturbed.append(d)
+    other = rebuild([roi + d for roi, d in zip(rois, perturbed, strict=True)])
+    num = den = 0.0
+    for roi, shift, mask, d, (idx, fit) in zip(rois, shifts, masks, perturbed, before, strict=True):
+        idx2, fit2 = _plane_model(other, roi + d, shift, zplanes)
+        both, i1, i2 = np.intersect1d(idx, idx2, return_indices=True)
+        keep, dd = mask[both], d[both]
+        num += float(np.sum(((fit2[i2] - fit[i1]) * dd)[keep]))
+        den += float(np.sum((dd**2)[keep]))
+    return float(np.clip(num / den, 0.0, 1.0)) if den > 0 else 0.0
+
+
+def _plane_model(
+    psf: SplinePSF, roi: NDArray[np.float64], shift: NDArray[np.float64], zplanes: NDArray
+) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """The planes of :func:`plane_fits` and the fitted light on them (planes, R, R)."""
+    idx, imgs, scale, offset = plane_fits(psf, roi, shift, zplanes)
+    return idx, scale[:, None, None] * imgs + offset[:, None, None]
 
 
 def plane_fits(
@@ -190,12 +275,13 @@ def _bead_residual(
     background: NDArray[np.float64],
     mask: NDArray[np.bool_],
     camera_noise: tuple[float, float] = (1.0, 0.0),
+    kept: float = 1.0,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray[np.bool_], NDArray]:
     """Per plane: the residual power, the expected noise power and the signal power of one
     bead against the model (:func:`plane_fits`) over the voxels of ``mask`` (the camera's
     noise ``a * mu + b``: ``camera_noise``), which planes count, and the residual's excess
-    over the noise pixel by pixel per photon squared (planes, rows, cols; 0 outside
-    ``mask``)."""
+    over ``kept`` times the noise pixel by pixel per photon squared (planes, rows, cols; 0
+    outside ``mask``)."""
     nz = roi.shape[0]
     res2, noise, sig2 = np.zeros(nz), np.zeros(nz), np.zeros(nz)
     excess = np.zeros(roi.shape)
@@ -210,7 +296,7 @@ def _bead_residual(
         sig2[k] = float(np.sum((a * m)[keep] ** 2))
         ok[k] = True
         if a > 0:
-            excess[k] = np.where(keep, (r2 - var) / a**2, 0.0)
+            excess[k] = np.where(keep, (r2 - kept * var) / a**2, 0.0)
     return res2, noise, sig2, ok, excess
 
 
@@ -223,17 +309,16 @@ def _error_table(
     psf: SplinePSF,
     maps: NDArray,
     count: NDArray,
-    n: int,
     zplanes: NDArray[np.float64],
     shifts: list[NDArray[np.float64]],
 ) -> SplinePSF | None:
     """:attr:`ModelError.table` from the beads' excess maps summed over ``count`` beads per
-    voxel (``n`` beads in all, each partly in the model: scaled by ``n / (n - 1)``)."""
+    voxel."""
     covered = np.flatnonzero(count.reshape(count.shape[0], -1).max(axis=1) > 0)
     if covered.size < 4:
         return None
     var = np.zeros_like(maps)
-    var[covered] = maps[covered] / np.maximum(count[covered], 1) * (n / (n - 1) if n > 1 else 1.0)
+    var[covered] = maps[covered] / np.maximum(count[covered], 1)
     var = np.maximum(gaussian_filter(var, ERROR_TABLE_SMOOTHING, mode="nearest"), 0.0)
     sl = slice(covered.min(), covered.max() + 1)
     # the beads sit at the ROIs' centres plus their shifts; the table is centred on their mean
