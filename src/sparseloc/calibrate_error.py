@@ -26,7 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import gaussian_filter
 
 from .psf.spline import SplinePSF
@@ -204,7 +204,7 @@ def self_influence(
     before, perturbed = [], []
     for roi, shift in zip(rois, shifts, strict=True):
         idx, fit = _plane_model(psf, roi, shift, zplanes)
-        var = noise[0] * np.maximum(fit + background[idx, None, None], 0.0) + noise[1]
+        var = _noise_variance(fit, background[idx, None, None], noise)
         d = np.zeros(roi.shape)
         d[idx] = PERTURBATION * np.sqrt(var) * rng.standard_normal(fit.shape)
         before.append((idx, fit))
@@ -218,6 +218,14 @@ def self_influence(
         num += float(np.sum(((fit2[i2] - fit[i1]) * dd)[keep]))
         den += float(np.sum((dd**2)[keep]))
     return float(np.clip(num / den, 0.0, 1.0)) if den > 0 else 0.0
+
+
+def _noise_variance(
+    fit: NDArray[np.float64], background: ArrayLike, noise: tuple[float, float]
+) -> NDArray[np.float64]:
+    """The camera's variance (photons^2) of a bead's voxels: ``a * mu + b`` (``noise``) for
+    the fitted light ``fit`` plus the frame's ``background``."""
+    return noise[0] * np.maximum(fit + background, 0.0) + noise[1]
 
 
 def _plane_model(
@@ -291,7 +299,7 @@ def _bead_residual(
         fit = a * m + b
         keep = mask[k]
         r2 = (roi[k] - fit) ** 2
-        var = camera_noise[0] * np.maximum(fit + background[k], 0.0) + camera_noise[1]
+        var = _noise_variance(fit, background[k], camera_noise)
         res2[k], noise[k] = float(np.sum(r2[keep])), float(np.sum(var[keep]))
         sig2[k] = float(np.sum((a * m)[keep] ** 2))
         ok[k] = True
