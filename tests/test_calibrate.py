@@ -270,7 +270,7 @@ def test_the_model_error_of_an_exact_psf_does_not_grow_with_fewer_beads(model, s
     and on the smoothing, so it is measured, not assumed. Beads rendered from the PSF itself
     leave the model no systematic error: two beads and nine read the same small one, below
     the model's whole departure from the PSF (mostly the noise it holds). A plain average's
-    ``n / (n - 1)`` read two beads' error as twice their departure."""
+    ``n / (n - 1)`` read two beads' error as nearly twice their departure."""
     two = calibrate_beads(
         simulate_scan(model, scan["positions"][[0, 8]], seed=1), PX, Z_STEP, offset=OFFSET
     )
@@ -862,18 +862,27 @@ def test_two_beads_that_see_each_other_give_a_model_centred_on_them(model):
     assert cal.params["model_error"] < 0.1
 
 
-def test_model_error_grows_when_the_beads_differ(cal):
-    # half the beads have wider lobes than the other half: no one model fits them all
+@pytest.fixture(scope="module")
+def two_psfs():
+    """Nine beads of which half have wider lobes than the other half: no one model fits them
+    all."""
     positions = np.array([(x, y) for y in (25.0, 60.0, 95.0) for x in (25.0, 60.0, 95.0)]) * PX
     narrow = simulate_scan(make_psf("dh-analytic"), positions[::2], seed=3)
     wide = simulate_scan(make_psf("dh-analytic", lobe_sigma=190.0), positions[1::2], seed=4)
-    movie = (narrow.astype(np.int64) + wide.astype(np.int64) - int(OFFSET)).astype(np.uint16)
-    mixed = calibrate_beads(movie, PX, Z_STEP, offset=OFFSET)
+    return (narrow.astype(np.int64) + wide.astype(np.int64) - int(OFFSET)).astype(np.uint16)
+
+
+@pytest.fixture(scope="module")
+def mixed(two_psfs):
+    return calibrate_beads(two_psfs, PX, Z_STEP, offset=OFFSET)
+
+
+def test_model_error_grows_when_the_beads_differ(cal, mixed):
     assert mixed.n_used >= 6
     assert mixed.params["model_error"] > max(0.05, 3 * cal.params["model_error"])
 
 
-def test_the_model_error_is_kept_pixel_by_pixel_and_saved(tmp_path, cal):
+def test_the_model_error_is_kept_pixel_by_pixel_and_saved(tmp_path, cal, mixed):
     """The beads' residual variance about the model, pixel by pixel, is the model's error
     table (rendered like the PSF, per photon squared): never negative, far larger where the
     beads differ, and written to the calibration file."""
@@ -883,11 +892,6 @@ def test_the_model_error_is_kept_pixel_by_pixel_and_saved(tmp_path, cal):
     loaded = load_calibration(save_calibration(cal, tmp_path / "psf.h5"))
     np.testing.assert_allclose(loaded.error_table.stack, table.stack)
     assert loaded.error_table.centre == pytest.approx(table.centre)
-    positions = np.array([(x, y) for y in (25.0, 60.0, 95.0) for x in (25.0, 60.0, 95.0)]) * PX
-    narrow = simulate_scan(make_psf("dh-analytic"), positions[::2], seed=3)
-    wide = simulate_scan(make_psf("dh-analytic", lobe_sigma=190.0), positions[1::2], seed=4)
-    movie = (narrow.astype(np.int64) + wide.astype(np.int64) - int(OFFSET)).astype(np.uint16)
-    mixed = calibrate_beads(movie, PX, Z_STEP, offset=OFFSET)
 
     def error_var(c):  # an emitter of 10,000 photons at z = 0, summed over its window
         return c.psf.error_table.render([1000.0], [1000.0], [0.0], [1e8], (21, 21), PX).sum()
@@ -895,17 +899,13 @@ def test_the_model_error_is_kept_pixel_by_pixel_and_saved(tmp_path, cal):
     assert error_var(mixed) > 10 * error_var(cal)
 
 
-def test_calibration_too_far_from_its_beads_is_refused(monkeypatch):
+def test_calibration_too_far_from_its_beads_is_refused(monkeypatch, two_psfs):
     import sparseloc.calibrate as calibrate_module
 
-    # beads of two PSFs (wider and narrower lobes): the model errs, above a low bar
-    positions = np.array([(x, y) for y in (25.0, 60.0, 95.0) for x in (25.0, 60.0)]) * PX
-    narrow = simulate_scan(make_psf("dh-analytic"), positions[::2], seed=3)
-    wide = simulate_scan(make_psf("dh-analytic", lobe_sigma=190.0), positions[1::2], seed=4)
-    movie = (narrow.astype(np.int64) + wide.astype(np.int64) - int(OFFSET)).astype(np.uint16)
+    # the beads of two PSFs leave the model an error, above a low bar
     monkeypatch.setattr(calibrate_module, "MAX_MODEL_ERROR", 0.01)
     with pytest.raises(ValueError, match=r"depart from their average by \d+ %"):
-        calibrate_beads(movie, PX, Z_STEP, offset=OFFSET)
+        calibrate_beads(two_psfs, PX, Z_STEP, offset=OFFSET)
 
 
 @pytest.mark.parametrize(
