@@ -138,7 +138,8 @@ def test_the_camera_qe_reaches_the_likelihood(solver):
         camera=cam,
     )
     frames = to_photons(sim.movie, cam)
-    kw = dict(pixel_size=PX, z_range=(-300.0, 300.0), background="spatial", **solver)
+    # searched with a margin around the emitters' depths: fits are bounded by the range
+    kw = dict(pixel_size=PX, z_range=(-400.0, 400.0), background="spatial", **solver)
     with pytest.raises(ValueError, match="qe"):
         LocalizeParams(**kw, qe=0.0)
     plain = localize(frames, model, LocalizeParams(**kw)).table
@@ -179,3 +180,36 @@ def test_summary_counts_groups_for_the_frame_solver():
     assert "7 groups" in frame.summary() and "windows" not in frame.summary()
     hybrid = LocalizeResult(empty_locs(), 2, 7, 1.0, {"params": {"method": "hybrid"}})
     assert "7 windows" in hybrid.summary()
+
+
+def test_the_runs_z_range_bounds_the_fits_not_only_the_search():
+    """Emitters 80 nm beyond the run's z range: every fit stays inside it (the emitters' own
+    at its end, flagged), as a pupil model's own range bounds them, instead of settling
+    where the model's wider range lets them."""
+    from sparseloc.psf.spline import SplinePSF
+
+    model = SplinePSF.from_model(make_psf("dh-analytic"), PX, roi=21, z_step=20.0)
+    truth = np.array([[1500.0, 1600.0, 380.0, 5000.0], [3600.0, 3400.0, 380.0, 5000.0]])
+    mu = model.render(*truth.T, (32, 32), PX) + 10.0
+    frames = np.random.default_rng(0).poisson(mu)[None].astype(float)
+    table = localize(frames, model, LocalizeParams(pixel_size=PX, z_range=(-300.0, 300.0))).table
+    assert len(table) >= 2 and table["z_nm"].max() <= 300.0 + 1e-6
+    xy = table[["x_nm", "y_nm"]].to_numpy()
+    nearest = [np.argmin(np.hypot(*(xy - t[:2]).T)) for t in truth]
+    assert list(table["flag"].iloc[nearest]) == ["z_edge", "z_edge"]
+    assert model.z_range == (-1000.0, 1000.0)  # the caller's model is left as it was
+
+
+def test_a_narrowed_table_renders_the_same_images_and_refuses_a_range_beyond_its_own():
+    from sparseloc.psf.spline import SplinePSF
+
+    model = SplinePSF.from_model(make_psf("dh-analytic"), PX, roi=21, z_step=20.0)
+    assert model.within(None) is model and model.within(model.z_range) is model
+    narrow = model.within((-200.0, 400.0))
+    assert narrow.z_range == (-200.0, 400.0)
+    np.testing.assert_array_equal(
+        narrow.images([800.0], [800.0], [100.0], (11, 11), PX),
+        model.images([800.0], [800.0], [100.0], (11, 11), PX),
+    )
+    with pytest.raises(ValueError, match="within the PSF model's"):
+        localize(np.zeros((1, 32, 32)), model, LocalizeParams(pixel_size=PX, z_range=(-5e3, 0.0)))

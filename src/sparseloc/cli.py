@@ -657,15 +657,15 @@ def localize(
     z_min: Annotated[
         float | None,
         typer.Option(
-            help="Lowest z (nm) searched (sets a pupil model's range); fits may settle beyond "
-            "it within the model's range: filter --z-min cuts the table."
+            help="Lowest z (nm) searched and fitted, within the model's range (sets a pupil "
+            "model's range); give the sample's depth where it is thinner than the bead scan."
         ),
     ] = None,
     z_max: Annotated[
         float | None,
         typer.Option(
-            help="Highest z (nm) searched (sets a pupil model's range); fits may settle beyond "
-            "it within the model's range: filter --z-max cuts the table."
+            help="Highest z (nm) searched and fitted, within the model's range (sets a pupil "
+            "model's range); give the sample's depth where it is thinner than the bead scan."
         ),
     ] = None,
     min_snr: Annotated[

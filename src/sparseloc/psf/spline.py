@@ -18,6 +18,7 @@ pixel-integrated image cannot be re-binned exactly.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import logging
 import time
@@ -187,6 +188,33 @@ class SplinePSF(PSFBase):
         self._coef = coef
         self._ny = nr + 2 * _PAD
         self._nx = nc + 2 * _PAD
+
+    def within(self, z_range: tuple[float, float] | None) -> SplinePSF:
+        """This table with its valid z range narrowed to ``z_range`` (nm): a shallow copy
+        that renders the same images (a table's images depend on its planes, not on its
+        range), so that the fits and dictionaries, which read ``z_range``, stay inside it.
+        The table itself where ``z_range`` is None or its own.
+
+        Raises
+        ------
+        ValueError
+            Where ``z_range`` is not an increasing pair within the table's range.
+        """
+        if z_range is None:
+            return self
+        lo, hi = self.z_range
+        zr = (float(z_range[0]), float(z_range[1]))
+        if zr == (lo, hi):
+            return self
+        tol = 1e-9 * max(1.0, abs(lo), abs(hi))
+        if not (lo - tol <= zr[0] < zr[1] <= hi + tol):
+            raise ValueError(
+                f"the z range [{zr[0]:.1f}, {zr[1]:.1f}] nm must be an increasing pair within "
+                f"the PSF model's [{lo:.1f}, {hi:.1f}] nm"
+            )
+        narrowed = copy.copy(self)
+        narrowed._z_range = zr
+        return narrowed
 
     def __repr__(self) -> str:
         nz, nr, nc = self.stack.shape
