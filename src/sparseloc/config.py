@@ -69,10 +69,11 @@ class LocalizeParams:
     window, margin : int
         Window size and the margin (pixels) outside each window's owned core.
     z_range : (float, float), optional
-        Axial range (nm) of the dictionaries and the fits, within the model's; default the
-        model's. Where the sample is thinner than the model's range, giving its depth keeps
-        fits from reading crowded neighbours' light as emitters at depths where there are
-        none (``docs/benchmarks/sample_z_range.txt``).
+        Axial range (nm) of the dictionaries and, for a tabulated model (``tabulate``, the
+        default, or a calibration), of the fits; within the model's; default the model's.
+        Where the sample is thinner than the model's range, giving its depth keeps fits from
+        reading crowded neighbours' light as emitters at depths where there are none
+        (``docs/benchmarks/sample_z_range.txt``).
     coarse, fine : (dxy, dz)
         Grid steps (nm) of the coarse and fine dictionaries. The lateral step must divide
         the pixel; by default the largest such step up to 80 nm (coarse) and, for the fine
