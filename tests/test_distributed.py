@@ -278,3 +278,16 @@ def test_a_run_that_cannot_start_leaves_no_folder_it_made(
     with pytest.raises(ValueError, match="cannot reach"):
         localize_chunked(movie, model, params, kept, chunk_frames=4)
     assert kept.is_dir()
+
+
+def test_a_z_range_beyond_the_model_is_refused_before_the_run_folder(movie, model, tmp_path):
+    """The run's z range narrows the spline table the fits use; one beyond the model's range
+    is refused before the run folder and its manifest are written."""
+    from sparseloc.psf.spline import SplinePSF
+
+    table = SplinePSF.from_model(model, PX, roi=21, z_step=20.0)
+    params = LocalizeParams(pixel_size=PX, z_range=(-5000.0, 0.0))
+    run = tmp_path / "run"
+    with pytest.raises(ValueError, match="within the PSF model's"):
+        localize_chunked(movie, table, params, run, chunk_frames=8)
+    assert not run.exists()

@@ -488,11 +488,11 @@ def localize_chunked(
         chunk_frames = _chunk_frames_of_run(run_dir) or auto_chunk_frames(stop - start, pool)
     chunks = plan_chunks(start, stop, chunk_frames)
     key, desc = _run_key(source, model, params, (start, stop), chunk_frames, read_variance)
+    work_model = work_model_for(model, params)  # refuses a bad z range before the folder
     created = not run_dir.exists()
     _prepare_run_dir(run_dir, key, desc, chunks, overwrite)
     done_before, todo = _done_and_todo(run_dir, chunks, chunk_frames, progress)
     writer = _PartWriter(run_dir, progress)
-    work_model = work_model_for(model, params)
     if todo:
         args = (work_model, params)
         pool = workers if scheduler == "processes" else threads
