@@ -658,14 +658,16 @@ def localize(
         float | None,
         typer.Option(
             help="Lowest z (nm) searched and fitted, within the model's range (sets a pupil "
-            "model's range); give the sample's depth where it is thinner than the bead scan."
+            "model's range); give the sample's depth plus about 100 nm where it is thinner "
+            "than the bead scan."
         ),
     ] = None,
     z_max: Annotated[
         float | None,
         typer.Option(
             help="Highest z (nm) searched and fitted, within the model's range (sets a pupil "
-            "model's range); give the sample's depth where it is thinner than the bead scan."
+            "model's range); give the sample's depth plus about 100 nm where it is thinner "
+            "than the bead scan."
         ),
     ] = None,
     min_snr: Annotated[
