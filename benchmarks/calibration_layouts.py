@@ -10,13 +10,15 @@ simulated bead z-stack, ``sparseloc localize`` with that calibration and the cam
   all localizing one movie (30 frames, 12.8 um square, 0.3 /um^2, 1,000-5,000 photons,
   background 10) rendered with the PSF itself;
 - ``optics``: each PSF at 65, 100 and 160 nm pixels with an ideal camera, an EMCCD and an
-  sCMOS camera (bead stack of 9 beads 3.9 um apart; movie of 40 frames, 12.8 um square,
-  0.3 /um^2).
+  sCMOS camera (bead stack of 9 beads 3.9 um apart, 20,000 photons each unless
+  ``--bead-photons``; movie of 40 frames, 12.8 um square, 0.3 /um^2).
 
 Usage::
 
     python benchmarks/calibration_layouts.py layouts --psf dh --work /tmp/lay
     python benchmarks/calibration_layouts.py optics --psfs astig,dh --work /tmp/opt
+    python benchmarks/calibration_layouts.py optics --psfs dh --pixel-sizes 100 \
+        --cameras ideal --bead-photons 2000 --work /tmp/dim
 """
 
 from __future__ import annotations
@@ -164,18 +166,19 @@ def sweep_layouts(args) -> list[dict]:
 def sweep_optics(args) -> list[dict]:
     rows = []
     for psf in args.psfs.split(","):
-        for px in (65.0, 100.0, 160.0):
+        for px in (float(v) for v in args.pixel_sizes.split(",")):
             n = round(12800 / px)
             g = np.array([2500.0, 6400.0, 10300.0])
             pos = np.array([(x, y) for y in g for x in g])
             pos = pos + np.random.default_rng(1).uniform(-50, 50, pos.shape)
-            for cam, (camera, flags) in CAMERAS.items():
+            for cam in args.cameras.split(","):
+                camera, flags = CAMERAS[cam]
                 folder = args.work / f"{psf}_{int(px)}_{cam}"
                 folder.mkdir(parents=True, exist_ok=True)
-                bead_stack(psf, pos, np.full(len(pos), BEAD_PHOTONS), (n, n), px, camera,
+                bead_stack(psf, pos, np.full(len(pos), args.bead_photons), (n, n), px, camera,
                            folder / "beads.tif")  # fmt: skip
                 mv = movie(psf, 40, n, px, camera, folder / "movie.tif")
-                row = {"psf": psf, "pixel nm": px, "camera": cam}
+                row = {"psf": psf, "pixel nm": px, "camera": cam, "bead photons": args.bead_photons}
                 rows.append({**row, **case(folder / "beads.tif", mv, px, flags, folder)})
                 print(rows[-1], flush=True)
     return rows
@@ -187,6 +190,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--psf", default="dh", help="layouts: the PSF (dh, astig)")
     ap.add_argument("--psfs", default="astig,dh", help="optics: the PSFs")
     ap.add_argument("--pixel-size", type=float, default=100.0, help="layouts: nm")
+    ap.add_argument("--pixel-sizes", default="65,100,160", help="optics: nm")
+    ap.add_argument("--cameras", default=",".join(CAMERAS), help="optics: " + ", ".join(CAMERAS))
+    ap.add_argument(
+        "--bead-photons", type=float, default=BEAD_PHOTONS, help="optics: each bead's photons"
+    )
     ap.add_argument("--work", type=Path, required=True, help="folder for stacks and movies")
     ap.add_argument("--out", type=Path, default=None, help="JSON (default: WORK/SWEEP.json)")
     args = ap.parse_args(argv)

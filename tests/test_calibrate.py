@@ -849,6 +849,29 @@ def test_repeated_light_sees_fixed_offsets_not_moving_lobes():
     assert repeated_light(stretch)[0] < 0.05
 
 
+def test_dim_beads_on_a_crowded_slide_are_all_used(model):
+    """Nine beads of 2,000 photons, 3 um apart, 2 um from the frame's edges. Past half the
+    spacing the ROI's light profile reads a ring's light from the few pixels nearer this bead
+    than its neighbours; with dim beads that reading is the noise, and it made the ROI 43 px:
+    eight beads then lay too near the edge to use."""
+    planes = np.arange(model.z_range[0], model.z_range[1] + 1e-6, Z_STEP)
+    grid = np.array([1800.0, 4800.0, 7800.0])
+    pos = np.array([(x, y) for y in grid for x in grid])
+    pos = pos + np.random.default_rng(1).uniform(-50, 50, pos.shape)
+    sim = simulate(
+        model,
+        scene=bead_scan_truth(pos, planes, 2000.0),
+        n_frames=planes.size,
+        shape=(96, 96),
+        pixel_size=PX,
+        background=10.0,
+        seed=1,
+    )
+    cal = calibrate_beads(sim.movie, PX, Z_STEP, offset=sim.camera.offset)
+    assert cal.n_used == 9
+    assert cal.params["roi_size_px"] <= 31  # within the spacing (30 px) and a pixel
+
+
 def test_two_beads_that_see_each_other_give_a_model_centred_on_them(model):
     """Two beads 2.5 um apart, each in the other's ROI: a fixed two rounds of removing the
     neighbour's modelled light leave part of it in the model, its origin off the beads; the

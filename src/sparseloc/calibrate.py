@@ -406,7 +406,8 @@ def _calibrate_scan(
     p, step = scan.pixel_size, scan.step
     centres = _detect(scan.projection, detect_sigma, threshold, roi_size)
     tick()
-    roi, half, profile = _roi_size(scan.data, centres, roi_size)
+    variance = noise[0] * np.maximum(scan.background, 0.0) + noise[1]
+    roi, half, profile = _roi_size(scan.data, centres, roi_size, variance)
     # Beads share one PSF, so a neighbour's light can be modelled and removed; only beads
     # whose cores overlap are rejected.
     core = profile.core if profile is not None else half / 2.0
@@ -598,12 +599,17 @@ def _detect(
 
 
 def _roi_size(
-    data: NDArray[np.float64], centres: NDArray[np.float64], roi_size: int | None
+    data: NDArray[np.float64],
+    centres: NDArray[np.float64],
+    roi_size: int | None,
+    variance: NDArray[np.float64] | float = 0.0,
 ) -> tuple[int, int, LightProfile | None]:
     """ROI side and half side (px), ``roi_size`` made odd or sized to hold
     :data:`~sparseloc.calibrate_crowd.ROI_ENERGY` of the light of the brightest beads, and
-    the light profile it came from (None where no bead leaves room to measure it)."""
-    profile = _light_profile(data, centres)
+    the light profile it came from (None where no bead leaves room to measure it).
+    ``variance``: each plane's pixel variance (photons^2), which bounds how far the profile
+    is measured."""
+    profile = _light_profile(data, centres, variance)
     if roi_size is None:
         half = int(np.clip(profile.half, 5, 40)) if profile is not None else 8
         roi = 2 * half + 1
@@ -625,19 +631,25 @@ def _roi_size(
     return roi, half, profile
 
 
-def _light_profile(data: NDArray[np.float64], centres: NDArray[np.float64]) -> LightProfile | None:
+def _light_profile(
+    data: NDArray[np.float64], centres: NDArray[np.float64], variance: NDArray | float = 0.0
+) -> LightProfile | None:
     """The light profile of the brightest of the five brightest beads that leaves the most
-    room around it (up to 40 px), or None."""
+    room around it (up to 40 px; :func:`~sparseloc.calibrate_crowd.light_profile`, its
+    neighbours and the noise ``variance`` bound it too), or None."""
     h, w = data.shape[1:]
     max_r = int(min(40, max(6, min(h, w) // 2 - 1)))
-    best: tuple[int, LightProfile] | None = None
+    best: tuple[int, int] | None = None
     for i, (r, c) in enumerate(centres[:5]):
         ri, ci = int(np.round(r)), int(np.round(c))
         rad = min(max_r, ri, ci, h - 1 - ri, w - 1 - ci)
         if rad >= 6 and (best is None or rad > best[0]):
-            others = np.delete(centres, i, axis=0)
-            best = (rad, light_profile(data, (r, c), others, rad))
-    return None if best is None else best[1]
+            best = (rad, i)
+    if best is None:
+        return None
+    rad, i = best
+    others = np.delete(centres, i, axis=0)
+    return light_profile(data, tuple(centres[i]), others, rad, variance)
 
 
 #: Most rounds of removing the neighbours' modelled light and registering again; fewer when

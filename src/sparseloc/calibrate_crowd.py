@@ -3,9 +3,10 @@
 Real bead slides are crowded, and an engineered PSF (double helix, tetrapod) is microns wide.
 
 - **ROI**: the light profile around the brightest beads (ring means over z-smoothed planes,
-  leaving out pixels nearer another bead) gives the fraction of a plane's light within each
-  radius; the ROI's half side is the smallest radius that holds :data:`ROI_ENERGY` of it on
-  average over the planes, and the PSF's core is the radius that holds half of it.
+  leaving out pixels nearer another bead, out to where the camera's noise would swamp what a
+  ring's remaining pixels say) gives the fraction of a plane's light within each radius; the
+  ROI's half side is the smallest radius that holds :data:`ROI_ENERGY` of it on average over
+  the planes, and the PSF's core is the radius that holds half of it.
 - **Neighbours**: beads closer than an ROI are used. All beads share one PSF, so each bead's
   ROI is cleaned of its neighbours' modelled light (the current model at the neighbours'
   fitted positions and per-plane brightness), and the beads are registered again; only beads
@@ -76,16 +77,26 @@ def light_profile(
     centre: tuple[float, float],
     others: NDArray[np.float64],
     max_radius: int,
+    variance: NDArray[np.float64] | float = 0.0,
 ) -> LightProfile:
     """The light profile of the bead at ``centre`` (row, col; px) in the stack ``data``
-    (Nz, H, W; photons less background), out to ``max_radius`` px; pixels nearer one of
-    ``others`` (n, 2; row, col) than to this bead are left out."""
+    (Nz, H, W; photons less background), out to ``max_radius`` px or less.
+
+    Pixels nearer one of ``others`` (n, 2; row, col) than to this bead are left out, and a
+    ring's light is its mean over the bead's own pixels times the whole ring. Where part of
+    a ring is the neighbours', that mean comes from fewer pixels: the profile goes on only
+    while the noise (``variance``: each plane's pixel variance in photons^2, scalar or
+    (Nz,)) leaves the ring's light known to better than the share of the light the ROI may
+    leave out (``1 - ROI_ENERGY`` of the light measured so far), as it is for bright beads;
+    farther out it would measure noise."""
     from scipy.ndimage import uniform_filter1d
 
     r0, c0 = int(np.round(centre[0])), int(np.round(centre[1]))
     rad = max_radius
     sub = data[:, r0 - rad : r0 + rad + 1, c0 - rad : c0 + rad + 1]
-    sub = uniform_filter1d(sub, min(5, sub.shape[0]), axis=0)
+    window = min(5, sub.shape[0])
+    sub = uniform_filter1d(sub, window, axis=0)
+    var = np.broadcast_to(np.asarray(variance, dtype=np.float64), (sub.shape[0],)) / window
     rows, cols = np.indices(sub.shape[1:])
     rows = rows + r0 - rad
     cols = cols + c0 - rad
@@ -93,15 +104,19 @@ def light_profile(
     mine = np.ones(dist.shape, bool)
     for r, c in np.asarray(others, float).reshape(-1, 2):
         mine &= dist <= np.hypot(rows - r, cols - c)
-    ring = np.round(dist).astype(int)
+    ring = np.round(dist).astype(int).ravel()
+    mine = mine.ravel()
     flat = sub.reshape(sub.shape[0], -1)
     energy = np.zeros((sub.shape[0], rad + 1))
     for k in range(rad + 1):
-        idx = np.flatnonzero((ring.ravel() == k) & mine.ravel())
+        own = np.flatnonzero((ring == k) & mine)
         n_ring = int(np.count_nonzero(ring == k))
-        if idx.size:
-            # the ring's mean over the pixels that are this bead's, times the whole ring
-            energy[:, k] = np.clip(flat[:, idx].mean(axis=1), 0.0, None) * n_ring
+        if k and not _measured(own.size, n_ring, var, energy[:, :k].sum(axis=1)):
+            rad = k - 1
+            energy = energy[:, :k]
+            break
+        if own.size:  # (ring 0 may hold no pixel centre)
+            energy[:, k] = np.clip(flat[:, own].mean(axis=1), 0.0, None) * n_ring
     cum = np.cumsum(energy, axis=1)
     total = np.maximum(cum[:, -1:], 1e-12)
     frac = cum / total
@@ -109,6 +124,19 @@ def light_profile(
     half = int(np.argmax(mean >= ROI_ENERGY)) if np.any(mean >= ROI_ENERGY) else rad
     core = float(np.argmax(mean >= 0.5))
     return LightProfile(half, core, mean, frac.min(axis=0))
+
+
+def _measured(n_own: int, n_ring: int, var: NDArray, light: NDArray) -> bool:
+    """Whether a ring of ``n_ring`` pixels, ``n_own`` of them the bead's, is measured: all
+    its pixels are the bead's, or the light it extrapolates from them (its standard error,
+    from each plane's pixel variance ``var`` (Nz,)) is known to better than
+    ``1 - ROI_ENERGY`` of the ``light`` (Nz,) of the rings inside it, on the median plane."""
+    if n_own == n_ring:
+        return True
+    if n_own == 0:
+        return False
+    error = n_ring * np.sqrt(var / n_own)
+    return bool(np.median(error) <= (1.0 - ROI_ENERGY) * np.median(light))
 
 
 def neighbour_light(
