@@ -406,7 +406,8 @@ def _calibrate_scan(
     p, step = scan.pixel_size, scan.step
     centres = _detect(scan.projection, detect_sigma, threshold, roi_size)
     tick()
-    variance = noise[0] * np.maximum(scan.background, 0.0) + noise[1]
+    camera = CameraNoise(*noise, scan.background)
+    variance = camera.sd(np.zeros((scan.data.shape[0], 1, 1)))[:, 0, 0] ** 2
     roi, half, profile = _roi_size(scan.data, centres, roi_size, variance)
     # Beads share one PSF, so a neighbour's light can be modelled and removed; only beads
     # whose cores overlap are rejected.
@@ -417,7 +418,7 @@ def _calibrate_scan(
     residual = dict.fromkeys(range(nb), np.nan)
     stacks = _BeadStacks(scan.data, centres, used, half, p, step)
     stacks.tick = tick
-    stacks.noise = CameraNoise(*noise, scan.background)
+    stacks.noise = camera
     neighbours = _neighbour_pairs(centres, reason, roi)
     stacks.crowded = set(neighbours)
     avg = stacks.register(used, scan.zplanes, iterations, name)
