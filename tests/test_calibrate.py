@@ -860,7 +860,24 @@ def test_dim_beads_on_a_crowded_slide_are_all_used(model):
     movie = simulate_scan(model, pos, photons=2000.0, seed=1)
     cal = calibrate_beads(movie, PX, Z_STEP, offset=OFFSET)
     assert cal.n_used == 9
-    assert cal.params["roi_size_px"] <= 31  # within the spacing (30 px) and a pixel
+    assert cal.params["bead_roi_size_px"] <= 31  # within the spacing (30 px) and a pixel
+
+
+def test_dim_beads_far_apart_get_the_roi_of_their_light_not_of_their_noise(model):
+    """Four beads 6 um apart, 30 px from the frame's edges. Dim beads' light beyond the
+    lobes is below a model's pixel noise; the ROI's light profile summed that noise out to
+    the room the field left, and the model held noise, not light, where bright beads of the
+    same optics end their ROI."""
+    pos = np.array([(x, y) for y in (3000.0, 9000.0) for x in (3000.0, 9000.0)])
+    pos = pos + np.random.default_rng(2).uniform(-50, 50, pos.shape)
+    rois = {}
+    for photons in (2000.0, 20000.0):
+        cal = calibrate_beads(
+            simulate_scan(model, pos, photons=photons, seed=1), PX, Z_STEP, offset=OFFSET
+        )
+        assert cal.n_used == 4
+        rois[photons] = cal.params["roi_size_px"]
+    assert rois[2000.0] <= rois[20000.0], rois
 
 
 def test_two_beads_that_see_each_other_give_a_model_centred_on_them(model):
@@ -1152,3 +1169,29 @@ def test_the_robust_average_keeps_an_emccds_noise():
     kept_power = np.sum((photons - mu)[keep] ** 2) / np.sum(noise.a * mu[keep])
     assert keep.mean() > 0.98
     assert kept_power > 0.94
+
+
+@pytest.mark.parametrize("oversample", [1, 3])
+def test_a_model_cut_to_its_light_renders_the_same_light_inside(oversample):
+    """The model of dim beads is cut where its light ends: inside the cut it renders what the
+    whole model renders (up to the light cut off), and a cut no smaller than the model is none
+    (an oversampled model keeps every sample of its pixels' phases)."""
+    from sparseloc.calibrate import _cropped
+
+    side, o = 21, oversample
+    ax = (np.arange(side * o) - (side * o - 1) / 2) / o
+    rr, cc = np.meshgrid(ax, ax, indexing="ij")
+    stack = np.stack([np.exp(-(rr**2 + cc**2) / (2 * s**2)) for s in np.linspace(3.0, 4.0, 6)])
+    c = (side * o - 1) / 2
+    psf = SplinePSF(stack, PX, np.arange(6) * 50.0, centre=(c, c), oversample=o)
+    assert _cropped(psf, side // 2) is psf
+    cut = _cropped(psf, 6)
+    assert cut.stack.shape[1] // o == 13
+    args = ([15.5 * PX + 30.0], [15.5 * PX - 20.0], [120.0], (31, 31), PX)
+    whole, part = psf.images(*args)[0], cut.images(*args)[0]
+    inner = (slice(11, 20), slice(11, 20))
+    np.testing.assert_allclose(
+        part[inner] / part[inner].sum(), whole[inner] / whole[inner].sum(), atol=1e-4
+    )
+    assert np.abs(whole[:7]).sum() > 1e-3  # (the whole model has light there; the cut, none)
+    assert np.abs(part[:7]).max() < 1e-4 and np.abs(part[:, :7]).max() < 1e-4

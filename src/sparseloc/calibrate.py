@@ -446,7 +446,18 @@ def _calibrate_scan(
         centre, origin = _centre_on_beads(table, used, known, centres, p, centre)
     cr, cc = centre
     origin["centroid_over_z_nm"] = _centroid_over_z(clean, centre, half, p)
-    psf = _spline_model(clean, stacks, used, sl, zwin, zplanes, centre, name)
+    # The model ends where its light falls below its noise (dim beads), or at the ROI.
+    model_half = half
+    if roi_size is None and profile is not None and profile.reach is not None:
+        model_half = profile.reach
+        log.info(
+            "model cropped to %d x %d px: beyond it, the beads' light lies below the model's "
+            "pixel noise (the crop holds %.1f %% of a plane's measured light)",
+            2 * model_half + 1,
+            2 * model_half + 1,
+            100 * profile.held(model_half)[0],
+        )
+    psf = _cropped(_spline_model(clean, stacks, used, sl, zwin, zplanes, centre, name), model_half)
     tick()
 
     def rebuild(rois: list[NDArray[np.float64]]) -> SplinePSF:
@@ -454,14 +465,16 @@ def _calibrate_scan(
         again = copy.copy(stacks)
         again.rois = {**stacks.rois, **dict(zip(used, rois, strict=True))}
         smooth = _model_stack(again.average(used), scan.zplanes, max_dz, step, z_smooth)[0]
-        return _spline_model(smooth, again, used, sl, zwin, zplanes, centre, name)
+        model = _spline_model(smooth, again, used, sl, zwin, zplanes, centre, name)
+        return _cropped(model, model_half)
 
     error = _model_error(psf, stacks, used, scan, noise, rebuild)
     psf.model_error = error.overall  # the solvers' allowance (sparseloc.solvers.variance)
     params = {
         "pixel_size_nm": p,
         "z_step_nm": step,
-        "roi_size_px": roi,
+        "roi_size_px": 2 * model_half + 1,
+        "bead_roi_size_px": roi,
         "offset_adu": float(scan.offset),
         "photons_per_adu": float(scan.gain),
         "threshold": float(threshold),
@@ -470,7 +483,7 @@ def _calibrate_scan(
         "z_smooth_planes": int(zwin),
         "n_beads_found": nb,
         "n_beads_used": len(used),
-        "roi_energy_fraction": _held(profile, half),
+        "roi_energy_fraction": _held(profile, model_half),
         "n_beads_with_neighbours": sum(1 for i in used if neighbours.get(i)),
         "model_error": error.overall,
         "model_error_z": [float(v) for v in error.per_plane],
@@ -1137,6 +1150,21 @@ def _bead_errors(
     shifts = [stacks.shifts[i] for i in used]
     errors = bead_errors(model, rois, shifts, scan.zplanes, bg, stacks.kept_in_rois(used), noise)
     return dict(zip(used, (float(e) for e in errors), strict=True))
+
+
+def _cropped(psf: SplinePSF, half: int) -> SplinePSF:
+    """``psf`` cut to ``half`` px on each side of its centre's pixel (each plane summing to one
+    photon again); ``psf`` itself where it is no larger."""
+    o = psf.oversample
+    if 2 * half + 1 >= min(psf.stack.shape[1:]) / o:
+        return psf
+    keep = half * o + o // 2  # (the samples of a pixel's phases)
+    rc = [int(np.round(c)) for c in psf.centre]
+    lo = [max(c - keep, 0) for c in rc]
+    hi = [min(c + keep + 1, n) for c, n in zip(rc, psf.stack.shape[1:], strict=True)]
+    stack = psf.stack[:, lo[0] : hi[0], lo[1] : hi[1]]
+    centre = (psf.centre[0] - lo[0], psf.centre[1] - lo[1])
+    return SplinePSF(stack, psf.pixel_size, psf.z, centre=centre, name=psf.name, oversample=o)
 
 
 def _spline_model(

@@ -6,7 +6,8 @@ Real bead slides are crowded, and an engineered PSF (double helix, tetrapod) is 
   leaving out pixels nearer another bead, out to where the camera's noise would swamp what a
   ring's remaining pixels say) gives the fraction of a plane's light within each radius; the
   ROI's half side is the smallest radius that holds :data:`ROI_ENERGY` of it on average over
-  the planes, and the PSF's core is the radius that holds half of it.
+  the planes, and the PSF's core is the radius that holds half of it. The model is cut
+  where the light a model of the beads would hold falls below its pixel noise (dim beads).
 - **Neighbours**: beads closer than an ROI are used. All beads share one PSF, so each bead's
   ROI is cleaned of its neighbours' modelled light (the current model at the neighbours'
   fitted positions and per-plane brightness), and the beads are registered again; only beads
@@ -59,12 +60,17 @@ class LightProfile:
         Mean over planes of the fraction of light within each radius 0..R.
     fraction_min : ndarray, shape (R + 1,)
         The smallest fraction over the planes at each radius.
+    reach : int or None
+        One pixel (the emitter's sub-pixel offset) past the last ring whose light a model
+        averaged over the beads holds above its pixel noise, where that is inside ``half``;
+        else None.
     """
 
     half: int
     core: float
     fraction: NDArray[np.float64]
     fraction_min: NDArray[np.float64]
+    reach: int | None = None
 
     def held(self, half: int) -> tuple[float, float]:
         """Mean and smallest fraction of a plane's light within ``half`` px."""
@@ -88,7 +94,15 @@ def light_profile(
     while the noise (``variance``: each plane's pixel variance in photons^2, scalar or
     (Nz,)) leaves the ring's light known to better than the share of the light the ROI may
     leave out (``1 - ROI_ENERGY`` of the light measured so far), as it is for bright beads;
-    farther out it would measure noise."""
+    farther out it would measure noise.
+
+    The profile's ``reach`` is where a model's light ends: the last ring whose light power
+    per pixel stands above the pixel noise variance of a model averaged over all the beads
+    (this one and ``others``); past it a model pixel would hold more noise than light, and
+    each fit would carry that noise (dim beads). The power is the product of this bead's
+    pixels with the mean of the other beads' (their noises are independent, so the product's
+    mean is the light's power alone), on the median plane; it sees a double helix's lobes,
+    which a ring's mean dilutes."""
     from scipy.ndimage import uniform_filter1d
 
     r0, c0 = int(np.round(centre[0])), int(np.round(centre[1]))
@@ -107,23 +121,67 @@ def light_profile(
     ring = np.round(dist).astype(int).ravel()
     mine = mine.ravel()
     flat = sub.reshape(sub.shape[0], -1)
+    partner = _partner_mean(data, sub, others, rad, window)
     energy = np.zeros((sub.shape[0], rad + 1))
+    power = np.full(rad + 1, np.inf)
     for k in range(rad + 1):
         own = np.flatnonzero((ring == k) & mine)
         n_ring = int(np.count_nonzero(ring == k))
         if k and not _measured(own.size, n_ring, var, energy[:, :k].sum(axis=1)):
-            rad = k - 1
-            energy = energy[:, :k]
+            energy, power = energy[:, :k], power[:k]
             break
         if own.size:  # (ring 0 may hold no pixel centre)
             energy[:, k] = np.clip(flat[:, own].mean(axis=1), 0.0, None) * n_ring
+            both = own[np.isfinite(partner[0, own])]
+            if both.size:
+                power[k] = np.median((flat[:, both] * partner[:, both]).mean(axis=1))
+    rad = energy.shape[1] - 1
     cum = np.cumsum(energy, axis=1)
     total = np.maximum(cum[:, -1:], 1e-12)
     frac = cum / total
     mean = frac.mean(axis=0)
     half = int(np.argmax(mean >= ROI_ENERGY)) if np.any(mean >= ROI_ENERGY) else rad
     core = float(np.argmax(mean >= 0.5))
-    return LightProfile(half, core, mean, frac.min(axis=0))
+    # A model's light stands above its noise out to the last ring ``above`` (a ring that
+    # cannot be judged counts as above); one pixel more for the emitter's sub-pixel offset.
+    n_beads = 1 + np.asarray(others).reshape(-1, 2).shape[0]
+    above = np.flatnonzero(power >= np.median(var) / n_beads)
+    reach = int(above[-1]) + 1 if np.median(var) > 0 and above.size else half
+    return LightProfile(half, core, mean, frac.min(axis=0), reach if reach < half else None)
+
+
+def _partner_mean(
+    data: NDArray[np.float64],
+    sub: NDArray[np.float64],
+    others: NDArray[np.float64],
+    rad: int,
+    window: int,
+) -> NDArray[np.float64]:
+    """The mean (Nz, side * side) of the other beads' windows of half side ``rad`` around
+    their centres ``others``, each smoothed over ``window`` planes and scaled to the light of
+    ``sub`` (Nz, side, side); NaN where no other bead's window lies in the frame."""
+    from scipy.ndimage import uniform_filter1d
+
+    nz, h, w = data.shape
+    side = 2 * rad + 1
+    light = float(np.clip(sub, 0.0, None).sum())
+    acc, count = np.zeros(sub.shape), np.zeros(sub.shape[1:])
+    for r, c in np.asarray(others, float).reshape(-1, 2):
+        ri, ci = int(np.round(r)), int(np.round(c))
+        top, left = max(ri - rad, 0), max(ci - rad, 0)
+        bottom, right = min(ri + rad + 1, h), min(ci + rad + 1, w)
+        if bottom <= top or right <= left:
+            continue
+        win = uniform_filter1d(data[:, top:bottom, left:right], window, axis=0)
+        own = float(np.clip(win, 0.0, None).sum())
+        if own <= 0 or light <= 0:
+            continue
+        rows = slice(top - (ri - rad), side - (ri + rad + 1 - bottom))
+        cols = slice(left - (ci - rad), side - (ci + rad + 1 - right))
+        acc[:, rows, cols] += win * (light / own)
+        count[rows, cols] += 1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (acc / count).reshape(nz, -1)
 
 
 def _measured(n_own: int, n_ring: int, var: NDArray, light: NDArray) -> bool:
