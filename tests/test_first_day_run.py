@@ -396,17 +396,21 @@ TETRAPOD_OPTICS = [
 @pytest.mark.slow
 def test_the_two_real_data_misfits_of_the_trial_are_reported(shared_data, tmp_path):
     """Item 2 on the data the trial used (crops, to keep it short): storm-analysis's grid frame
-    localized without --psf (the built-in pupil double helix) and the real tetrapod frame with
-    the default Poisson noise model both end in the model check's warning; with its sCMOS
-    read noise the tetrapod crop's fits are far closer to the noise."""
+    localized without --psf is refused (--psf is needed), and with the built-in pupil double
+    helix, not its microscope's model, ends in the model check's warning, as does the real
+    tetrapod frame with the default Poisson noise model; with its sCMOS read noise the
+    tetrapod crop's fits are far closer to the noise."""
     import tifffile
 
     grid = tifffile.imread(shared_data / "storm_analysis_sim" / "dh" / "dh_fista_diag_test01.tif")
     crop = tmp_path / "grid.tif"
     tifffile.imwrite(crop, grid.reshape(-1, *grid.shape[-2:])[:, :60, :60])
-    res = run("localize", crop, "-o", tmp_path / "g.parquet", "--pixel-size", 100, "--offset", 100)
+    args = ["localize", crop, "-o", tmp_path / "g.parquet", "--pixel-size", 100, "--offset", 100]
+    res = run(*args)
+    assert res.exit_code == 2 and "--psf is needed" in res.output, res.output
+    res = run(*args, "--psf", "dh")
     assert res.exit_code == 0, res.output
-    assert "model check: misfit" in res.output and "the built-in 'dh' (the default" in res.output
+    assert "model check: misfit" in res.output
 
     folder = shared_data / "deepstorm3d"
     frame = tifffile.imread(folder / "Experimental_Data_Tetrapod_demo2_1.tif")
