@@ -863,21 +863,34 @@ def test_dim_beads_on_a_crowded_slide_are_all_used(model):
     assert cal.params["bead_roi_size_px"] <= 31  # within the spacing (30 px) and a pixel
 
 
-def test_dim_beads_far_apart_get_the_roi_of_their_light_not_of_their_noise(model):
+def test_dim_beads_far_apart_get_the_model_of_their_light_not_of_their_noise(model):
     """Four beads 6 um apart, 30 px from the frame's edges. Dim beads' light beyond the
-    lobes is below a model's pixel noise; the ROI's light profile summed that noise out to
-    the room the field left, and the model held noise, not light, where bright beads of the
-    same optics end their ROI."""
+    lobes is below a model's pixel noise, and the light profile's noise, summed ring by ring,
+    takes the ROI out to the room the field leaves: the model ends where the light does, no
+    larger than bright beads' of the same optics."""
     pos = np.array([(x, y) for y in (3000.0, 9000.0) for x in (3000.0, 9000.0)])
     pos = pos + np.random.default_rng(2).uniform(-50, 50, pos.shape)
-    rois = {}
+    rois, cals = {}, {}
     for photons in (2000.0, 20000.0):
-        cal = calibrate_beads(
-            simulate_scan(model, pos, photons=photons, seed=1), PX, Z_STEP, offset=OFFSET
-        )
+        movie = simulate_scan(model, pos, photons=photons, seed=1)
+        cals[photons] = cal = calibrate_beads(movie, PX, Z_STEP, offset=OFFSET)
         assert cal.n_used == 4
         rois[photons] = cal.params["roi_size_px"]
     assert rois[2000.0] <= rois[20000.0], rois
+    # the figure's model panels (the model at the emitter in the average's frame) lie on the
+    # average, though the cut model is smaller than it
+    from sparseloc.plotting import _calibration_model
+
+    dim = cals[2000.0]
+    assert dim.psf.stack.shape[1] < dim.average.shape[1]
+    idx = np.arange(0, dim.z.size, 5)
+    middle = (dim.average.shape[1] - 1) / 2
+    for img in (_calibration_model(dim, idx)[1], dim.average[idx]):
+        img = np.clip(img, 0.0, None)
+        rows, cols = np.indices(img.shape[1:])
+        r = (img * rows).sum(axis=(1, 2)) / img.sum(axis=(1, 2))
+        c = (img * cols).sum(axis=(1, 2)) / img.sum(axis=(1, 2))
+        assert np.abs(r - middle).max() < 1.5 and np.abs(c - middle).max() < 1.5
 
 
 def test_two_beads_that_see_each_other_give_a_model_centred_on_them(model):
@@ -965,7 +978,7 @@ def test_a_bead_scans_frames_agree_at_about_one(scan, cal):
 
     data = read_scan(scan["movie"], PX, Z_STEP, None, None, None, OFFSET, 1.0, None)
     centres = scan["positions"][:, ::-1] / PX - 0.5  # (row, col) px
-    rois = _whole_rois(data, centres, cal.params["roi_size_px"] // 2)
+    rois = _whole_rois(data, centres, cal.params["bead_roi_size_px"] // 2)
     assert len(rois) >= 4
     assert _frame_agreement(rois, data.background) > max(SCAN_AGREEMENT, 0.97)
 
@@ -1171,7 +1184,7 @@ def test_the_robust_average_keeps_an_emccds_noise():
     assert kept_power > 0.94
 
 
-@pytest.mark.parametrize("oversample", [1, 3])
+@pytest.mark.parametrize("oversample", [1, 2, 3])
 def test_a_model_cut_to_its_light_renders_the_same_light_inside(oversample):
     """The model of dim beads is cut where its light ends: inside the cut it renders what the
     whole model renders (up to the light cut off), and a cut no smaller than the model is none

@@ -20,7 +20,9 @@ The steps (each a function over NumPy arrays; file reading only in :func:`calibr
    average weighted by brightness; repeat. Where beads lie closer than an ROI, each bead's
    ROI is cleaned of its neighbours' modelled light and the beads are registered again.
 6. Subtract what is left of the background (the median of the ROI's border per plane),
-   normalise each plane to one photon, and build a :class:`~sparseloc.psf.spline.SplinePSF`.
+   normalise each plane to one photon, and build a :class:`~sparseloc.psf.spline.SplinePSF`,
+   cut where the beads' light falls below the model's noise (dim beads; the model is then
+   smaller than the ROI, :attr:`Calibration.emitter_pixel`).
 
 Optionally the pupil phase is fitted to the averaged stack (:mod:`sparseloc.psf.retrieval`).
 
@@ -93,7 +95,8 @@ class Calibration:
     Attributes
     ----------
     psf : SplinePSF
-        The measured model (unit photons per plane, at ``pixel_size``).
+        The measured model (unit photons per plane, at ``pixel_size``); it may be smaller
+        than ``average`` (cut where the beads' light falls below its noise).
     average : ndarray, shape (Nz, R, R)
         Registered, averaged, background-subtracted bead stack at the camera's pixels, each
         plane summing to one (the model refines it on a finer grid, see ``psf.oversample``).
@@ -125,6 +128,15 @@ class Calibration:
     pupil: Any = None
     params: dict[str, Any] = field(default_factory=dict)
     bead_ncc: NDArray[np.float64] | None = None
+
+    @property
+    def emitter_pixel(self) -> tuple[float, float]:
+        """The emitter's position (row, col; px) in ``average``'s frame. A model cut to its
+        light is smaller than ``average`` and holds it elsewhere in its own frame
+        (``params["model_shift_px"]`` apart)."""
+        dr, dc = self.params.get("model_shift_px", (0.0, 0.0))
+        r, c = self.psf.pixel_centre
+        return (r + dr, c + dc)
 
     @property
     def content_hash(self) -> str:
@@ -449,7 +461,7 @@ def _calibrate_scan(
     # The model ends where its light falls below its noise (dim beads), or at the ROI.
     model_half = half
     if roi_size is None and profile is not None and profile.reach is not None:
-        model_half = profile.reach
+        model_half = int(np.clip(profile.reach, ROI_HALF[0], half))
         log.info(
             "model cropped to %d x %d px: beyond it, the beads' light lies below the model's "
             "pixel noise (the crop holds %.1f %% of a plane's measured light)",
@@ -475,6 +487,7 @@ def _calibrate_scan(
         "z_step_nm": step,
         "roi_size_px": 2 * model_half + 1,
         "bead_roi_size_px": roi,
+        "model_shift_px": [cr - psf.pixel_centre[0], cc - psf.pixel_centre[1]],
         "offset_adu": float(scan.offset),
         "photons_per_adu": float(scan.gain),
         "threshold": float(threshold),
@@ -612,6 +625,10 @@ def _detect(
     return centres
 
 
+#: Smallest and largest half side (px) of the automatic ROI and of a model cut to its light.
+ROI_HALF = (5, 40)
+
+
 def _roi_size(
     data: NDArray[np.float64],
     centres: NDArray[np.float64],
@@ -625,7 +642,7 @@ def _roi_size(
     is measured."""
     profile = _light_profile(data, centres, variance)
     if roi_size is None:
-        half = int(np.clip(profile.half, 5, 40)) if profile is not None else 8
+        half = int(np.clip(profile.half, *ROI_HALF)) if profile is not None else 8
         roi = 2 * half + 1
         if profile is not None:
             mean, least = profile.held(half)
@@ -652,7 +669,7 @@ def _light_profile(
     room around it (up to 40 px; :func:`~sparseloc.calibrate_crowd.light_profile`, its
     neighbours and the noise ``variance`` bound it too), or None."""
     h, w = data.shape[1:]
-    max_r = int(min(40, max(6, min(h, w) // 2 - 1)))
+    max_r = int(min(ROI_HALF[1], max(6, min(h, w) // 2 - 1)))
     best: tuple[int, int] | None = None
     for i, (r, c) in enumerate(centres[:5]):
         ri, ci = int(np.round(r)), int(np.round(c))
@@ -1154,11 +1171,12 @@ def _bead_errors(
 
 def _cropped(psf: SplinePSF, half: int) -> SplinePSF:
     """``psf`` cut to ``half`` px on each side of its centre's pixel (each plane summing to one
-    photon again); ``psf`` itself where it is no larger."""
+    photon again); ``psf`` itself where it is no larger. An oversampled model keeps the
+    samples up to half a pixel past ``half``, those an emitter's sub-pixel phases render."""
     o = psf.oversample
     if 2 * half + 1 >= min(psf.stack.shape[1:]) / o:
         return psf
-    keep = half * o + o // 2  # (the samples of a pixel's phases)
+    keep = half * o + o // 2
     rc = [int(np.round(c)) for c in psf.centre]
     lo = [max(c - keep, 0) for c in rc]
     hi = [min(c + keep + 1, n) for c, n in zip(rc, psf.stack.shape[1:], strict=True)]
@@ -1347,7 +1365,7 @@ def _fit_pupil_in_frame(cal: Calibration, pupil_options: dict[str, Any] | None) 
     opts = dict(pupil_options or {})
     opts.setdefault("z_range", (float(zplanes[0]) - 500.0, float(zplanes[-1]) + 500.0))
     res = _fit_pupil(cal.average, zplanes, p, **opts)
-    cr, cc = cal.psf.pixel_centre
+    cr, cc = cal.emitter_pixel
     xc, yc = (cc + 0.5) * p, (cr + 0.5) * p
     res.frame_model = ShiftedPSF(
         res.psf, res.x0 - xc, res.y0 - yc, res.z0, z_range=(zplanes[0], zplanes[-1])

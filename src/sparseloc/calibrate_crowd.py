@@ -97,11 +97,12 @@ def light_profile(
     farther out it would measure noise.
 
     The profile's ``reach`` is where a model's light ends: the last ring whose light power
-    per pixel stands above the pixel noise variance of a model averaged over all the beads
-    (this one and ``others``); past it a model pixel would hold more noise than light, and
-    each fit would carry that noise (dim beads). The power is the product of this bead's
-    pixels with the mean of the other beads' (their noises are independent, so the product's
-    mean is the light's power alone), on the median plane; it sees a double helix's lobes,
+    per pixel stands above the pixel noise variance of an average of all the beads found
+    (this one and ``others``, each smoothed over the profile's planes); past it a model pixel
+    would hold more noise than light, and each fit would carry that noise (dim beads). The
+    power is the product of this bead's pixels with the mean of the other beads' windows
+    (their noises are independent, so the product's mean is the light's power, but for a
+    third bead's light in a window), on the median plane; it sees a double helix's lobes,
     which a ring's mean dilutes."""
     from scipy.ndimage import uniform_filter1d
 
@@ -123,7 +124,7 @@ def light_profile(
     flat = sub.reshape(sub.shape[0], -1)
     partner = _partner_mean(data, sub, others, rad, window)
     energy = np.zeros((sub.shape[0], rad + 1))
-    power = np.full(rad + 1, np.inf)
+    power = np.full(rad + 1, np.nan)  # (nan: a ring without pixels; inf: one not judged)
     for k in range(rad + 1):
         own = np.flatnonzero((ring == k) & mine)
         n_ring = int(np.count_nonzero(ring == k))
@@ -133,8 +134,9 @@ def light_profile(
         if own.size:  # (ring 0 may hold no pixel centre)
             energy[:, k] = np.clip(flat[:, own].mean(axis=1), 0.0, None) * n_ring
             both = own[np.isfinite(partner[0, own])]
-            if both.size:
-                power[k] = np.median((flat[:, both] * partner[:, both]).mean(axis=1))
+            power[k] = (
+                np.median((flat[:, both] * partner[:, both]).mean(axis=1)) if both.size else np.inf
+            )
     rad = energy.shape[1] - 1
     cum = np.cumsum(energy, axis=1)
     total = np.maximum(cum[:, -1:], 1e-12)
@@ -144,6 +146,8 @@ def light_profile(
     core = float(np.argmax(mean >= 0.5))
     # A model's light stands above its noise out to the last ring ``above`` (a ring that
     # cannot be judged counts as above); one pixel more for the emitter's sub-pixel offset.
+    # The noise is a lower bound on the model's (fewer beads may be used, and fewer planes
+    # smoothed), so the cut errs toward keeping light.
     n_beads = 1 + np.asarray(others).reshape(-1, 2).shape[0]
     above = np.flatnonzero(power >= np.median(var) / n_beads)
     reach = int(above[-1]) + 1 if np.median(var) > 0 and above.size else half

@@ -526,7 +526,7 @@ def _calibration_model(cal, idx: NDArray) -> tuple[str, NDArray, NDArray]:
     z = cal.z
     nr, nc = cal.average.shape[1:]
     p = cal.pixel_size
-    cr, cc = psf.pixel_centre
+    cr, cc = cal.emitter_pixel
     x0, y0 = (cc + 0.5) * p, (cr + 0.5) * p
     if cal.pupil is not None:
         mod = cal.pupil.frame_model.images(
