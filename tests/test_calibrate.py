@@ -879,10 +879,12 @@ def test_dim_beads_far_apart_get_the_model_of_their_light_not_of_their_noise(mod
     assert rois[2000.0] <= rois[20000.0], rois
     # the figure's model panels (the model at the emitter in the average's frame) lie on the
     # average, though the cut model is smaller than it
+    from sparseloc.calibrate_output import calibration_summary
     from sparseloc.plotting import _calibration_model
 
     dim = cals[2000.0]
     assert dim.psf.stack.shape[1] < dim.average.shape[1]
+    assert f"model {rois[2000.0]} x {rois[2000.0]} px" in calibration_summary(dim)[0]
     idx = np.arange(0, dim.z.size, 5)
     middle = (dim.average.shape[1] - 1) / 2
     for img in (_calibration_model(dim, idx)[1], dim.average[idx]):

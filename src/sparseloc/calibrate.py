@@ -130,6 +130,13 @@ class Calibration:
     bead_ncc: NDArray[np.float64] | None = None
 
     @property
+    def model_cut(self) -> int | None:
+        """The model's side (px) where it is cut to its light, smaller than ``average``'s
+        ROI; else None."""
+        side = int(self.params.get("roi_size_px", self.average.shape[1]))
+        return side if side < self.average.shape[1] else None
+
+    @property
     def emitter_pixel(self) -> tuple[float, float]:
         """The emitter's position (row, col; px) in ``average``'s frame. A model cut to its
         light is smaller than ``average`` and holds it elsewhere in its own frame

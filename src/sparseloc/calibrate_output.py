@@ -42,8 +42,12 @@ def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
     )
     if cal.params.get("bead_warning"):
         error = "  model error: not measured (one bead; see the warning below)"
-    side = int(cal.params.get("roi_size_px", nr))
-    cut = f", model {side} x {side} px (the light beyond lies below its noise)" if side < nr else ""
+    side = cal.model_cut
+    cut = (
+        ""
+        if side is None
+        else f", model {side} x {side} px (the light beyond lies below its noise)"
+    )
     lines = [
         f"{cal.n_used} of {len(cal.beads)} beads used; {nz} planes z "
         f"{cal.z[0]:.0f}..{cal.z[-1]:.0f} nm, ROI {nr} x {nc} px{cut}; "

@@ -472,7 +472,7 @@ def plot_calibration(cal, path: str | Path, *, n_planes: int = 7) -> Path:
     _bead_field(ax, cal, nr)
     ax.set_title(
         f"{cal.n_used} of {len(cal.beads)} beads used; ROI {nr} px of {p:g} nm"
-        f"{_model_side(cal, nr)}; "
+        f"{'' if cal.model_cut is None else f', model {cal.model_cut} px'}; "
         f"z {z[0]:.0f}..{z[-1]:.0f} nm in {psf.z_step:g} nm steps"
     )
     ax.set_axis_off()
@@ -538,10 +538,9 @@ def _calibration_model(cal, idx: NDArray) -> tuple[str, NDArray, NDArray]:
     up = z[idx] + psf.z_step / 2
     zs_mod = np.where(up <= psf.z_range[1], up, z[idx] - psf.z_step / 2)
     mod = psf.images(np.full(idx.size, x0), np.full(idx.size, y0), zs_mod, (nr, nc), p)
-    side = cal.params.get("roi_size_px", nr)
-    if side < nr:
+    if cal.model_cut is not None:
         # a model cut to its light holds one photon there: the average's light in its box
-        h = side // 2
+        h = cal.model_cut // 2
         box = (
             slice(None),
             slice(round(cr) - h, round(cr) + h + 1),
@@ -552,12 +551,6 @@ def _calibration_model(cal, idx: NDArray) -> tuple[str, NDArray, NDArray]:
             * (cal.average[idx][box].sum(axis=(1, 2)) / mod[box].sum(axis=(1, 2)))[:, None, None]
         )
     return "spline (half step)", mod, zs_mod
-
-
-def _model_side(cal, nr: int) -> str:
-    """ ", model N px" where the model is cut to its light, smaller than the ROI; else ""."""
-    side = cal.params.get("roi_size_px", nr)
-    return f", model {side} px" if side < nr else ""
 
 
 def _bead_field(ax, cal, nr: int) -> None:
