@@ -313,6 +313,21 @@ def _bead_residual(
 ERROR_TABLE_SMOOTHING = (2.0, 1.0, 1.0)
 
 
+def _clipped_keeping_total(var: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Each plane of the smoothed excess ``var`` (planes, rows, cols) clipped at zero and
+    scaled back to the plane's total before the clip (none where that is not positive).
+
+    Where the beads are dim, each voxel's excess is mostly noise about zero; the clip alone
+    would keep its positive half everywhere, an allowance for an error the beads do not show.
+    The plane's total is the unbiased measure of how much error there is; the clip only says
+    where it lies."""
+    total = var.sum(axis=(1, 2))
+    kept = np.maximum(var, 0.0)
+    held = kept.sum(axis=(1, 2))
+    scale = np.where(held > 0, np.maximum(total, 0.0) / np.maximum(held, 1e-300), 0.0)
+    return kept * scale[:, None, None]
+
+
 def _error_table(
     psf: SplinePSF,
     maps: NDArray,
@@ -327,7 +342,7 @@ def _error_table(
         return None
     var = np.zeros_like(maps)
     var[covered] = maps[covered] / np.maximum(count[covered], 1)
-    var = np.maximum(gaussian_filter(var, ERROR_TABLE_SMOOTHING, mode="nearest"), 0.0)
+    var = _clipped_keeping_total(gaussian_filter(var, ERROR_TABLE_SMOOTHING, mode="nearest"))
     sl = slice(covered.min(), covered.max() + 1)
     # the beads sit at the ROIs' centres plus their shifts; the table is centred on their mean
     _, h, w = maps.shape
