@@ -268,9 +268,10 @@ def _departure(cal, model):
 def test_the_model_error_of_an_exact_psf_does_not_grow_with_fewer_beads(model, scan, cal):
     """A model follows part of each bead's own noise; how much depends on the number of beads
     and on the smoothing, so it is measured, not assumed. Beads rendered from the PSF itself
-    leave the model no systematic error: two beads and nine read the same small one, below
-    the model's whole departure from the PSF (mostly the noise it holds). A plain average's
-    ``n / (n - 1)`` read two beads' error as nearly twice their departure."""
+    leave the model little systematic error: two beads and nine read the same small one,
+    within the model's whole departure from the PSF (the noise it holds and what the
+    smoothing along z flattens). A plain average's ``n / (n - 1)`` read two beads' error as
+    nearly twice their departure."""
     two = calibrate_beads(
         simulate_scan(model, scan["positions"][[0, 8]], seed=1), PX, Z_STEP, offset=OFFSET
     )
@@ -278,8 +279,19 @@ def test_the_model_error_of_an_exact_psf_does_not_grow_with_fewer_beads(model, s
     errors = [c.params["model_error"] for c in (two, cal)]
     assert abs(errors[0] - errors[1]) < 0.01, errors
     for c in (two, cal):
-        assert c.params["model_error"] < 0.5 * _departure(c, model), c.n_used
+        assert c.params["model_error"] < _departure(c, model), c.n_used
         assert 0.0 < c.params["model_self_influence"] < 1.0 / c.n_used
+
+
+def test_the_beads_smooth_their_model_along_z_as_far_as_their_noise_asks(model, scan, cal):
+    """Each plane of a bead average carries its own photon noise; the beads choose how far to
+    smooth it along z (held-out beads against the others' model), and the model then lies
+    much closer to the PSF than the unsmoothed average: a fixed ~80 nm window removed a fifth
+    of its departure on these beads, the beads' choice removes over a third."""
+    raw = calibrate_beads(scan["movie"], PX, Z_STEP, offset=OFFSET, z_smooth=False)
+    assert raw.params["z_smooth_planes"] == 0
+    assert cal.params["z_smooth_planes"] > 0
+    assert _departure(cal, model) < 2.0 / 3.0 * _departure(raw, model)
 
 
 def test_one_bead_calibrates_and_says_its_model_error_is_not_cross_checked(scan, one_bead, cal):

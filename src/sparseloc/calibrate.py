@@ -20,7 +20,8 @@ The steps (each a function over NumPy arrays; file reading only in :func:`calibr
    average weighted by brightness; repeat. Where beads lie closer than an ROI, each bead's
    ROI is cleaned of its neighbours' modelled light and the beads are registered again.
 6. Subtract what is left of the background (the median of the ROI's border per plane),
-   normalise each plane to one photon, and build a :class:`~sparseloc.psf.spline.SplinePSF`,
+   normalise each plane to one photon, smooth along z as far as the beads say
+   (:mod:`sparseloc.calibrate_zsmooth`), and build a :class:`~sparseloc.psf.spline.SplinePSF`,
    cut where the beads' light falls below the model's noise (dim beads; the model is then
    smaller than the ROI, :attr:`Calibration.emitter_pixel`).
 
@@ -36,7 +37,7 @@ from __future__ import annotations
 import copy
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +61,12 @@ from .calibrate_oversample import (
     worth_oversampling,
 )
 from .calibrate_scan import BeadScan, read_bead_positions, read_scan, read_z_file
+from .calibrate_zsmooth import (
+    choose_window,
+    clean_average,
+    fallback_window,
+    smooth_along_z,
+)
 from .camera import Camera, camera_mismatch, noise_variance
 from .psf.spline import SplinePSF
 
@@ -348,8 +355,9 @@ def calibrate_beads(
     name : str
         Name of the model.
     z_smooth : bool
-        Smooth the average along z (cubic Savitzky-Golay over ~80 nm) when the steps are
-        finer than 30 nm, so the model's z-derivative does not follow photon noise.
+        Smooth the average along z (a cubic Savitzky-Golay filter) so the model's
+        z-derivative does not follow photon noise; the beads choose the window by
+        cross-validation (:mod:`sparseloc.calibrate_zsmooth`), one bead gets about 80 nm.
     beads : array_like, shape (B, 2), optional
         The beads' known x, y (nm, native coordinates; :func:`read_bead_positions`): the
         model's lateral origin is then the emitter, placed so the matched beads sit at their
@@ -453,7 +461,9 @@ def _calibrate_scan(
         avg = _neighbour_rounds(*rounds, used, avg)
     _enough_beads(used, nb, min_beads, scan, centres, half)
     max_dz = max(abs(stacks.shifts[i][2]) for i in used)
-    clean, zplanes, sl, zwin = _model_stack(avg, scan.zplanes, max_dz, step, z_smooth)
+    sl, zplanes = _model_planes(scan.zplanes, max_dz, step)
+    zwin = _z_window(stacks, used, sl, step) if z_smooth else 0
+    clean = _model_stack(avg[sl], zwin)
     bead_ncc = np.array([_ncc_planes(stacks.aligned(i)[sl], clean) for i in used])
     # Lateral origin: the centroid of the z-averaged image (the lobes' midpoint for a DH), or
     # the emitter itself where the beads' positions are known.
@@ -483,7 +493,7 @@ def _calibrate_scan(
         """The model made again, as ``psf`` was, from the used beads' ROIs ``rois``."""
         again = copy.copy(stacks)
         again.rois = {**stacks.rois, **dict(zip(used, rois, strict=True))}
-        smooth = _model_stack(again.average(used), scan.zplanes, max_dz, step, z_smooth)[0]
+        smooth = _model_stack(again.average(used)[sl], zwin)
         model = _spline_model(smooth, again, used, sl, zwin, zplanes, centre, name)
         return _cropped(model, model_half)
 
@@ -759,7 +769,7 @@ def _without_neighbours(
     """Clean each usable bead's ROI of its neighbours' light, modelled with the current
     average at their fitted positions and brightness, and register the beads again."""
     p, half = stacks.p, stacks.half
-    model = SplinePSF(_clean_average(avg), p, scan.zplanes, name=name)
+    model = SplinePSF(clean_average(avg), p, scan.zplanes, name=name)
     placed: dict[int, tuple[float, float, float, NDArray[np.float64]]] = {}
     for j in sorted({j for near in neighbours.values() for j in near}):
         ri, ci = (int(v) for v in np.round(centres[j]))
@@ -1020,7 +1030,7 @@ class _BeadStacks:
             # shrinks the shifts (regression dilution); a light symmetric smoothing removes
             # most of that noise without moving the reference's centre.
             smooth = gaussian_filter(avg, (1.0, 0.5, 0.5), mode="nearest")
-            ref = SplinePSF(_clean_average(smooth), self.p, zplanes, normalise=False, name=name)
+            ref = SplinePSF(clean_average(smooth), self.p, zplanes, normalise=False, name=name)
             for i in ids:
                 self.shifts[i], _ = _fit_shift(ref, self.rois[i], zplanes)
                 self.tick()
@@ -1168,7 +1178,7 @@ def _bead_errors(
 ) -> dict[int, float]:
     """Each used bead's own model error against the current average (see
     :func:`_drop_outliers`)."""
-    model = SplinePSF(_clean_average(avg), stacks.p, scan.zplanes, name=name)
+    model = SplinePSF(clean_average(avg), stacks.p, scan.zplanes, name=name)
     bg = scan.background if scan.background is not None else np.zeros(scan.zplanes.size)
     rois = [stacks.rois[i] for i in used]
     shifts = [stacks.shifts[i] for i in used]
@@ -1218,40 +1228,49 @@ def _spline_model(
     o = OVERSAMPLE
     grid = oversampled_model(clean, beads, o)
     if zwin:
-        from scipy.signal import savgol_filter
-
-        grid = np.maximum(savgol_filter(grid, zwin, 3, axis=0, mode="interp"), 0.0)
+        grid = np.maximum(smooth_along_z(grid, zwin), 0.0)
     return SplinePSF(grid, p, zplanes, centre=(cr * o, cc * o), name=name, oversample=o)
 
 
-def _model_stack(
-    avg: NDArray[np.float64],
-    zplanes: NDArray[np.float64],
-    max_dz: float,
-    step: float,
-    z_smooth: bool,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], slice, int]:
-    """The average trimmed of the planes some bead's z shift pushed beyond its data,
-    cleaned and (``z_smooth``) smoothed along z; its planes' z, where they lie in the
-    untrimmed stacks, and the smoothing window (planes, 0 for none)."""
+def _model_planes(
+    zplanes: NDArray[np.float64], max_dz: float, step: float
+) -> tuple[slice, NDArray[np.float64]]:
+    """The planes of the average the model keeps: those no bead's z shift pushed beyond its
+    data (all where too few would be left), and their z."""
     trim = int(np.ceil(max_dz / step - 1e-6))
-    if avg.shape[0] - 2 * trim < 4:
+    if zplanes.size - 2 * trim < 4:
         trim = 0
-    if trim:
-        avg = avg[trim:-trim]
-        zplanes = zplanes[trim:-trim]
-    clean = _clean_average(avg)
-    sl = slice(trim, trim + clean.shape[0])
-    zwin = _z_smoothing_window(step, clean.shape[0]) if z_smooth else 0
-    if zwin:
-        # Fine z steps make the spline's z-derivative follow the photon noise of each plane,
-        # and that noise costs axial precision. A cubic Savitzky-Golay filter over ~80 nm
-        # removes the noise and keeps every feature that spans more than a few planes (as
-        # SMAP's smoothing spline).
-        from scipy.signal import savgol_filter
+    sl = slice(trim, zplanes.size - trim)
+    return sl, zplanes[sl]
 
-        clean = _clean_average(savgol_filter(clean, zwin, 3, axis=0, mode="interp"))
-    return clean, zplanes, sl, zwin
+
+def _z_window(stacks: _BeadStacks, used: list[int], sl: slice, step: float) -> int:
+    """The model's smoothing along z (planes): chosen by the beads where there are two or
+    more (:func:`~sparseloc.calibrate_zsmooth.choose_window`), else about 80 nm."""
+    n_planes = sl.stop - sl.start
+    if len(used) < 2:
+        return fallback_window(step, n_planes)
+    aligned = np.stack([stacks.aligned(i) for i in used])
+    noise = stacks.noise or CameraNoise()
+    keep = robust_keep(aligned, stacks._suspects(used), noise)[:, sl]
+    share = 1.0 / _light_scale(aligned)
+    if noise.background is not None:
+        noise = replace(noise, background=noise.background[sl])
+    choice = choose_window(aligned[:, sl], keep, share, lambda fit: noise.sd(fit) ** 2)
+    log.info(
+        "smoothing along z: %d planes (%.0f nm), chosen by cross-validation over %d beads",
+        choice.window,
+        choice.window * step,
+        len(used),
+    )
+    return choice.window
+
+
+def _model_stack(avg: NDArray[np.float64], window: int) -> NDArray[np.float64]:
+    """The average on the model's planes, cleaned and smoothed along z over ``window``
+    planes (0: not smoothed)."""
+    clean = clean_average(avg)
+    return clean_average(smooth_along_z(clean, window)) if window else clean
 
 
 def _bead_table(
@@ -1380,14 +1399,6 @@ def _fit_pupil_in_frame(cal: Calibration, pupil_options: dict[str, Any] | None) 
     return res
 
 
-def _z_smoothing_window(step: float, n_planes: int) -> int:
-    """Odd Savitzky-Golay window (planes) spanning about 80 nm; 0 for steps of 30 nm or more."""
-    if step >= 30.0:
-        return 0
-    win = round(80.0 / step) | 1
-    return win if 5 <= win <= n_planes else 0
-
-
 def _ncc_planes(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
     """Normalised cross-correlation of two stacks, plane by plane."""
     a = a.reshape(a.shape[0], -1)
@@ -1396,26 +1407,6 @@ def _ncc_planes(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.fl
     b = b - b.mean(axis=1, keepdims=True)
     den = np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1)
     return (a * b).sum(axis=1) / np.maximum(den, 1e-300)
-
-
-def _clean_average(avg: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Subtract each plane's residual background (median of the ROI border), clip what falls
-    below zero and normalise.
-
-    The clip: after the background's subtraction half the dark pixels hold noise below zero,
-    and a model of light cannot be negative (simulations refuse it, fits on it give NaN).
-    """
-    border = np.concatenate(
-        [avg[:, 0, :], avg[:, -1, :], avg[:, 1:-1, 0], avg[:, 1:-1, -1]], axis=1
-    )
-    out = np.maximum(avg - np.median(border, axis=1)[:, None, None], 0.0)
-    sums = out.sum(axis=(1, 2), keepdims=True)
-    if np.any(sums <= 0):
-        raise ValueError(
-            "a plane of the averaged bead stack holds no signal; the beads are too dim or the "
-            "z range runs far beyond where they can be seen"
-        )
-    return out / sums
 
 
 def calibrate_file(

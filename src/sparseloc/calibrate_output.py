@@ -19,9 +19,10 @@ def calibration_path(path: str | Path) -> Path:
 
 
 def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
-    """The key numbers of a calibration, one line each: beads used, planes, ROI, hash (and
-    the time taken), the model error, the model's origin, the known bead positions' offset,
-    a camera gain the stack contradicts, the rejected beads by reason and the pupil fit.
+    """The key numbers of a calibration, one line each: beads used, planes (and the smoothing
+    along z the beads chose), ROI, hash (and the time taken), the model error, the model's
+    origin, the known bead positions' offset, a camera gain the stack contradicts, the
+    rejected beads by reason and the pupil fit.
 
     Parameters
     ----------
@@ -48,9 +49,11 @@ def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
         if side is None
         else f", model {side} x {side} px (the light beyond lies below its noise)"
     )
+    window = cal.params.get("z_smooth_planes", 0)
+    smoothed = f" smoothed over {window * cal.params['z_step_nm']:.0f} nm" if window else ""
     lines = [
         f"{cal.n_used} of {len(cal.beads)} beads used; {nz} planes z "
-        f"{cal.z[0]:.0f}..{cal.z[-1]:.0f} nm, ROI {nr} x {nc} px{cut}; "
+        f"{cal.z[0]:.0f}..{cal.z[-1]:.0f} nm{smoothed}, ROI {nr} x {nc} px{cut}; "
         f"hash {cal.content_hash}{took}",
         error,
     ]
