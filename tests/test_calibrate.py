@@ -265,29 +265,30 @@ def _departure(cal, model):
     return min(departure(dz) for dz in np.arange(-50.0, 50.1, 2.5))
 
 
-def test_the_model_error_of_an_exact_psf_does_not_grow_with_fewer_beads(model, scan, cal):
+def test_the_model_error_of_an_exact_psf_does_not_grow_with_fewer_beads(model, scan):
     """A model follows part of each bead's own noise; how much depends on the number of beads
     and on the smoothing, so it is measured, not assumed. Beads rendered from the PSF itself
-    leave the model little systematic error: two beads and nine read the same small one,
-    within the model's whole departure from the PSF (the noise it holds and what the
-    smoothing along z flattens). A plain average's ``n / (n - 1)`` read two beads' error as
-    nearly twice their departure."""
-    two = calibrate_beads(
-        simulate_scan(model, scan["positions"][[0, 8]], seed=1), PX, Z_STEP, offset=OFFSET
-    )
-    assert two.n_used == 2
-    errors = [c.params["model_error"] for c in (two, cal)]
+    leave an unsmoothed model no systematic error: two beads and nine read the same small one,
+    below the model's whole departure from the PSF (mostly the noise it holds). A plain
+    average's ``n / (n - 1)`` read two beads' error as nearly twice their departure. (The
+    smoothing along z is off: the beads choose it by their number, and what it flattens is
+    a systematic error.)"""
+    kw = dict(offset=OFFSET, z_smooth=False)
+    two = calibrate_beads(simulate_scan(model, scan["positions"][[0, 8]], seed=1), PX, Z_STEP, **kw)
+    nine = calibrate_beads(scan["movie"], PX, Z_STEP, **kw)
+    assert two.n_used == 2 and nine.n_used == 9
+    errors = [c.params["model_error"] for c in (two, nine)]
     assert abs(errors[0] - errors[1]) < 0.01, errors
-    for c in (two, cal):
-        assert c.params["model_error"] < _departure(c, model), c.n_used
+    for c in (two, nine):
+        assert c.params["model_error"] < 0.5 * _departure(c, model), c.n_used
         assert 0.0 < c.params["model_self_influence"] < 1.0 / c.n_used
 
 
 def test_the_beads_smooth_their_model_along_z_as_far_as_their_noise_asks(model, scan, cal):
     """Each plane of a bead average carries its own photon noise; the beads choose how far to
     smooth it along z (held-out beads against the others' model), and the model then lies
-    much closer to the PSF than the unsmoothed average: a fixed ~80 nm window removed a fifth
-    of its departure on these beads, the beads' choice removes over a third."""
+    much closer to the PSF than the unsmoothed average, closer than a fixed window of a few
+    planes brings it."""
     raw = calibrate_beads(scan["movie"], PX, Z_STEP, offset=OFFSET, z_smooth=False)
     assert raw.params["z_smooth_planes"] == 0
     assert cal.params["z_smooth_planes"] > 0
@@ -958,21 +959,21 @@ def test_the_model_error_is_kept_pixel_by_pixel_and_saved(tmp_path, cal, mixed):
 
 
 def test_dim_beads_leave_the_error_table_their_error_not_their_noise(model):
-    """Beads rendered from the PSF itself leave the model no systematic error. Dim beads'
-    excess is mostly noise about zero pixel by pixel, and clipped at zero it kept its positive
-    half everywhere: an allowance of 8 % of the signal for an error the beads do not show,
-    which cost the count selection a tenth of the dim emitters. Each plane of the table now
-    holds the plane's total excess, as the model error does."""
+    """Beads rendered from the PSF itself leave the model little systematic error. Dim beads'
+    excess is mostly noise about zero pixel by pixel, and clipped at zero it would keep its
+    positive half everywhere: an allowance for an error the beads do not show, which costs
+    the count selection dim emitters. The table holds no more than the error the beads'
+    residuals show overall (the model error)."""
     pos = np.array([(x, y) for y in (3000.0, 9000.0) for x in (3000.0, 9000.0)])
     pos = pos + np.random.default_rng(2).uniform(-50, 50, pos.shape)
     cal = calibrate_beads(simulate_scan(model, pos, photons=2000.0, seed=1), PX, Z_STEP,
                           offset=OFFSET)  # fmt: skip
-    assert cal.params["model_error"] < 0.01
     z = np.array([-400.0, -200.0, 0.0, 200.0, 400.0])
     at = (np.full(z.size, 3000.0), np.full(z.size, 3000.0), z)
-    allowance = cal.psf.error_table.render(*at, np.ones(z.size), (41, 41), PX).sum()
+    table = cal.psf.error_table
+    allowance = 0.0 if table is None else table.render(*at, np.ones(z.size), (41, 41), PX).sum()
     signal = (cal.psf.images(*at, (41, 41), PX) ** 2).sum()
-    assert np.sqrt(allowance / signal) < 0.04
+    assert np.sqrt(allowance / signal) < cal.params["model_error"] + 0.02
 
 
 def test_calibration_too_far_from_its_beads_is_refused(monkeypatch, two_psfs):
@@ -1111,10 +1112,9 @@ def _astig_beads_160nm():
 
 def test_the_model_check_allows_for_the_error_the_calibration_measured(monkeypatch):
     """Astigmatic beads on 160 nm pixels, modelled at the camera's pixels: the calibration
-    measures its model error (about 10 % of the signal: the bead images are sampled coarsely)
-    and the count selection allows for it; the run's model check said "misfit" all the same
-    (median goodness of fit 1.35 against a bar of 1.26) and named a wrong PSF or camera as the
-    likely cause."""
+    measures its model error (the bead images are sampled coarsely) and the count selection
+    allows for it; the run's model check must allow for it too, or it calls a misfit the
+    calibration measured and names a wrong PSF or camera as the likely cause."""
     import sparseloc.calibrate as calibrate_module
     from sparseloc.model_check import check_fit
     from sparseloc.pipeline import LocalizeParams, localize, work_model_for
@@ -1127,10 +1127,12 @@ def test_the_model_check_allows_for_the_error_the_calibration_measured(monkeypat
     res = localize(movie.movie.astype(float) - OFFSET, work_model_for(cal.psf, params), params)
     check = res.metadata["model_check"]
     assert check["verdict"] == "ok"
-    # the same windows without the calibration's error: above the bar
-    k = check["dof"]
-    bare = check_fit(np.full(5, check["median_gof"]), np.full(5, k))
-    assert bare.verdict == "misfit"
+    # the windows misfit far beyond a correct model's spread, up to the bar of a check that
+    # knows no model error, and the check raised its bar by what the calibration measured
+    n, k = check["fits"], check["dof"]
+    bare = check_fit(np.full(n, check["median_gof"]), np.full(n, k))
+    assert check["median_gof"] > 1.0 + 0.8 * (bare.upper - 1.0)
+    assert check["upper"] > bare.upper + 0.05
 
 
 def test_coarse_pixels_are_modelled_on_a_finer_grid(monkeypatch, cal):

@@ -65,7 +65,10 @@ from .calibrate_zsmooth import (
     choose_window,
     clean_average,
     fallback_window,
+    kept_mean,
+    model_stack,
     smooth_along_z,
+    smoothing_nm,
 )
 from .camera import Camera, camera_mismatch, noise_variance
 from .psf.spline import SplinePSF
@@ -357,7 +360,8 @@ def calibrate_beads(
     z_smooth : bool
         Smooth the average along z (a cubic Savitzky-Golay filter) so the model's
         z-derivative does not follow photon noise; the beads choose the window by
-        cross-validation (:mod:`sparseloc.calibrate_zsmooth`), one bead gets about 80 nm.
+        cross-validation (:mod:`sparseloc.calibrate_zsmooth`); one bead gets about 80 nm,
+        none for steps of 30 nm or more.
     beads : array_like, shape (B, 2), optional
         The beads' known x, y (nm, native coordinates; :func:`read_bead_positions`): the
         model's lateral origin is then the emitter, placed so the matched beads sit at their
@@ -463,7 +467,7 @@ def _calibrate_scan(
     max_dz = max(abs(stacks.shifts[i][2]) for i in used)
     sl, zplanes = _model_planes(scan.zplanes, max_dz, step)
     zwin = _z_window(stacks, used, sl, step) if z_smooth else 0
-    clean = _model_stack(avg[sl], zwin)
+    clean = model_stack(avg[sl], zwin)
     bead_ncc = np.array([_ncc_planes(stacks.aligned(i)[sl], clean) for i in used])
     # Lateral origin: the centroid of the z-averaged image (the lobes' midpoint for a DH), or
     # the emitter itself where the beads' positions are known.
@@ -493,7 +497,7 @@ def _calibrate_scan(
         """The model made again, as ``psf`` was, from the used beads' ROIs ``rois``."""
         again = copy.copy(stacks)
         again.rois = {**stacks.rois, **dict(zip(used, rois, strict=True))}
-        smooth = _model_stack(again.average(used)[sl], zwin)
+        smooth = model_stack(again.average(used)[sl], zwin)
         model = _spline_model(smooth, again, used, sl, zwin, zplanes, centre, name)
         return _cropped(model, model_half)
 
@@ -1106,14 +1110,12 @@ def robust_average(
     stacks: NDArray[np.float64], suspects: NDArray[np.bool_], noise: CameraNoise | None = None
 ) -> NDArray[np.float64]:
     """The mean of registered bead stacks (B, Nz, R, R) over the voxels :func:`robust_keep`
-    keeps: each voxel the sum of the kept beads' light over their share of the beads' total
-    light, so brighter beads weigh more, as in the plain mean (which it equals where every
-    voxel is kept); ``noise`` as in :func:`robust_keep`."""
+    keeps (:func:`~sparseloc.calibrate_zsmooth.kept_mean`); ``noise`` as in
+    :func:`robust_keep`."""
     keep = robust_keep(stacks, suspects, noise)
     if keep.all():
         return stacks.mean(axis=0)
-    share = 1.0 / _light_scale(stacks)  # each bead's light over the beads' mean
-    return (stacks * keep).sum(axis=0) / np.maximum((share * keep).sum(axis=0), 1e-12)
+    return kept_mean(stacks, keep, 1.0 / _light_scale(stacks))
 
 
 def _drop_outliers(
@@ -1246,31 +1248,29 @@ def _model_planes(
 
 def _z_window(stacks: _BeadStacks, used: list[int], sl: slice, step: float) -> int:
     """The model's smoothing along z (planes): chosen by the beads where there are two or
-    more (:func:`~sparseloc.calibrate_zsmooth.choose_window`), else about 80 nm."""
-    n_planes = sl.stop - sl.start
+    more (:func:`~sparseloc.calibrate_zsmooth.choose_window`), else
+    :func:`~sparseloc.calibrate_zsmooth.fallback_window` (about 80 nm, none for steps of
+    30 nm or more)."""
+    fallback = fallback_window(step, sl.stop - sl.start)
     if len(used) < 2:
-        return fallback_window(step, n_planes)
+        return fallback
     aligned = np.stack([stacks.aligned(i) for i in used])
     noise = stacks.noise or CameraNoise()
     keep = robust_keep(aligned, stacks._suspects(used), noise)[:, sl]
     share = 1.0 / _light_scale(aligned)
     if noise.background is not None:
         noise = replace(noise, background=noise.background[sl])
-    choice = choose_window(aligned[:, sl], keep, share, lambda fit: noise.sd(fit) ** 2)
+    try:
+        choice = choose_window(aligned[:, sl], keep, share, lambda fit: noise.sd(fit) ** 2)
+    except ValueError:  # a group of beads left a plane without light: the beads cannot tell
+        return fallback
     log.info(
         "smoothing along z: %d planes (%.0f nm), chosen by cross-validation over %d beads",
         choice.window,
-        choice.window * step,
+        smoothing_nm(choice.window, step),
         len(used),
     )
     return choice.window
-
-
-def _model_stack(avg: NDArray[np.float64], window: int) -> NDArray[np.float64]:
-    """The average on the model's planes, cleaned and smoothed along z over ``window``
-    planes (0: not smoothed)."""
-    clean = clean_average(avg)
-    return clean_average(smooth_along_z(clean, window)) if window else clean
 
 
 def _bead_table(

@@ -314,18 +314,17 @@ ERROR_TABLE_SMOOTHING = (2.0, 1.0, 1.0)
 
 
 def _clipped_keeping_total(var: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Each plane of the smoothed excess ``var`` (planes, rows, cols) clipped at zero and
-    scaled back to the plane's total before the clip (none where that is not positive).
+    """The smoothed excess ``var`` (planes, rows, cols) clipped at zero and scaled back to its
+    total before the clip (zero where that total is not positive).
 
     Where the beads are dim, each voxel's excess is mostly noise about zero; the clip alone
     would keep its positive half everywhere, an allowance for an error the beads do not show.
-    The plane's total is the unbiased measure of how much error there is; the clip only says
-    where it lies."""
-    total = var.sum(axis=(1, 2))
+    The total is the unbiased measure of how much error there is, pooled over the planes as
+    the model error is (one plane's total is itself noise there); the clip only says where
+    the error lies."""
     kept = np.maximum(var, 0.0)
-    held = kept.sum(axis=(1, 2))
-    scale = np.where(held > 0, np.maximum(total, 0.0) / np.maximum(held, 1e-300), 0.0)
-    return kept * scale[:, None, None]
+    held = float(kept.sum())
+    return kept * (max(float(var.sum()), 0.0) / held if held > 0 else 0.0)
 
 
 def _error_table(

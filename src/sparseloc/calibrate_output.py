@@ -6,6 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from .calibrate_zsmooth import smoothing_nm
+
 __all__ = ["calibration_path", "calibration_summary", "write_calibration"]
 
 
@@ -50,7 +52,8 @@ def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
         else f", model {side} x {side} px (the light beyond lies below its noise)"
     )
     window = cal.params.get("z_smooth_planes", 0)
-    smoothed = f" smoothed over {window * cal.params['z_step_nm']:.0f} nm" if window else ""
+    span = smoothing_nm(window, cal.params["z_step_nm"])
+    smoothed = f" smoothed over {span:.0f} nm" if window else ""
     lines = [
         f"{cal.n_used} of {len(cal.beads)} beads used; {nz} planes z "
         f"{cal.z[0]:.0f}..{cal.z[-1]:.0f} nm{smoothed}, ROI {nr} x {nc} px{cut}; "

@@ -9,6 +9,10 @@ with the model made from the other beads at every candidate window, and the wind
 smallest noise-weighted misfit wins. A held-out bead's noise is independent of the model it is
 compared with, so its misfit is its own noise, the same at every window, plus the model's
 departure from the true PSF, which is what the window trades: noise against flattening.
+Each group's model rests on fewer beads than the final one, so the choice leans a little
+towards wider windows (most with two beads, each then predicted from the other alone); and
+where the model is refined on a grid finer than the pixels, the window chosen on the pixels'
+average is applied to that grid.
 """
 
 from __future__ import annotations
@@ -27,7 +31,10 @@ __all__ = [
     "choose_window",
     "clean_average",
     "fallback_window",
+    "kept_mean",
+    "model_stack",
     "smooth_along_z",
+    "smoothing_nm",
 ]
 
 #: Candidate smoothing windows (planes, odd); 0 (none) is always a candidate.
@@ -42,6 +49,21 @@ def clean_average(avg: NDArray[np.float64]) -> NDArray[np.float64]:
 
     The clip: after the background's subtraction half the dark pixels hold noise below zero,
     and a model of light cannot be negative (simulations refuse it, fits on it give NaN).
+
+    Parameters
+    ----------
+    avg : ndarray, shape (Nz, R, R)
+        A bead average (photons less the frame's background).
+
+    Returns
+    -------
+    ndarray, shape (Nz, R, R)
+        Each plane non-negative and summing to one.
+
+    Raises
+    ------
+    ValueError
+        Where a plane holds no light above its border.
     """
     border = np.concatenate(
         [avg[:, 0, :], avg[:, -1, :], avg[:, 1:-1, 0], avg[:, 1:-1, -1]], axis=1
@@ -56,6 +78,34 @@ def clean_average(avg: NDArray[np.float64]) -> NDArray[np.float64]:
     return out / sums
 
 
+def kept_mean(
+    stacks: NDArray[np.float64], keep: NDArray[np.bool_], share: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """The beads' mean over the voxels each keeps: each voxel the sum of the kept beads' light
+    over their share of the beads' total light, so brighter beads weigh more, as in the plain
+    mean (which it equals where every voxel is kept).
+
+    Parameters
+    ----------
+    stacks : ndarray, shape (B, Nz, R, R)
+        Registered beads (photons less the frame's background).
+    keep : ndarray of bool, shape (B, Nz, R, R)
+        The voxels to average.
+    share : ndarray, shape (B, 1, 1, 1)
+        Each bead's light over the beads' mean.
+
+    Returns
+    -------
+    ndarray, shape (Nz, R, R)
+    """
+    light = np.zeros(stacks.shape[1:])
+    weight = np.zeros(stacks.shape[1:])
+    for bead, kept, w in zip(stacks, keep, share, strict=True):
+        light += np.where(kept, bead, 0.0)
+        weight += w * kept
+    return light / np.maximum(weight, 1e-12)
+
+
 def smooth_along_z(stack: NDArray[np.float64], window: int) -> NDArray[np.float64]:
     """``stack`` (Nz, ...) smoothed along its first axis by a cubic Savitzky-Golay filter of
     ``window`` planes (odd, at least 5); unchanged for ``window`` 0."""
@@ -64,13 +114,30 @@ def smooth_along_z(stack: NDArray[np.float64], window: int) -> NDArray[np.float6
     return savgol_filter(stack, window, 3, axis=0, mode="interp")
 
 
+def model_stack(avg: NDArray[np.float64], window: int) -> NDArray[np.float64]:
+    """The model stack of a bead average ``avg`` (Nz, R, R; photons less background): cleaned
+    (:func:`clean_average`) and smoothed along z over ``window`` planes (0: not smoothed)."""
+    return _smoothed(clean_average(avg), window)
+
+
+def _smoothed(clean: NDArray[np.float64], window: int) -> NDArray[np.float64]:
+    """A cleaned average smoothed along z over ``window`` planes and cleaned again."""
+    return clean_average(smooth_along_z(clean, window)) if window else clean
+
+
 def fallback_window(step: float, n_planes: int) -> int:
-    """The window where the beads cannot choose (one bead): about 80 nm of ``step`` nm
-    planes, none for steps of 30 nm or more or for fewer than 5 planes."""
+    """The window (planes) where the beads cannot choose (one bead): about 80 nm of ``step``
+    nm planes; none for steps of 30 nm or more or where ``n_planes`` is too few."""
     if step >= 30.0:
         return 0
     win = round(80.0 / step) | 1
     return win if 5 <= win <= n_planes else 0
+
+
+def smoothing_nm(window: int, step: float) -> float:
+    """The z span (nm) of a smoothing window of ``window`` planes ``step`` nm apart: from its
+    first plane to its last."""
+    return max(window - 1, 0) * step
 
 
 @dataclass(frozen=True)
@@ -116,6 +183,11 @@ def choose_window(
     Returns
     -------
     ZWindow
+
+    Raises
+    ------
+    ValueError
+        For fewer than two beads, or where a group's model has a plane without light.
     """
     n_beads, n_planes = aligned.shape[:2]
     if n_beads < 2:
@@ -124,33 +196,34 @@ def choose_window(
     misfit = np.zeros(len(candidates))
     groups = np.arange(n_beads) % min(FOLDS, n_beads)
     for g in range(groups.max() + 1):
-        train = groups != g
-        light = (aligned[train] * keep[train]).sum(axis=0)
-        weight = (share[train] * keep[train]).sum(axis=0)
-        base = clean_average(light / np.maximum(weight, 1e-12))
-        for k, window in enumerate(candidates):
-            model = clean_average(smooth_along_z(base, window)) if window else base
-            for b in np.flatnonzero(~train):
-                misfit[k] += _misfit(aligned[b], keep[b], model, variance)
+        train = np.flatnonzero(groups != g)
+        base = clean_average(kept_mean(aligned[train], keep[train], share[train]))
+        models = [_smoothed(base, window) for window in candidates]
+        for b in np.flatnonzero(groups == g):
+            for k, model in enumerate(models):
+                # each window's fit weighs its own residuals: weights from the unsmoothed
+                # model's fit would carry that model's noise into every window's score
+                fit = _plane_fit(aligned[b], keep[b], model)
+                chi2 = (aligned[b] - fit) ** 2 / variance(fit)
+                misfit[k] += float(np.sum(np.where(keep[b], chi2, 0.0)))
     best = int(np.argmin(misfit))
     return ZWindow(candidates[best], candidates, misfit - misfit[best])
 
 
-def _misfit(
-    bead: NDArray[np.float64],
-    keep: NDArray[np.bool_],
-    model: NDArray[np.float64],
-    variance: Callable[[NDArray[np.float64]], NDArray[np.float64]],
-) -> float:
-    """Chi-square of one bead (Nz, R, R) against ``model`` with a least-squares scale and
-    offset per plane, over the voxels of ``keep``."""
-    m = model.reshape(model.shape[0], -1)
-    x = bead.reshape(bead.shape[0], -1)
-    mc = m - m.mean(axis=1, keepdims=True)
-    xm = x.mean(axis=1, keepdims=True)
-    scale = (mc * (x - xm)).sum(axis=1, keepdims=True) / np.maximum(
-        (mc**2).sum(axis=1, keepdims=True), 1e-300
+def _plane_fit(
+    bead: NDArray[np.float64], keep: NDArray[np.bool_], model: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """``model`` (Nz, R, R) fitted to ``bead`` plane by plane, a least-squares scale and
+    offset over the voxels of ``keep``."""
+    shape = bead.shape
+    w = keep.reshape(shape[0], -1).astype(np.float64)
+    m = model.reshape(shape[0], -1)
+    x = bead.reshape(shape[0], -1)
+    n = np.maximum(w.sum(axis=1, keepdims=True), 1.0)
+    mm = (w * m).sum(axis=1, keepdims=True) / n
+    xm = (w * x).sum(axis=1, keepdims=True) / n
+    mc = m - mm
+    scale = (w * mc * (x - xm)).sum(axis=1, keepdims=True) / np.maximum(
+        (w * mc**2).sum(axis=1, keepdims=True), 1e-300
     )
-    fit = scale * mc + xm
-    var = variance(fit.reshape(bead.shape)).reshape(fit.shape)
-    return float((((x - fit) ** 2 / var) * keep.reshape(fit.shape)).sum())
+    return (scale * mc + xm).reshape(shape)
