@@ -192,6 +192,11 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
     res = run("localize", movie, "-o", tmp_path / "locs_t.parquet", "--config", cfg_s)
     assert res.exit_code == 0, res.output
     assert read_parquet(tmp_path / "locs_t.parquet")[1]["params"]["second_start"] is False
+    assert meta["params"]["regrow"] is True  # the default
+    out_g = tmp_path / "locs_g.parquet"
+    res = run("localize", movie, "-o", out_g, "--config", cfg, "--no-regrow")
+    assert res.exit_code == 0, res.output
+    assert read_parquet(out_g)[1]["params"]["regrow"] is False
     assert meta["params"]["haze"] is False  # the default
     res = run("localize", movie, "-o", tmp_path / "locs_h.parquet", "--config", cfg, "--haze")
     assert res.exit_code == 0, res.output

@@ -702,6 +702,14 @@ def localize(
             "fit per region (default on; off: about 2x faster on crowded frames).",
         ),
     ] = None,
+    regrow: Annotated[
+        bool | None,
+        typer.Option(
+            "--regrow/--no-regrow",
+            help="Also solve each group of overlapping images again from one emitter, adding "
+            "one at a time, and keep the likelier arrangement per region (default on).",
+        ),
+    ] = None,
     haze: Annotated[
         bool | None,
         typer.Option(
@@ -825,6 +833,7 @@ def localize(
         "min_snr": min_snr,
         "refine": refine,
         "second_start": second_start,
+        "regrow": regrow,
         "haze": haze,
         "relocate": relocate,
         "frame_schedule": frame_schedule,

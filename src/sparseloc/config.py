@@ -139,6 +139,12 @@ class LocalizeParams:
         by region, the likelier of the two fits (:mod:`sparseloc.solvers.frame_compose`):
         more emitters found right in crowds, at the cost of the second fit where the two
         starts differ (``docs/benchmarks/second_start.txt``). False: the pursuit's start alone.
+    regrow : bool
+        The whole-frame solver also solves each group of two or more emitters of its fit
+        once more from one emitter, adding one at a time with joint refits
+        (:mod:`sparseloc.solvers.frame_grow`), and keeps, region by region, the likelier
+        arrangement: where images overlap, the pursuit's first emitter can land between two
+        of them and the fits keep that arrangement (``docs/benchmarks/regrow.txt``).
     haze : bool
         The sample adds a haze (autofluorescence, out-of-focus light) broader than one
         emitter's image: each window fit of the frame solver scales the background
@@ -173,6 +179,7 @@ class LocalizeParams:
     relocate: int = RELOCATE
     frame_schedule: str = "auto"
     second_start: bool = True
+    regrow: bool = True
     haze: bool = False
 
     def __post_init__(self) -> None:
@@ -500,6 +507,7 @@ def build_job(options: dict[str, Any], movie: Any) -> LocalizeJob:
         **({} if opts["relocate"] is None else {"relocate": opts["relocate"]}),
         **({} if opts["frame_schedule"] is None else {"frame_schedule": opts["frame_schedule"]}),
         second_start=opts["second_start"],
+        regrow=opts["regrow"],
         haze=opts["haze"],
     )
     return LocalizeJob(model, cam, params, start, stop, read_var if read_var.ndim == 2 else None)

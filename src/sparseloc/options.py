@@ -57,6 +57,7 @@ LOCALIZE_DEFAULTS: dict[str, Any] = {
     "background": "auto",
     "refine": True,
     "second_start": True,
+    "regrow": True,
     "haze": False,
     "frames": None,
     "format": None,
@@ -80,7 +81,7 @@ LOCALIZE_DEFAULTS: dict[str, Any] = {
 _NUMBERS = ("pixel_size", "offset", "gain", "em_gain", "qe", "z_min", "z_max", "min_snr")
 _NUMBERS += ("n_sample", "focal_depth", "read_noise", "na", "wavelength", "mask_radius", "blur")
 _WHOLE = ("window", "margin", "workers", "chunk_frames", "relocate")
-_FLAGS = ("refine", "second_start", "haze", "overwrite")
+_FLAGS = ("refine", "second_start", "regrow", "haze", "overwrite")
 _TEXT = ("psf", "camera", "method", "background", "frames", "format", "engine", "scheduler")
 _TEXT += ("frame_schedule",)
 _PATHS = ("offset_map", "variance_map", "gain_map", "run_dir")

@@ -56,6 +56,7 @@ from .solvers.frame_compose import (
     shifted,
     subset,
 )
+from .solvers.frame_grow import grown_groups
 from .solvers.frame_l1 import l1_templates, tiled_l1_starts
 from .solvers.frame_windows import background_shape
 from .solvers.refine import LR_THRESHOLD, refine_solution
@@ -310,17 +311,20 @@ class _FrameSolver:
         shape: NDArray | None = None,
     ) -> FrameFit:
         """The whole-frame solver on ``frame`` (or a crop of the frame, with its read
-        variance and background shape): the pursuit, the fits and the second start, with the
-        light ``fixed_light`` (photons/pixel, the image's shape) known."""
+        variance and background shape): the pursuit, the fits, the second start and the
+        regrown groups, with the light ``fixed_light`` (photons/pixel, the image's shape)
+        known."""
         seen = background if fixed_light is None else background + fixed_light
         start = self.start(frame, seen, read_variance)
         kw = self.fit_kwargs(read_variance, shape)
-        first = frame_fit(
+        fit = frame_fit(
             frame, self.model, start, background=background, fixed_light=fixed_light, **kw
         )
-        if self.l1 is None:
-            return first
-        return self.second(frame, background, first, fixed_light, read_variance, shape)
+        if self.l1 is not None:
+            fit = self.second(frame, background, fit, fixed_light, read_variance, shape)
+        if self.p.regrow:
+            fit = self.regrown(frame, background, fit, fixed_light, kw)
+        return fit
 
     def second(
         self,
@@ -365,13 +369,36 @@ class _FrameSolver:
             group_distance=self.group_distance,
             pad=self.pad,
             penalty=add_threshold(None, p.qe),
-            fit_kwargs={
-                k: v
-                for k, v in kw.items()
-                if k in ("noise", "qe", "read_variance", "background_shape")
-            },
+            fit_kwargs=_likelihood_kwargs(kw),
             fixed_light=fixed_light,
         )
+
+    def regrown(
+        self,
+        frame: NDArray,
+        background: NDArray,
+        fit: FrameFit,
+        fixed_light: NDArray | None,
+        kw: dict,
+    ) -> FrameFit:
+        """``fit`` with each region where its groups grown again from one emitter
+        (:func:`~sparseloc.solvers.frame_grow.grown_groups`) are likelier replaced by them.
+        ``kw``: :meth:`fit_kwargs` of the frame (or crop)."""
+        p = self.p
+        lik = _likelihood_kwargs(kw)
+        common = dict(
+            pixel_size=p.pixel_size,
+            group_distance=self.group_distance,
+            pad=self.pad,
+            penalty=add_threshold(None, p.qe),
+            fit_kwargs=lik,
+            fixed_light=fixed_light,
+        )
+        bg = np.broadcast_to(background, np.shape(frame))
+        grown = grown_groups(frame, bg, fit, self.model, **common)
+        if grown is None:
+            return fit
+        return likelier_per_region(frame, bg, fit, grown, self.model, **common)
 
     def crop_fit(
         self,
@@ -420,6 +447,12 @@ class _FrameSolver:
             return None
         fit = frame_fit(crop, self.model, starts, background=bg, fixed_light=light, **kw)
         return shifted(fit, *origin)
+
+
+def _likelihood_kwargs(kw: dict) -> dict:
+    """The likelihood's keywords among :meth:`_FrameSolver.fit_kwargs`."""
+    keys = ("noise", "qe", "read_variance", "background_shape")
+    return {k: v for k, v in kw.items() if k in keys}
 
 
 def _frame_rows(fit: FrameFit, frame: int, id0: int) -> dict:

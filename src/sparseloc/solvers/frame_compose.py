@@ -37,6 +37,7 @@ from .refine import fit_with_count_selection
 __all__ = [
     "REGION_MAX_ENTRIES",
     "UNION_MAX",
+    "as_frame_fit",
     "crowded_boxes",
     "inside",
     "joined",
@@ -241,7 +242,7 @@ def likelier_per_region(
         if best == 1:
             use_b[eb] = True
         elif best == 2:
-            unions.append(_as_frame_fit(settled))
+            unions.append(as_frame_fit(settled))
     out = joined(subset(first, use_a), subset(second, use_b))
     for u in unions:
         out = joined(out, u)
@@ -277,7 +278,7 @@ def _likeliest(
     return int(np.argmax(scores)), settled
 
 
-def _as_frame_fit(fit: FitResult) -> FrameFit:
+def as_frame_fit(fit: FitResult) -> FrameFit:
     """A window fit's emitters as one group of a frame fit."""
     k = len(fit.emitters)
     return FrameFit(

@@ -1,0 +1,122 @@
+"""A third start for crowded regions: each grown again from one emitter.
+
+The pursuit places its emitters on a fixed grid, one after the other, each on the residual of
+the ones before; where two images overlap, the first lands between them and the rest explain
+what it leaves, and the fits from there keep the wrong arrangement. The L1 deconvolution's
+peaks (the second start) get stuck elsewhere. Here each group of two or more emitters of a
+frame's fit is solved once more in its window, with every other emitter's light known: from
+the one best PSF position of what that light and the background leave, the count selection
+adds one emitter at a time (the best position of the residual) and refits them all jointly
+after each addition, so that an emitter placed between two images moves onto one of them
+before the next is placed. :func:`~sparseloc.solvers.frame_compose.likelier_per_region` then
+keeps, region by region, the likelier arrangement (``docs/benchmarks/regrow.txt``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..psf.base import PSFModel
+from .emitters import Emitters
+from .frame import SINGLE_THRESHOLD, FrameFit
+from .frame_compose import as_frame_fit, joined, subset
+from .frame_windows import NeighbourLight, emitter_groups, window_box, window_data, window_kwargs
+from .mp import MIN_PHOTONS
+from .refine import fit_with_count_selection, residual_candidates
+
+__all__ = ["GROW_MAX_GROUP", "grown_groups"]
+
+#: Groups are split into parts of at most this many emitters (as the frame solver's fits
+#: are): each addition refits a part jointly, so its cost grows with the part's size cubed.
+GROW_MAX_GROUP = 10
+
+
+def grown_groups(
+    frame: NDArray,
+    background: NDArray,
+    fit: FrameFit,
+    model: PSFModel,
+    *,
+    pixel_size: float,
+    group_distance: float,
+    pad: int,
+    penalty: float,
+    fit_kwargs: dict,
+    fixed_light: NDArray | None = None,
+) -> FrameFit | None:
+    """``fit`` with each group of two or more of its emitters solved again from one emitter,
+    or None where it has no such group.
+
+    Parameters
+    ----------
+    frame : ndarray, shape (rows, cols)
+        The frame (photons).
+    background : ndarray, shape (rows, cols)
+        Its background (photons/pixel): each window fit's start.
+    fit : FrameFit
+        The frame's fit; its groups are those of the frame solver (emitters closer than
+        ``group_distance``, split into parts of at most :data:`GROW_MAX_GROUP`).
+    model : PSFModel
+        The PSF model.
+    pixel_size : float
+        Pixel size (nm).
+    group_distance : float
+        Emitters closer than this (nm, laterally) form a group.
+    pad : int
+        Pixels around a group's emitters in its window.
+    penalty : float
+        The count selection's threshold (``2 log L`` per emitter); a lone emitter's removal
+        uses :data:`~sparseloc.solvers.frame.SINGLE_THRESHOLD`.
+    fit_kwargs : dict
+        The likelihood's keywords (``noise``, ``qe``, ``read_variance``,
+        ``background_shape``; maps over the frame, cropped to each window).
+    fixed_light : ndarray, shape (rows, cols), optional
+        Light known beside ``fit``'s emitters (photons/pixel).
+
+    Returns
+    -------
+    FrameFit or None
+        Emitters in frame coordinates; each grown group's emitters share its window's
+        background, goodness of fit and group index 0.
+    """
+    arr = fit.emitters.as_array().reshape(-1, 4)
+    groups = [g for g in emitter_groups(arr[:, :2], group_distance, GROW_MAX_GROUP) if len(g) > 1]
+    if not groups:
+        return None
+    shape = np.shape(frame)
+    bg = np.broadcast_to(background, shape)
+    light = NeighbourLight(model, shape, pixel_size)
+    redone = np.zeros(len(arr), bool)
+    grown: FrameFit | None = None
+    for g in groups:
+        box = window_box(arr[g], *shape, pixel_size, pad)
+        r0, r1, c0, c1 = box
+        rest = np.delete(arr, g, axis=0)
+        offset = light.window(rest, box) if len(rest) else np.zeros((r1 - r0, c1 - c0))
+        if fixed_light is not None:
+            offset = offset + fixed_light[r0:r1, c0:c1]
+        start_bg = float(max(np.median(bg[r0:r1, c0:c1]), 1e-3))
+        kw = window_kwargs(frame, box, pixel_size, offset, start_bg, fit_kwargs)
+        y = window_data(frame, box, fit_kwargs)
+        first, _ = residual_candidates(
+            y, offset + start_bg, model, pixel_size, kw["origin"], n_best=1, score=False
+        )
+        if not first:
+            continue
+        part = fit_with_count_selection(
+            y,
+            model,
+            Emitters.from_array(np.asarray(first, dtype=np.float64)),
+            lr_threshold=penalty,
+            single_threshold=SINGLE_THRESHOLD,
+            min_photons=MIN_PHOTONS,
+            max_emitters=len(g) + 2,
+            max_changes=3 * len(g) + 4,
+            **kw,
+        )
+        redone[g] = True
+        grown = as_frame_fit(part) if grown is None else joined(grown, as_frame_fit(part))
+    if grown is None:
+        return None
+    return joined(subset(fit, ~redone), grown)
