@@ -77,8 +77,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--data", type=Path, default=Path("../shared/data"))
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/second_start.json"))
     ap.add_argument("--option", choices=OPTIONS, default="second_start")
-    # the extra starts belong to the whole-frame solver (the auto schedule's sparse frames
-    # are solved in two tiers without them)
+    # the extra starts belong to the whole-frame solver: the auto schedule runs them only on
+    # frames and crowd crops it solves whole
     ap.add_argument("--schedule", choices=("whole-frame", "auto"), default="whole-frame")
     args = ap.parse_args(argv)
     print(f"{args.option} off, then on; frame schedule {args.schedule}")

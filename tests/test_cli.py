@@ -197,6 +197,11 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
     res = run("localize", movie, "-o", out_g, "--config", cfg, "--no-regrow")
     assert res.exit_code == 0, res.output
     assert read_parquet(out_g)[1]["params"]["regrow"] is False
+    cfg_g = tmp_path / "run_g.toml"
+    cfg_g.write_text(cfg.read_text() + "regrow = false\n")
+    res = run("localize", movie, "-o", tmp_path / "locs_gt.parquet", "--config", cfg_g)
+    assert res.exit_code == 0, res.output
+    assert read_parquet(tmp_path / "locs_gt.parquet")[1]["params"]["regrow"] is False
     assert meta["params"]["haze"] is False  # the default
     res = run("localize", movie, "-o", tmp_path / "locs_h.parquet", "--config", cfg, "--haze")
     assert res.exit_code == 0, res.output

@@ -65,6 +65,21 @@ def _error(fit, truth) -> float:
     return float(d.min(axis=0).max())
 
 
+def _common(opts: dict) -> dict:
+    """The keywords grown_groups shares with likelier_per_region."""
+    return dict(
+        pixel_size=PX,
+        group_distance=opts["group_distance"],
+        pad=opts["pad"],
+        penalty=add_threshold(None),
+        fit_kwargs={},
+    )
+
+
+def _growth(opts: dict) -> dict:
+    return dict(reach=opts["reach"], max_emitters=10)
+
+
 def _penalized(frame, fit, model, background=20.0) -> float:
     a = fit.emitters.as_array().reshape(-1, 4)
     mu = background + model.render(*a.T, frame.shape, PX)
@@ -76,13 +91,7 @@ def test_groups_grown_from_one_emitter_free_pairs_that_a_wrong_start_left_stuck(
     (about half of these starts); growing the group again from one emitter, with joint
     refits after each addition, finds the true pair in a good part of them, and the
     likelier-per-region choice never keeps a less likely arrangement."""
-    common = dict(
-        pixel_size=PX,
-        group_distance=opts["group_distance"],
-        pad=opts["pad"],
-        penalty=add_threshold(None),
-        fit_kwargs={},
-    )
+    common = _common(opts)
     stuck = freed = 0
     for seed in range(24):
         truth, wrong, rng = _pair(seed)
@@ -99,7 +108,7 @@ def test_groups_grown_from_one_emitter_free_pairs_that_a_wrong_start_left_stuck(
             z_flip=0,
             **opts,
         )
-        grown = grown_groups(frame, bg, fit, analytic, **common)
+        grown = grown_groups(frame, bg, fit, analytic, **common, **_growth(opts))
         if grown is None:  # the fit took its two emitters apart: no group left
             out = fit
         else:
@@ -128,37 +137,40 @@ def test_a_lone_emitter_is_no_group(analytic, opts):
         np.full((32, 32), 20.0),
         fit,
         analytic,
-        pixel_size=PX,
-        group_distance=opts["group_distance"],
-        pad=opts["pad"],
-        penalty=add_threshold(None),
-        fit_kwargs={},
+        **_common(opts),
+        **_growth(opts),
     )
     assert none is None
 
 
-def test_regrowing_is_a_parameter_of_the_run(analytic, monkeypatch):
-    from sparseloc import pipeline
-    from sparseloc.config import LocalizeParams
-
-    calls = []
-
-    def spy(*args, **kwargs):
-        calls.append(1)
-        return None
-
-    monkeypatch.setattr(pipeline, "grown_groups", spy)
-    sim = (
-        np.random.default_rng(3)
-        .poisson(
-            10.0
-            + analytic.render(
-                [1600.0, 1850.0], [1600.0, 1800.0], [-200.0, 300.0], [4000.0, 4000.0], (32, 32), PX
-            )
-        )
-        .astype(float)
+def test_a_right_pair_stays_and_nothing_is_grown_off_the_frame(analytic, opts):
+    """Two overlapping emitters fitted right keep their places; where an emitter just beyond
+    the frame's edge throws light on it, the grown groups hold no emitter off the frame's
+    pixels (the frame solver's fits keep only emitters on them)."""
+    truth = np.array(
+        [[1600.0, 1600.0, -300.0, 4000.0], [1850.0, 1600.0, 250.0, 4000.0]],
     )
-    for on in (False, True):
-        params = LocalizeParams(pixel_size=PX, regrow=on, frame_schedule="whole-frame")
-        pipeline.localize(sim[None], analytic, params, check=False)
-        assert bool(calls) is on
+    edge = np.array(
+        [
+            [-150.0, 1600.0, -300.0, 4000.0],
+            [100.0, 1700.0, 250.0, 4000.0],
+            [300.0, 1450.0, 0.0, 4000.0],
+        ]
+    )
+    for scene, start in ((truth, truth), (edge, edge[1:])):
+        rng = np.random.default_rng(0)
+        frame = rng.poisson(20.0 + analytic.render(*scene.T, (32, 32), PX)).astype(float)
+        bg = np.full(frame.shape, 20.0)
+        fit = frame_fit(frame, analytic, Emitters.from_array(start), background=bg, **opts)
+        grown = grown_groups(frame, bg, fit, analytic, **_common(opts), **_growth(opts))
+        assert grown is not None
+        xy = grown.emitters.as_array().reshape(-1, 4)[:, :2]
+        assert np.all((xy >= 0) & (xy < 32 * PX))
+    out = likelier_per_region(frame, bg, fit, grown, analytic, **_common(opts))
+    assert np.all(out.emitters.x >= 0)
+    rng = np.random.default_rng(0)
+    frame = rng.poisson(20.0 + analytic.render(*truth.T, (32, 32), PX)).astype(float)
+    fit = frame_fit(frame, analytic, Emitters.from_array(truth), background=bg, **opts)
+    grown = grown_groups(frame, bg, fit, analytic, **_common(opts), **_growth(opts))
+    out = likelier_per_region(frame, bg, fit, grown, analytic, **_common(opts))
+    assert _error(fit, truth) < 30.0 and _error(out, truth) < 30.0

@@ -707,7 +707,8 @@ def localize(
         typer.Option(
             "--regrow/--no-regrow",
             help="Also solve each group of overlapping images again from one emitter, adding "
-            "one at a time, and keep the likelier arrangement per region (default on).",
+            "one at a time, and keep the likelier arrangement per region (default on; off: "
+            "about 1.1x faster on crowded frames).",
         ),
     ] = None,
     haze: Annotated[

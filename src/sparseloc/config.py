@@ -144,7 +144,10 @@ class LocalizeParams:
         once more from one emitter, adding one at a time with joint refits
         (:mod:`sparseloc.solvers.frame_grow`), and keeps, region by region, the likelier
         arrangement: where images overlap, the pursuit's first emitter can land between two
-        of them and the fits keep that arrangement (``docs/benchmarks/regrow.txt``).
+        of them and the fits keep that arrangement. Costs about 1.1-1.2x the time where
+        frames are solved whole (``docs/benchmarks/regrow.txt``). False: the fits from the
+        pursuit and the second start alone. Needs ``refine`` (its growth is the count
+        selection's).
     haze : bool
         The sample adds a haze (autofluorescence, out-of-focus light) broader than one
         emitter's image: each window fit of the frame solver scales the background

@@ -322,7 +322,7 @@ class _FrameSolver:
         )
         if self.l1 is not None:
             fit = self.second(frame, background, fit, fixed_light, read_variance, shape)
-        if self.p.regrow:
+        if self.p.regrow and self.p.refine:  # its growth is the count selection's
             fit = self.regrown(frame, background, fit, fixed_light, kw)
         return fit
 
@@ -359,17 +359,22 @@ class _FrameSolver:
         if second is None:
             return first
         second = joined(subset(first, ~redone), second)
+        bg = np.broadcast_to(background, np.shape(frame))
         return likelier_per_region(
-            frame,
-            np.broadcast_to(background, np.shape(frame)),
-            first,
-            second,
-            self.model,
-            pixel_size=p.pixel_size,
+            frame, bg, first, second, self.model, **self.region_kwargs(kw, fixed_light)
+        )
+
+    def region_kwargs(self, kw: dict, fixed_light: NDArray | None) -> dict:
+        """The keywords :func:`~sparseloc.solvers.frame_compose.likelier_per_region` and
+        :func:`~sparseloc.solvers.frame_grow.grown_groups` share; ``kw``: :meth:`fit_kwargs`
+        of the frame (or crop)."""
+        keys = ("noise", "qe", "read_variance", "background_shape")
+        return dict(
+            pixel_size=self.p.pixel_size,
             group_distance=self.group_distance,
             pad=self.pad,
-            penalty=add_threshold(None, p.qe),
-            fit_kwargs=_likelihood_kwargs(kw),
+            penalty=addition_bar(self.p),
+            fit_kwargs={k: v for k, v in kw.items() if k in keys},
             fixed_light=fixed_light,
         )
 
@@ -384,18 +389,17 @@ class _FrameSolver:
         """``fit`` with each region where its groups grown again from one emitter
         (:func:`~sparseloc.solvers.frame_grow.grown_groups`) are likelier replaced by them.
         ``kw``: :meth:`fit_kwargs` of the frame (or crop)."""
-        p = self.p
-        lik = _likelihood_kwargs(kw)
-        common = dict(
-            pixel_size=p.pixel_size,
-            group_distance=self.group_distance,
-            pad=self.pad,
-            penalty=add_threshold(None, p.qe),
-            fit_kwargs=lik,
-            fixed_light=fixed_light,
-        )
+        common = self.region_kwargs(kw, fixed_light)
         bg = np.broadcast_to(background, np.shape(frame))
-        grown = grown_groups(frame, bg, fit, self.model, **common)
+        grown = grown_groups(
+            frame,
+            bg,
+            fit,
+            self.model,
+            reach=self.reach,
+            max_emitters=self.p.max_emitters,
+            **common,
+        )
         if grown is None:
             return fit
         return likelier_per_region(frame, bg, fit, grown, self.model, **common)
@@ -447,12 +451,6 @@ class _FrameSolver:
             return None
         fit = frame_fit(crop, self.model, starts, background=bg, fixed_light=light, **kw)
         return shifted(fit, *origin)
-
-
-def _likelihood_kwargs(kw: dict) -> dict:
-    """The likelihood's keywords among :meth:`_FrameSolver.fit_kwargs`."""
-    keys = ("noise", "qe", "read_variance", "background_shape")
-    return {k: v for k, v in kw.items() if k in keys}
 
 
 def _frame_rows(fit: FrameFit, frame: int, id0: int) -> dict:

@@ -23,13 +23,7 @@ from numpy.typing import NDArray
 from ..psf.base import PSFModel
 from .emitters import Emitters
 from .frame import SINGLE_THRESHOLD, FrameFit
-from .frame_windows import (
-    NeighbourLight,
-    emitter_groups,
-    window_box,
-    window_data,
-    window_kwargs,
-)
+from .frame_windows import NeighbourLight, emitter_groups, region_window, window_box
 from .mle import FitResult, fit_emitters
 from .mp import MIN_PHOTONS
 from .refine import fit_with_count_selection
@@ -229,13 +223,9 @@ def likelier_per_region(
         others = use_a.copy()
         others[ea] = False
         kept = [a[others], b[use_b]] + [u.emitters.as_array().reshape(-1, 4) for u in unions]
-        rest = np.vstack(kept)
-        offset = light.window(rest, box) if len(rest) else 0.0
-        if fixed_light is not None:
-            offset = offset + fixed_light[r0:r1, c0:c1]
-        start_bg = float(max(np.median(background[r0:r1, c0:c1]), 1e-3))
-        kw = window_kwargs(frame, box, pixel_size, offset, start_bg, fit_kwargs)
-        y = window_data(frame, box, fit_kwargs)
+        y, kw = region_window(
+            frame, background, box, light, np.vstack(kept), pixel_size, fit_kwargs, fixed_light
+        )
         best, settled = _likeliest(y, model, a[ea], b[eb], kw, penalty)
         if best > 0:
             use_a[ea] = False
@@ -244,8 +234,12 @@ def likelier_per_region(
         elif best == 2:
             unions.append(as_frame_fit(settled))
     out = joined(subset(first, use_a), subset(second, use_b))
+    whole = (0, np.shape(frame)[0], 0, np.shape(frame)[1])
     for u in unions:
-        out = joined(out, u)
+        # as the frame solver's fits, only emitters on the frame's (or crop's) pixels
+        out = joined(
+            out, subset(u, inside(u.emitters.as_array().reshape(-1, 4), whole, pixel_size))
+        )
     return out
 
 

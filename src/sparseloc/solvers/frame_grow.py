@@ -20,15 +20,17 @@ from numpy.typing import NDArray
 from ..psf.base import PSFModel
 from .emitters import Emitters
 from .frame import SINGLE_THRESHOLD, FrameFit
-from .frame_compose import as_frame_fit, joined, subset
-from .frame_windows import NeighbourLight, emitter_groups, window_box, window_data, window_kwargs
+from .frame_compose import as_frame_fit, inside, joined, subset
+from .frame_windows import NeighbourLight, emitter_groups, region_window, window_box
 from .mp import MIN_PHOTONS
 from .refine import fit_with_count_selection, residual_candidates
 
 __all__ = ["GROW_MAX_GROUP", "grown_groups"]
 
-#: Groups are split into parts of at most this many emitters (as the frame solver's fits
-#: are): each addition refits a part jointly, so its cost grows with the part's size cubed.
+#: Groups are split into parts of at most this many emitters, each grown on its own. Larger
+#: than the frame solver's parts (8), so that more of the knots those parts cut through are
+#: grown whole; each addition refits its part jointly, so the cost grows with the part's size
+#: cubed.
 GROW_MAX_GROUP = 10
 
 
@@ -41,12 +43,14 @@ def grown_groups(
     pixel_size: float,
     group_distance: float,
     pad: int,
+    reach: float,
     penalty: float,
+    max_emitters: int,
     fit_kwargs: dict,
     fixed_light: NDArray | None = None,
 ) -> FrameFit | None:
     """``fit`` with each group of two or more of its emitters solved again from one emitter,
-    or None where it has no such group.
+    or None where it has no such group (or none yields a start).
 
     Parameters
     ----------
@@ -55,8 +59,8 @@ def grown_groups(
     background : ndarray, shape (rows, cols)
         Its background (photons/pixel): each window fit's start.
     fit : FrameFit
-        The frame's fit; its groups are those of the frame solver (emitters closer than
-        ``group_distance``, split into parts of at most :data:`GROW_MAX_GROUP`).
+        The frame's fit. Its groups: emitters closer than ``group_distance`` (laterally),
+        split into parts of at most :data:`GROW_MAX_GROUP`.
     model : PSFModel
         The PSF model.
     pixel_size : float
@@ -65,9 +69,14 @@ def grown_groups(
         Emitters closer than this (nm, laterally) form a group.
     pad : int
         Pixels around a group's emitters in its window.
+    reach : float
+        Emitters farther than this (nm) from a window add no light to it.
     penalty : float
         The count selection's threshold (``2 log L`` per emitter); a lone emitter's removal
         uses :data:`~sparseloc.solvers.frame.SINGLE_THRESHOLD`.
+    max_emitters : int
+        Most emitters of a grown part, or its count and two more if larger (the frame
+        solver's cap).
     fit_kwargs : dict
         The likelihood's keywords (``noise``, ``qe``, ``read_variance``,
         ``background_shape``; maps over the frame, cropped to each window).
@@ -77,30 +86,27 @@ def grown_groups(
     Returns
     -------
     FrameFit or None
-        Emitters in frame coordinates; each grown group's emitters share its window's
-        background, goodness of fit and group index 0.
+        Emitters inside the frame, in frame coordinates; a grown part's emitters share its
+        window's background and goodness of fit.
     """
     arr = fit.emitters.as_array().reshape(-1, 4)
     groups = [g for g in emitter_groups(arr[:, :2], group_distance, GROW_MAX_GROUP) if len(g) > 1]
     if not groups:
         return None
     shape = np.shape(frame)
-    bg = np.broadcast_to(background, shape)
+    whole = (0, shape[0], 0, shape[1])
     light = NeighbourLight(model, shape, pixel_size)
     redone = np.zeros(len(arr), bool)
     grown: FrameFit | None = None
     for g in groups:
         box = window_box(arr[g], *shape, pixel_size, pad)
-        r0, r1, c0, c1 = box
         rest = np.delete(arr, g, axis=0)
-        offset = light.window(rest, box) if len(rest) else np.zeros((r1 - r0, c1 - c0))
-        if fixed_light is not None:
-            offset = offset + fixed_light[r0:r1, c0:c1]
-        start_bg = float(max(np.median(bg[r0:r1, c0:c1]), 1e-3))
-        kw = window_kwargs(frame, box, pixel_size, offset, start_bg, fit_kwargs)
-        y = window_data(frame, box, fit_kwargs)
+        y, kw = region_window(
+            frame, background, box, light, rest, pixel_size, fit_kwargs, fixed_light, reach
+        )
+        known = kw["offset"] + kw["background"]
         first, _ = residual_candidates(
-            y, offset + start_bg, model, pixel_size, kw["origin"], n_best=1, score=False
+            y, known, model, pixel_size, kw["origin"], n_best=1, score=False
         )
         if not first:
             continue
@@ -111,12 +117,15 @@ def grown_groups(
             lr_threshold=penalty,
             single_threshold=SINGLE_THRESHOLD,
             min_photons=MIN_PHOTONS,
-            max_emitters=len(g) + 2,
+            max_emitters=max(max_emitters, len(g) + 2),
             max_changes=3 * len(g) + 4,
             **kw,
         )
         redone[g] = True
-        grown = as_frame_fit(part) if grown is None else joined(grown, as_frame_fit(part))
+        # as the frame solver's fits, only emitters on the frame's (or crop's) pixels
+        new = as_frame_fit(part)
+        on_frame = inside(new.emitters.as_array().reshape(-1, 4), whole, pixel_size)
+        grown = subset(new, on_frame) if grown is None else joined(grown, subset(new, on_frame))
     if grown is None:
         return None
     return joined(subset(fit, ~redone), grown)

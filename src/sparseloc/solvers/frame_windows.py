@@ -17,6 +17,7 @@ __all__ = [
     "light_pieces",
     "lost_flip_near",
     "near_window",
+    "region_window",
     "split_group",
     "sum_pieces",
     "window_box",
@@ -254,6 +255,33 @@ def background_shape(background: NDArray, radius: float) -> NDArray[np.float64]:
     if bg.ndim != 2 or np.ptp(bg) == 0:
         return bg
     return gaussian_filter(bg, float(radius), mode="nearest")
+
+
+def region_window(
+    frame: NDArray,
+    background: NDArray,
+    box: tuple[int, int, int, int],
+    light: NeighbourLight,
+    rest: NDArray,
+    pixel_size: float,
+    fit_kwargs: dict,
+    fixed_light: NDArray | None = None,
+    reach: float | None = None,
+) -> tuple[NDArray, dict]:
+    """The data and :func:`fit_emitters` keywords of the frame's pixels ``box`` (r0, r1, c0,
+    c1) for a region's fit: the light of emitters ``rest`` (K, 4; those within ``reach`` nm of
+    the window where given) and ``fixed_light`` (photons/pixel over the frame) known as the
+    offset, the background's (photons/pixel, the frame's shape) median over the window as the
+    start of its fitted constant."""
+    r0, r1, c0, c1 = box
+    if reach is not None and len(rest):
+        rest = rest[near_window(rest, box, pixel_size, reach)]
+    offset = light.window(rest, box) if len(rest) else np.zeros((r1 - r0, c1 - c0))
+    if fixed_light is not None:
+        offset = offset + fixed_light[r0:r1, c0:c1]
+    start = float(max(np.median(background[r0:r1, c0:c1]), 1e-3))
+    kw = window_kwargs(frame, box, pixel_size, offset, start, fit_kwargs)
+    return window_data(frame, box, fit_kwargs), kw
 
 
 def window_kwargs(f, box, px, offset, background, fit_kwargs) -> dict:

@@ -41,12 +41,12 @@ tiers:
    crowds' light are refitted with it.
 
 Under the ``auto`` schedule (``whole_when_crowded``) a frame is solved whole instead, by the
-frame solver's pursuit, fits and second start, where after the promotion the crowds hold
+frame solver's pursuit, fits and extra starts, where after the promotion the crowds hold
 more starts than the kept units hold emitters in a frame dense enough that most emitters'
 images would overlap another's (:func:`overlapping`): two tiers only pay where most
 emitters are alone, and the whole-frame solver finds more where many images overlap. A
 crowd of more than :data:`SMALL_CROWD` starts, or one the crowds' fits grow beyond that, is
-solved by the whole-frame solver (``whole``: pursuit, fits and second start) on a crop
+solved by the whole-frame solver (``whole``: pursuit, fits and extra starts) on a crop
 around it with the kept units' light known: how much of a frame that solver sees follows
 the crowd, not the frame's size.
 
@@ -388,7 +388,7 @@ def solve_two_tier(
         Return None where the crowds hold more starts than the kept units hold emitters in
         a frame where most images overlap, and, without ``whole``, where a crowd holds more
         than :data:`SMALL_CROWD` starts or its fit more than that many emitters: the caller
-        then solves the frame whole (its pursuit and second start find more where images
+        then solves the frame whole (its pursuit and extra starts find more where images
         overlap than the crowds' fits).
     whole : callable, optional
         ``whole(image, background, fixed_light, read_variance, background_shape) ->
