@@ -37,6 +37,7 @@ from ..psf.base import PSFModel
 from .emitters import Emitters
 from .frame_mp import FrameTemplates, frame_pursuit, frame_templates, tiled_pursuit
 from .frame_windows import (
+    MAX_GROUP,
     NeighbourLight,
     emitter_groups,
     lost_flip_near,
@@ -282,7 +283,7 @@ def frame_fit(
     min_photons: float = MIN_PHOTONS,
     max_emitters: int = 10,
     z_flip: float = 0.15,
-    max_group: int = 8,
+    max_group: int = MAX_GROUP,
     skip_tolerance: float = SKIP_TOLERANCE,
     shift_tolerance: float = SHIFT_TOLERANCE,
     relocate: int = RELOCATE,

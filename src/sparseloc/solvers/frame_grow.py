@@ -25,13 +25,7 @@ from .frame_windows import NeighbourLight, emitter_groups, region_window, window
 from .mp import MIN_PHOTONS
 from .refine import fit_with_count_selection, residual_candidates
 
-__all__ = ["GROW_MAX_GROUP", "grown_groups"]
-
-#: Groups are split into parts of at most this many emitters, each grown on its own. Larger
-#: than the frame solver's parts (8), so that more of the knots those parts cut through are
-#: grown whole; each addition refits its part jointly, so the cost grows with the part's size
-#: cubed.
-GROW_MAX_GROUP = 10
+__all__ = ["grown_groups"]
 
 
 def grown_groups(
@@ -59,8 +53,9 @@ def grown_groups(
     background : ndarray, shape (rows, cols)
         Its background (photons/pixel): each window fit's start.
     fit : FrameFit
-        The frame's fit. Its groups: emitters closer than ``group_distance`` (laterally),
-        split into parts of at most :data:`GROW_MAX_GROUP`.
+        The frame's fit. Its groups are the frame solver's: emitters closer than
+        ``group_distance`` (laterally), split into parts of at most
+        :data:`~sparseloc.solvers.frame_windows.MAX_GROUP`.
     model : PSFModel
         The PSF model.
     pixel_size : float
@@ -90,7 +85,7 @@ def grown_groups(
         window's background and goodness of fit.
     """
     arr = fit.emitters.as_array().reshape(-1, 4)
-    groups = [g for g in emitter_groups(arr[:, :2], group_distance, GROW_MAX_GROUP) if len(g) > 1]
+    groups = [g for g in emitter_groups(arr[:, :2], group_distance) if len(g) > 1]
     if not groups:
         return None
     shape = np.shape(frame)

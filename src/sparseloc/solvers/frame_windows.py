@@ -11,6 +11,7 @@ from .variance import read_variance_crop
 
 __all__ = [
     "FLIP_MEMORY_NM",
+    "MAX_GROUP",
     "NeighbourLight",
     "background_shape",
     "emitter_groups",
@@ -40,7 +41,14 @@ def split_group(idx: NDArray[np.intp], xy: NDArray, max_size: int) -> list[NDArr
     return split_group(order[:half], xy, max_size) + split_group(order[half:], xy, max_size)
 
 
-def emitter_groups(xy: NDArray, distance: float, max_size: int = 8) -> list[NDArray[np.intp]]:
+#: Most emitters the frame solver fits together: larger groups are split (a dense field
+#: would otherwise make one huge fit; memory and time grow with its square).
+MAX_GROUP = 8
+
+
+def emitter_groups(
+    xy: NDArray, distance: float, max_size: int = MAX_GROUP
+) -> list[NDArray[np.intp]]:
     """Connected components of points closer than ``distance``, split into parts of at most
     ``max_size``."""
     from scipy.sparse.csgraph import connected_components

@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from ..psf.base import PSFModel
 from .emitters import Emitters
 from .frame_windows import (
+    MAX_GROUP,
     light_pieces,
     lost_flip_near,
     sum_pieces,
@@ -164,7 +165,7 @@ def relocation_pass(
     pad: int,
     reach: float,
     min_photons: float,
-    max_group: int = 8,
+    max_group: int = MAX_GROUP,
     failed: list | None = None,
     fixed_light: NDArray | None = None,
     **fit_kwargs,
