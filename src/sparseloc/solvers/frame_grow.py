@@ -48,22 +48,15 @@ def grown_groups(
 
     Parameters
     ----------
-    frame : ndarray, shape (rows, cols)
-        The frame (photons).
-    background : ndarray, shape (rows, cols)
-        Its background (photons/pixel): each window fit's start.
+    frame, background, model, pixel_size, pad, fit_kwargs, fixed_light
+        As in :func:`~sparseloc.solvers.frame_compose.likelier_per_region`, which takes the
+        same keywords to compose ``fit`` with this function's result.
     fit : FrameFit
         The frame's fit. Its groups are the frame solver's: emitters closer than
-        ``group_distance`` (laterally), split into parts of at most
+        ``group_distance`` (nm, laterally), split into parts of at most
         :data:`~sparseloc.solvers.frame_windows.MAX_GROUP`.
-    model : PSFModel
-        The PSF model.
-    pixel_size : float
-        Pixel size (nm).
     group_distance : float
         Emitters closer than this (nm, laterally) form a group.
-    pad : int
-        Pixels around a group's emitters in its window.
     reach : float
         Emitters farther than this (nm) from a window add no light to it.
     penalty : float
@@ -72,11 +65,6 @@ def grown_groups(
     max_emitters : int
         Most emitters of a grown part, or its count and two more if larger (the frame
         solver's cap).
-    fit_kwargs : dict
-        The likelihood's keywords (``noise``, ``qe``, ``read_variance``,
-        ``background_shape``; maps over the frame, cropped to each window).
-    fixed_light : ndarray, shape (rows, cols), optional
-        Light known beside ``fit``'s emitters (photons/pixel).
 
     Returns
     -------
