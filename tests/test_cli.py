@@ -182,26 +182,16 @@ def test_localize_a_small_movie_and_refuse_bad_input(tmp_path):
     res = run("localize", movie, "-o", out_r, "--config", cfg, "--relocate", "0")
     assert res.exit_code == 0, res.output
     assert read_parquet(out_r)[1]["params"]["relocate"] == 0
-    assert meta["params"]["second_start"] is True  # the default
-    out_s = tmp_path / "locs_s.parquet"
-    res = run("localize", movie, "-o", out_s, "--config", cfg, "--no-second-start")
-    assert res.exit_code == 0, res.output
-    assert read_parquet(out_s)[1]["params"]["second_start"] is False
-    cfg_s = tmp_path / "run_s.toml"
-    cfg_s.write_text(cfg.read_text() + "second_start = false\n")
-    res = run("localize", movie, "-o", tmp_path / "locs_t.parquet", "--config", cfg_s)
-    assert res.exit_code == 0, res.output
-    assert read_parquet(tmp_path / "locs_t.parquet")[1]["params"]["second_start"] is False
-    assert meta["params"]["regrow"] is True  # the default
-    out_g = tmp_path / "locs_g.parquet"
-    res = run("localize", movie, "-o", out_g, "--config", cfg, "--no-regrow")
-    assert res.exit_code == 0, res.output
-    assert read_parquet(out_g)[1]["params"]["regrow"] is False
-    cfg_g = tmp_path / "run_g.toml"
-    cfg_g.write_text(cfg.read_text() + "regrow = false\n")
-    res = run("localize", movie, "-o", tmp_path / "locs_gt.parquet", "--config", cfg_g)
-    assert res.exit_code == 0, res.output
-    assert read_parquet(tmp_path / "locs_gt.parquet")[1]["params"]["regrow"] is False
+    for key, flag in (("second_start", "--no-second-start"), ("regrow", "--no-regrow")):
+        assert meta["params"][key] is True  # the default
+        res = run("localize", movie, "-o", tmp_path / f"{key}.parquet", "--config", cfg, flag)
+        assert res.exit_code == 0, res.output
+        assert read_parquet(tmp_path / f"{key}.parquet")[1]["params"][key] is False
+        cfg_off = tmp_path / f"{key}.toml"
+        cfg_off.write_text(cfg.read_text() + f"{key} = false\n")
+        res = run("localize", movie, "-o", tmp_path / f"{key}_t.parquet", "--config", cfg_off)
+        assert res.exit_code == 0, res.output
+        assert read_parquet(tmp_path / f"{key}_t.parquet")[1]["params"][key] is False
     assert meta["params"]["haze"] is False  # the default
     res = run("localize", movie, "-o", tmp_path / "locs_h.parquet", "--config", cfg, "--haze")
     assert res.exit_code == 0, res.output
