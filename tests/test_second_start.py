@@ -8,8 +8,9 @@ import pytest
 from sparseloc.psf import make_psf
 from sparseloc.solvers import Emitters
 from sparseloc.solvers.frame import frame_fit, frame_templates
-from sparseloc.solvers.frame_compose import crowded_boxes, inside, likelier_per_region
+from sparseloc.solvers.frame_compose import crowded_boxes, likelier_per_region
 from sparseloc.solvers.frame_l1 import Convolver, l1_starts, l1_templates, tiled_l1_starts
+from sparseloc.solvers.frame_windows import inside
 
 PX = 100.0
 TRUTH = np.array(

@@ -49,7 +49,6 @@ from .solvers.emitters import Emitters
 from .solvers.frame import FrameFit, add_threshold, frame_fit, frame_templates, tiled_pursuit
 from .solvers.frame_compose import (
     crowded_boxes,
-    inside,
     joined,
     likelier_per_region,
     same_as,
@@ -58,7 +57,7 @@ from .solvers.frame_compose import (
 )
 from .solvers.frame_grow import grown_groups
 from .solvers.frame_l1 import l1_templates, tiled_l1_starts
-from .solvers.frame_windows import background_shape
+from .solvers.frame_windows import background_shape, inside
 from .solvers.refine import LR_THRESHOLD, refine_solution
 from .solvers.two_tier import detection_planes, solve_two_tier
 from .solvers.variance import noise_factor_of, read_variance_crop

@@ -40,6 +40,7 @@ from .frame_windows import (
     MAX_GROUP,
     NeighbourLight,
     emitter_groups,
+    inside,
     lost_flip_near,
     near_window,
     window_box,
@@ -541,10 +542,9 @@ class _Sweep:
 
 def _inside(em: NDArray, info: list[tuple], shape: tuple[int, int], px: float) -> FrameFit:
     """The :class:`FrameFit` of the emitters inside the frame."""
-    rows, cols = shape
-    inside = (em[:, 0] >= 0) & (em[:, 0] < cols * px) & (em[:, 1] >= 0) & (em[:, 1] < rows * px)
-    em = em[inside]
-    info = [i for i, k in zip(info, inside, strict=True) if k]
+    on = inside(em, (0, shape[0], 0, shape[1]), px)
+    em = em[on]
+    info = [i for i, k in zip(info, on, strict=True) if k]
     k = len(em)
     return FrameFit(
         emitters=Emitters.from_array(em),

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from ..psf.base import PSFModel
 from .emitters import Emitters
 from .frame import SINGLE_THRESHOLD, FrameFit
-from .frame_windows import NeighbourLight, emitter_groups, region_window, window_box
+from .frame_windows import NeighbourLight, emitter_groups, inside, region_window, window_box
 from .mle import FitResult, fit_emitters
 from .mp import MIN_PHOTONS
 from .refine import fit_with_count_selection
@@ -33,7 +33,6 @@ __all__ = [
     "UNION_MAX",
     "as_frame_fit",
     "crowded_boxes",
-    "inside",
     "joined",
     "likelier_per_region",
     "same_as",
@@ -105,13 +104,6 @@ def crowded_boxes(
             if merged:
                 break
     return boxes
-
-
-def inside(arr: NDArray, box: tuple[int, int, int, int], pixel_size: float) -> NDArray[np.bool_]:
-    """(K,): whether each emitter of ``arr`` (K, 4+) lies on the pixels ``box``."""
-    r0, r1, c0, c1 = box
-    c, r = arr[:, 0] / pixel_size, arr[:, 1] / pixel_size
-    return (r >= r0) & (r < r1) & (c >= c0) & (c < c1)
 
 
 def shifted(fit: FrameFit, dx: float, dy: float) -> FrameFit:
@@ -234,13 +226,11 @@ def likelier_per_region(
         elif best == 2:
             unions.append(as_frame_fit(settled))
     out = joined(subset(first, use_a), subset(second, use_b))
-    whole = (0, np.shape(frame)[0], 0, np.shape(frame)[1])
     for u in unions:
-        # as the frame solver's fits, only emitters on the frame's (or crop's) pixels
-        out = joined(
-            out, subset(u, inside(u.emitters.as_array().reshape(-1, 4), whole, pixel_size))
-        )
-    return out
+        out = joined(out, u)
+    # as the frame solver's fits, only emitters on the frame's (or crop's) pixels
+    whole = (0, np.shape(frame)[0], 0, np.shape(frame)[1])
+    return subset(out, inside(out.emitters.as_array().reshape(-1, 4), whole, pixel_size))
 
 
 def _likeliest(

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from ..psf.base import PSFModel
 from .emitters import Emitters
 from .frame import SINGLE_THRESHOLD, FrameFit
-from .frame_compose import as_frame_fit, inside, joined, subset
+from .frame_compose import as_frame_fit, joined, subset
 from .frame_windows import NeighbourLight, emitter_groups, region_window, window_box
 from .mp import MIN_PHOTONS
 from .refine import fit_with_count_selection, residual_candidates
@@ -69,15 +69,15 @@ def grown_groups(
     Returns
     -------
     FrameFit or None
-        Emitters inside the frame, in frame coordinates; a grown part's emitters share its
-        window's background and goodness of fit.
+        Emitters in frame coordinates (some may lie off its pixels: the composition keeps
+        only those on them); a grown part's emitters share its window's background and
+        goodness of fit.
     """
     arr = fit.emitters.as_array().reshape(-1, 4)
     groups = [g for g in emitter_groups(arr[:, :2], group_distance) if len(g) > 1]
     if not groups:
         return None
     shape = np.shape(frame)
-    whole = (0, shape[0], 0, shape[1])
     light = NeighbourLight(model, shape, pixel_size)
     redone = np.zeros(len(arr), bool)
     grown: FrameFit | None = None
@@ -105,10 +105,7 @@ def grown_groups(
             **kw,
         )
         redone[g] = True
-        # as the frame solver's fits, only emitters on the frame's (or crop's) pixels
-        new = as_frame_fit(part)
-        on_frame = inside(new.emitters.as_array().reshape(-1, 4), whole, pixel_size)
-        grown = subset(new, on_frame) if grown is None else joined(grown, subset(new, on_frame))
+        grown = as_frame_fit(part) if grown is None else joined(grown, as_frame_fit(part))
     if grown is None:
         return None
     return joined(subset(fit, ~redone), grown)

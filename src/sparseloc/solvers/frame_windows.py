@@ -15,6 +15,7 @@ __all__ = [
     "NeighbourLight",
     "background_shape",
     "emitter_groups",
+    "inside",
     "light_pieces",
     "lost_flip_near",
     "near_window",
@@ -85,6 +86,13 @@ def lost_flip_near(failed: list[NDArray] | None, xyz: NDArray) -> bool:
             (np.hypot(f[:, 0] - xyz[0], f[:, 1] - xyz[1]) <= lat) & (np.abs(f[:, 2] - xyz[2]) <= ax)
         )
     )
+
+
+def inside(arr: NDArray, box: tuple[int, int, int, int], pixel_size: float) -> NDArray[np.bool_]:
+    """(K,): whether each emitter of ``arr`` (K, 4+) lies on the pixels ``box``."""
+    r0, r1, c0, c1 = box
+    c, r = arr[:, 0] / pixel_size, arr[:, 1] / pixel_size
+    return (r >= r0) & (r < r1) & (c >= c0) & (c < c1)
 
 
 def near_window(xy: NDArray[np.float64], box: tuple[int, int, int, int], px: float, reach: float):

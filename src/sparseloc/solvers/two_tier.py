@@ -80,9 +80,9 @@ from .frame import (
     add_threshold,
     frame_fit,
 )
-from .frame_compose import inside, shifted, subset
+from .frame_compose import shifted, subset
 from .frame_mp import FrameTemplates
-from .frame_windows import NeighbourLight, window_box, window_data, window_kwargs
+from .frame_windows import NeighbourLight, inside, window_box, window_data, window_kwargs
 from .mle import fit_emitters
 from .mp import MIN_PHOTONS
 from .refine import error_variance, weakest_removed
