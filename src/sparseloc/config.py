@@ -93,8 +93,10 @@ class LocalizeParams:
     background : {"auto", "temporal", "spatial"}
         Temporal: a per-pixel percentile over a sliding block of frames (blinking
         molecules). Spatial: a per-frame estimate from each frame's darker pixels (snapshots,
-        short movies, molecules that stay on). Auto: temporal for movies of at least
-        ``min_temporal_frames`` frames.
+        short movies, molecules that stay on); the frame solver estimates it once more from
+        the frame less its fitted emitters' light (in a crowd their images fill the darker
+        pixels too), searches what that background leaves and refits. Auto: temporal for
+        movies of at least ``min_temporal_frames`` frames.
     min_temporal_frames : int
         See ``background``.
     noise : {"poisson", "emccd", "scmos"}

@@ -165,6 +165,23 @@ def _noise_kwargs(p: LocalizeParams, read_variance: Any = None) -> dict:
     return kw
 
 
+def _background_noise(p: LocalizeParams, read_variance: Any = None) -> dict:
+    """The camera's noise as the background estimates take it: the excess factor and the read
+    variance (a map, else the run's)."""
+    return dict(
+        noise_factor=_variance_factor(p),
+        read_variance=_noise_kwargs(p, read_variance).get("read_variance", 0.0),
+    )
+
+
+def _temporal(p: LocalizeParams, n_frames: int) -> bool:
+    """Whether a run over a movie of ``n_frames`` frames takes each frame's background over
+    time (else from the frame's own pixels, :func:`~sparseloc.detect.spatial_background`)."""
+    return p.background == "temporal" or (
+        p.background == "auto" and n_frames >= p.min_temporal_frames
+    )
+
+
 def _variance_factor(p: LocalizeParams) -> float:
     """Shot-noise variance per expected photon in the detection's signal-to-noise: 2 for EMCCD
     data, else 1. The detection thresholds were set on this scale, so ``qe`` stays out."""
@@ -211,10 +228,15 @@ class _FrameSolver:
         params: LocalizeParams,
         shape: tuple[int, int],
         read_variance: NDArray | None = None,
+        spatial: bool = False,
     ) -> None:
         self.model = model
         self.p = params
         self.noise_kw = _noise_kwargs(params, read_variance)
+        # the frames' backgrounds come from their own pixels: estimated again without the
+        # fitted emitters' light (see residual_background)
+        self.spatial = spatial
+        self.background_noise = _background_noise(params, read_variance)
         self.templates = run_templates(model, params)
         self.correlators: dict = {}  # per frame (or tile) shape, see tiled_pursuit
         # Groups: emitters whose half-light discs (of a typical plane) intersect are fitted
@@ -276,12 +298,51 @@ class _FrameSolver:
     def __call__(
         self, frame: NDArray, background: NDArray, start: NDArray | None = None
     ) -> FrameFit:
-        """Solve one frame, from the pursuit's emitters or from ``start`` (K, 4) if given."""
+        """Solve one frame: by the run's schedule (:meth:`solve`), or the fits from ``start``
+        (K, 4) if given; where the background is the frame's own spatial estimate, then
+        :meth:`residual_background` (without its search where ``start`` is given)."""
         shape = self.background_shape(background)
         if start is not None:
             emitters = Emitters.from_array(np.asarray(start, dtype=np.float64).reshape(-1, 4))
             kw = self.fit_kwargs(shape=shape)
-            return frame_fit(frame, self.model, emitters, background=background, **kw)
+            fit = frame_fit(frame, self.model, emitters, background=background, **kw)
+        else:
+            fit = self.solve(frame, background, shape)
+        if not self.spatial:
+            return fit
+        return self.residual_background(frame, fit, search=start is None)
+
+    def residual_background(self, frame: NDArray, fit: FrameFit, search: bool = True) -> FrameFit:
+        """``fit`` refitted with the frame's spatial background estimated again from the frame
+        less ``fit``'s light, from its emitters and those the pursuit finds in what that
+        background and that light leave.
+
+        The spatial estimate takes each block's darker pixels for the background. Where
+        emitters' images cover most of a block (a crowded frame, a broad PSF) those pixels
+        hold their light too, the estimate lies above the background, and a dim or broad
+        emitter's image sinks below the detection's threshold. Without the fitted light the
+        same estimator sees the background (``docs/benchmarks/residual_background.txt``).
+        ``search``: False refits ``fit``'s emitters alone.
+        """
+        arr = fit.emitters.as_array().reshape(-1, 4)
+        arr = arr[np.all(np.isfinite(arr), axis=1)]
+        if not len(arr):
+            return fit
+        f = np.asarray(frame, dtype=np.float64)
+        light = self.model.render(*arr.T, f.shape, self.p.pixel_size)
+        # what is left keeps the shot noise of the light taken away: the percentile's
+        # correction counts it with the read noise
+        noise = dict(self.background_noise)
+        noise["read_variance"] = noise["read_variance"] + noise["noise_factor"] * light
+        background = spatial_background(f - light, **noise)
+        if search:
+            arr = np.vstack([arr, self.start(f, background + light).as_array().reshape(-1, 4)])
+        emitters = Emitters.from_array(arr)
+        kw = self.fit_kwargs(shape=self.background_shape(background))
+        return frame_fit(f, self.model, emitters, background=background, **kw)
+
+    def solve(self, frame: NDArray, background: NDArray, shape: NDArray | None) -> FrameFit:
+        """The frame's fit by the run's schedule (``shape``: :meth:`background_shape`)."""
         if self.p.frame_schedule in ("two-tier", "auto"):
             fit = solve_two_tier(
                 frame,
@@ -545,8 +606,9 @@ def localize(
         Emitters to start the frame solver from in place of its pursuit: columns ``frame``
         (0-based), ``x_nm``, ``y_nm``, ``z_nm`` and optionally ``photons`` (default
         :data:`START_PHOTONS`). Everything after the start (fits, count selection,
-        relocation) is the same; started from the true emitters, the result is the ceiling of
-        what the fits can keep.
+        relocation, the refit over a spatial background estimated again) is the same but the
+        searches for more emitters; started from the true emitters, the result is the
+        ceiling of what the fits can keep.
 
     Returns
     -------
@@ -571,7 +633,13 @@ def localize(
     inputs = _frames_and_backgrounds(get, n, start, stop, block, params, model, read_variance)
     if starts is not None:
         inputs = _with_starts(inputs, starts, params)
-    work_args = (work_model_for(model, params), params, shape, read_variance)
+    work_args = (
+        work_model_for(model, params),
+        params,
+        shape,
+        read_variance,
+        not _temporal(params, n),
+    )
     parts: list[dict] = []
     early = _EarlyCheck(work_args[0], params, shape) if check and stop - start > 1 else None
     n_windows = _collect(
@@ -947,11 +1015,12 @@ class _FrameWork:
         p: LocalizeParams,
         shape: tuple[int, int],
         read_variance: NDArray | None = None,
+        spatial: bool = False,
     ) -> None:
         self.p = p
         self.tiling = tiles(shape, p.window, p.margin)
         if p.method == "frame":
-            self.solver: Any = _FrameSolver(work_model, p, shape, read_variance)
+            self.solver: Any = _FrameSolver(work_model, p, shape, read_variance, spatial)
         else:
             self.solver = _Solver(work_model, p)
             self.read_variance = read_variance
@@ -1006,12 +1075,9 @@ def _frames_and_backgrounds(
     of one image's width: the diameter of the disc holding 90 % of ``model``'s light). Both
     estimates know the camera's noise (excess factor, read noise: ``read_variance``, a map,
     else the run's)."""
-    noise = dict(
-        noise_factor=_variance_factor(p),
-        read_variance=_noise_kwargs(p, read_variance).get("read_variance", 0.0),
-    )
+    noise = _background_noise(p, read_variance)
     half = p.background_frames // 2
-    temporal = p.background == "temporal" or (p.background == "auto" and n >= p.min_temporal_frames)
+    temporal = _temporal(p, n)
     if temporal:
         width = 2 * light_radius(model, p.pixel_size, p.z_range or model.z_range) + 1
     for b0 in range(start, stop, block):
