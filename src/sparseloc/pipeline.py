@@ -57,7 +57,7 @@ from .solvers.frame_compose import (
 )
 from .solvers.frame_grow import grown_groups
 from .solvers.frame_l1 import l1_templates, tiled_l1_starts
-from .solvers.frame_windows import background_shape, inside
+from .solvers.frame_windows import background_shape, inside, light_pieces, sum_pieces
 from .solvers.refine import LR_THRESHOLD, refine_solution
 from .solvers.two_tier import detection_planes, solve_two_tier
 from .solvers.variance import noise_factor_of, read_variance_crop
@@ -166,12 +166,46 @@ def _noise_kwargs(p: LocalizeParams, read_variance: Any = None) -> dict:
 
 
 def _background_noise(p: LocalizeParams, read_variance: Any = None) -> dict:
-    """The camera's noise as the background estimates take it: the excess factor and the read
-    variance (a map, else the run's)."""
+    """The camera's noise as the background estimates and the detections take it: the
+    excess factor and the read variance (a map, else the run's)."""
     return dict(
         noise_factor=_variance_factor(p),
         read_variance=_noise_kwargs(p, read_variance).get("read_variance", 0.0),
     )
+
+
+def _residual_spatial_background(
+    frame: NDArray,
+    emitters: NDArray,
+    model: PSFModel,
+    pixel_size: float,
+    reach: float,
+    noise: dict,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The spatial background (:func:`~sparseloc.detect.spatial_background`) of ``frame``
+    less the light of ``emitters`` (K, 4; nm, photons) within ``reach`` (nm) of each, as the
+    frame solver's windows count it (a model's far halo stays in the background), and that
+    light; both (rows, cols), photons per pixel.
+
+    What is left keeps the shot noise of the light taken away: the percentile's noise
+    correction counts it with the read variance of ``noise`` (:func:`_background_noise`),
+    in the same units (photons, without ``qe``).
+    """
+    f = np.asarray(frame, dtype=np.float64)
+    em = np.asarray(emitters, dtype=np.float64).reshape(-1, 4)
+    em = em[np.all(np.isfinite(em), axis=1)]
+    rows, cols = f.shape
+    pieces = light_pieces(model, em, f.shape, pixel_size, (0.0, 0.0), reach)
+    light = sum_pieces(pieces, (0, rows, 0, cols))
+    kw = dict(noise)
+    kw["read_variance"] = kw["read_variance"] + kw["noise_factor"] * light
+    return spatial_background(f - light, **kw), light
+
+
+def _reach(templates) -> float:
+    """How far (nm) an emitter's light counts in the frame solver's windows: half a
+    template's width; beyond it the light lies in the background estimate."""
+    return 0.5 * templates.images.shape[-1] * templates.pixel_size
 
 
 def _temporal(p: LocalizeParams, n_frames: int) -> bool:
@@ -243,7 +277,7 @@ class _FrameSolver:
         # together: their images overlap enough to trade light.
         self.group_distance = GROUP_SPAN * self.templates.typical_radius * params.pixel_size
         self.pad = int(np.ceil(min(self.templates.radius90, PAD_CAP)))
-        self.reach = 0.5 * self.templates.images.shape[-1] * params.pixel_size
+        self.reach = _reach(self.templates)
         self.detection_cache: dict = {}
         self.l1 = l1_templates(model, self.templates) if params.second_start else None
         planes = np.unique(self.l1.z) if self.l1 is not None else np.zeros(1)
@@ -322,19 +356,17 @@ class _FrameSolver:
         hold their light too, the estimate lies above the background, and a dim or broad
         emitter's image sinks below the detection's threshold. Without the fitted light the
         same estimator sees the background (``docs/benchmarks/residual_background.txt``).
-        ``search``: False refits ``fit``'s emitters alone.
+        The refit replaces ``fit`` without a likelihood comparison: the two are fits over
+        different backgrounds. ``search``: False refits ``fit``'s emitters alone.
         """
         arr = fit.emitters.as_array().reshape(-1, 4)
         arr = arr[np.all(np.isfinite(arr), axis=1)]
         if not len(arr):
             return fit
         f = np.asarray(frame, dtype=np.float64)
-        light = self.model.render(*arr.T, f.shape, self.p.pixel_size)
-        # what is left keeps the shot noise of the light taken away: the percentile's
-        # correction counts it with the read noise
-        noise = dict(self.background_noise)
-        noise["read_variance"] = noise["read_variance"] + noise["noise_factor"] * light
-        background = spatial_background(f - light, **noise)
+        background, light = _residual_spatial_background(
+            f, arr, self.model, self.p.pixel_size, self.reach, self.background_noise
+        )
         if search:
             arr = np.vstack([arr, self.start(f, background + light).as_array().reshape(-1, 4)])
         emitters = Emitters.from_array(arr)
@@ -352,8 +384,7 @@ class _FrameSolver:
                 pursuit=self.start,
                 fit_options=self.fit_kwargs(shape=shape),
                 min_snr=self.p.min_snr,
-                noise_factor=_variance_factor(self.p),
-                read_variance=self.noise_kw.get("read_variance", 0.0),
+                **self.background_noise,
                 cache=self.detection_cache,
                 whole_when_crowded=self.p.frame_schedule == "auto",
                 whole=self.whole if self.p.frame_schedule == "auto" else None,
@@ -684,7 +715,8 @@ def check_frame(
     -------
     FrameResidual
         Of that frame in photons over the run's background estimate of it (the rule of
-        :func:`localize`), the localizations rendered with the model the fits used, the
+        :func:`localize`; a spatial one estimated again without the localizations' light,
+        as the frame solver does), the localizations rendered with the model the fits used, the
         unexplained light found with the run's detection planes
         (:func:`~sparseloc.solvers.two_tier.detection_planes`). Compare its support and
         signal-to-noise with :func:`addition_bar`.
@@ -707,6 +739,12 @@ def check_frame(
     rows = rows[np.all(np.isfinite(rows[cols].to_numpy(dtype=np.float64)), axis=1)]
     fitted = rows["background"].to_numpy() if "background" in rows else None
     work = work_model_for(model, params)
+    templates = run_templates(work, params)
+    noise = _background_noise(params, read_variance)
+    if params.method == "frame" and not _temporal(params, n) and len(rows):
+        bg, _ = _residual_spatial_background(
+            frame, rows[cols].to_numpy(), work, params.pixel_size, _reach(templates), noise
+        )
     return frame_residual(
         frame,
         bg,
@@ -715,10 +753,10 @@ def check_frame(
         params.pixel_size,
         noise=params.noise,
         qe=params.qe,
-        read_variance=_noise_kwargs(params, read_variance).get("read_variance", 0.0),
+        read_variance=noise["read_variance"],
         min_snr=params.min_snr,
         window_background=fitted,
-        templates=detection_planes(run_templates(work, params)),
+        templates=detection_planes(templates),
     )
 
 
@@ -1047,8 +1085,7 @@ class _FrameWork:
             bg,
             self.template,
             threshold=p.min_snr,
-            noise_factor=_variance_factor(p),
-            read_variance=_noise_kwargs(p, rv).get("read_variance", 0.0),
+            **_background_noise(p, rv),
         )
         todo = _tiles_to_solve(self.tiling, cand, p.margin)
         for tile in todo:
