@@ -183,7 +183,7 @@ def _residual_spatial_background(
     noise: dict,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The spatial background (:func:`~sparseloc.detect.spatial_background`) of ``frame``
-    less the light of ``emitters`` (K, 4; nm, photons) within ``reach`` (nm) of each, as the
+    less the light of ``emitters`` (K, 4; nm, photons; finite) within ``reach`` (nm) of each, as the
     frame solver's windows count it (a model's far halo stays in the background), and that
     light; both (rows, cols), photons per pixel.
 
@@ -193,7 +193,6 @@ def _residual_spatial_background(
     """
     f = np.asarray(frame, dtype=np.float64)
     em = np.asarray(emitters, dtype=np.float64).reshape(-1, 4)
-    em = em[np.all(np.isfinite(em), axis=1)]
     rows, cols = f.shape
     pieces = light_pieces(model, em, f.shape, pixel_size, (0.0, 0.0), reach)
     light = sum_pieces(pieces, (0, rows, 0, cols))
