@@ -94,12 +94,17 @@ def zoom(viewer, layer, centre_rc: tuple[float, float], half_px: float) -> None:
 
 def side_by_side(viewer, app, layer, centre_rc, half_px: float, name: str) -> Path:
     """A zoom on ``half_px`` pixels around ``centre_rc`` (row, col): the frame alone (left)
-    beside the frame with the points layers over it (right), in one PNG."""
+    beside the frame with the points layers over it (right), in one PNG; other image layers
+    (the preview's residual) stay hidden."""
     import matplotlib.pyplot as plt
+    from napari.layers import Points
 
     zoom(viewer, layer, centre_rc, half_px)
+    for ly in viewer.layers:
+        if ly is not layer and not isinstance(ly, Points):
+            ly.visible = False
     viewer.screenshot(canvas_only=True, flash=False)  # draws the new view once
-    others = [ly for ly in viewer.layers if ly is not layer]
+    others = [ly for ly in viewer.layers if isinstance(ly, Points)]
     shots = []
     for visible in (False, True):
         for ly in others:

@@ -19,6 +19,7 @@ from sparseloc.calibrate import calibrate_beads, read_z_file
 from sparseloc.cli import app
 from sparseloc.detect import spatial_background
 from sparseloc.io.calibration import load_calibration, read_calibration_info, save_calibration
+from sparseloc.io.tables import read_parquet
 from sparseloc.io.tiff import write_tiff
 from sparseloc.io.truth import read_truth_csv
 from sparseloc.psf import make_psf
@@ -486,6 +487,12 @@ def test_cli_calibrate_writes_model_and_figure(tmp_path, scan):
     info = read_calibration_info(out)
     assert info["params"]["source"] == "beads.tif"
     assert psf.content_hash in res.stdout
+    # a table localized with that file records the hash calibrate printed (one definition)
+    movie = write_tiff(tmp_path / "movie.tif", scan["movie"][25:26, 20:60, 20:60], pixel_size=PX)
+    locs = tmp_path / "locs.parquet"
+    res = invoke("localize", movie, "--psf", out, "--offset", OFFSET, "-o", locs)
+    assert res.exit_code == 0, res.output
+    assert read_parquet(locs)[1]["psf_hash"] == psf.content_hash
 
 
 def test_cli_calibrate_needs_a_z_step_or_file(tmp_path, scan):
@@ -499,6 +506,20 @@ def test_cli_calibrate_needs_a_z_step_or_file(tmp_path, scan):
     assert "Traceback" not in res.output
     assert not out.exists() and not out.with_suffix(".png").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["beads.tif"]
+
+
+def test_cli_calibrate_refuses_a_z0_slice_beside_a_z_file(tmp_path, scan):
+    # each frame's z is given by the file: a slice at z = 0 would contradict it
+    tif = write_tiff(tmp_path / "beads.tif", scan["movie"][:6], pixel_size=PX)
+    zf = tmp_path / "z.csv"
+    pd.DataFrame({"frame_0based": range(6), "z_um": np.arange(6) * 0.02}).to_csv(zf, index=False)
+    out = tmp_path / "cal.h5"
+    res = invoke("calibrate", tif, "--pixel-size", PX, "--z-file", zf, "--z0-slice", 3, "-o", out)
+    assert res.exit_code == 2, res.output
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:"), res.stderr
+    assert "--z0-slice" in lines[0] and "--z-file" in lines[0], lines[0]
+    assert not out.exists()
 
 
 def test_cli_calibrate_reports_a_bad_z_file(tmp_path, scan):
