@@ -288,15 +288,16 @@ def _alive(pid: int) -> bool:
 
 
 @contextlib.contextmanager
-def _pool_run(tmp_path: Path):
-    """The pool script running in its own session, its workers inside their (sleeping)
-    items: yields (process, worker pids); whatever is left is killed afterwards."""
-    script = tmp_path / "pool_run.py"
-    script.write_text(textwrap.dedent(_POOL_SCRIPT))
+def _pool_run(tmp_path: Path, command: list[str] | None = None):
+    """``command`` (default: the pool script) running in its own session, its two workers
+    busy: yields (process, worker pids); whatever is left is killed afterwards."""
+    if command is None:
+        script = tmp_path / "pool_run.py"
+        script.write_text(textwrap.dedent(_POOL_SCRIPT))
+        command = [sys.executable, str(script)]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     proc = subprocess.Popen(
-        [sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
-        start_new_session=True,
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, start_new_session=True,
     )  # fmt: skip
     workers: list[int] = []
     try:
@@ -333,6 +334,27 @@ def test_pool_workers_die_with_a_killed_parent(tmp_path):
         proc.wait(10)
         left = _left_alive(workers, 15)
         assert not left, f"workers still alive after their parent was killed: {left}"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_localize_workers_die_with_a_killed_localize(tmp_path):
+    """The trial's case itself: ``localize --workers 2`` killed with SIGKILL mid-run."""
+    from sparseloc.io.tiff import write_tiff
+    from sparseloc.psf import make_psf
+    from sparseloc.simulate import simulate
+
+    sim = simulate(make_psf("astig-gauss"), n_frames=400, shape=(64, 64), density=1.0, seed=0)
+    movie = write_tiff(tmp_path / "m.tif", sim.movie, pixel_size=100.0)
+    out = tmp_path / "l.parquet"
+    command = [sys.executable, "-m", "sparseloc.cli", "localize", str(movie), "-o", str(out)]
+    flags = ["--psf", "astig-gauss", "--pixel-size", "100", "--workers", "2"]
+    with _pool_run(tmp_path, [*command, *flags]) as run_:
+        proc, workers = run_
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        left = _left_alive(workers, 15)
+        assert not left, f"workers still alive after localize was killed: {left}"
+    assert not out.exists()
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
