@@ -274,13 +274,20 @@ def test_cpu_quota_from_cgroup_files(tmp_path):
     assert _cpu_quota(v1) == 1.5
 
 
-def test_frame_range_refuses_negative_frames():
+def test_frame_range_refuses_negative_frames(tmp_path):
     from sparseloc.config import frame_range
+    from sparseloc.io.tiff import write_tiff
 
     assert frame_range("2:", 6) == (2, 6) and frame_range(":4", 6) == (0, 4)
     for bad in ("-1:", "0:-2"):
         with pytest.raises(ValueError, match="0-based frame numbers >= 0"):
             frame_range(bad, 6)
+    # as the trial typed it on the command line (was read as "-1:1 is empty")
+    movie = write_tiff(tmp_path / "m.tif", np.full((6, 16, 16), 110, np.uint16), pixel_size=100.0)
+    out = tmp_path / "l.parquet"
+    res = run("localize", movie, "--psf", "astig-gauss", "--frames=-1:", "-o", out)
+    assert res.exit_code == 2 and "0-based frame numbers >= 0" in res.stderr, res.output
+    assert not out.exists()
 
 
 def test_help_wraps_the_description_at_the_terminals_width():
