@@ -94,8 +94,8 @@ def zoom(viewer, layer, centre_rc: tuple[float, float], half_px: float) -> None:
 
 def side_by_side(viewer, app, layer, centre_rc, half_px: float, name: str) -> Path:
     """A zoom on ``half_px`` pixels around ``centre_rc`` (row, col): the frame alone (left)
-    beside the frame with the points layers over it (right), in one PNG; other image layers
-    (the preview's residual) stay hidden."""
+    beside the frame with the points layers over it (right), in one PNG; every other layer
+    (the preview's residual) is hidden."""
     import matplotlib.pyplot as plt
     from napari.layers import Points
 

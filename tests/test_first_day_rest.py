@@ -306,7 +306,11 @@ def _pool_run(tmp_path: Path, command: list[str] | None = None):
             time.sleep(0.5)
             # the pool's workers: the parent's children that are Python processes
             workers = [p for p in _children(proc.pid) if _alive(p)]
-        assert len(workers) >= 2, workers
+        if len(workers) < 2:
+            ended = proc.poll() is not None
+            raise AssertionError(f"no two workers: {workers}, " + (
+                f"the run ended: {proc.communicate()[1]}" if ended else "the run goes on"
+            ))  # fmt: skip
         time.sleep(2.0)  # the workers are inside their (sleeping) items
         yield proc, workers
     finally:
@@ -315,6 +319,8 @@ def _pool_run(tmp_path: Path, command: list[str] | None = None):
                 os.kill(p, signal.SIGKILL)
             except OSError:
                 pass
+        with contextlib.suppress(OSError):
+            os.killpg(proc.pid, signal.SIGKILL)  # anything else the run started
         if proc.poll() is None:
             proc.kill()
 
@@ -343,7 +349,9 @@ def test_localize_workers_die_with_a_killed_localize(tmp_path):
     from sparseloc.psf import make_psf
     from sparseloc.simulate import simulate
 
-    sim = simulate(make_psf("astig-gauss"), n_frames=400, shape=(64, 64), density=1.0, seed=0)
+    # a dense movie: the workers start within seconds, long before the run could end (and
+    # 100 frames stay below the chunked runs' length)
+    sim = simulate(make_psf("astig-gauss"), n_frames=100, shape=(64, 64), density=1.0, seed=0)
     movie = write_tiff(tmp_path / "m.tif", sim.movie, pixel_size=100.0)
     out = tmp_path / "l.parquet"
     command = [sys.executable, "-m", "sparseloc.cli", "localize", str(movie), "-o", str(out)]

@@ -5,6 +5,8 @@ uncertainties cannot blow up a report, and the README states the rule as the cod
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +46,7 @@ def table(tmp_path_factory) -> tuple[Path, Path]:
     )
     t.loc[: FLAGGED - 1, "flag"] = "z_edge"
     t.loc[: FLAGGED - 1, ["sigma_x_nm", "sigma_y_nm"]] = 2e9
+    t.loc[: FLAGGED - 1, "sigma_z_nm"] = np.resize([9.7e9, np.nan, 1e-14], FLAGGED)
     folder = tmp_path_factory.mktemp("rule")
     src, truth = folder / "l.parquet", folder / "truth.csv"
     write_table(t, src)
@@ -52,6 +55,7 @@ def table(tmp_path_factory) -> tuple[Path, Path]:
 
 
 NOTE = f"excluded {FLAGGED} flagged localizations (--all-flags includes them)"
+CONSUMERS = ("render", "report", "drift", "filter", "evaluate")
 
 
 @pytest.mark.parametrize(
@@ -72,6 +76,47 @@ def test_each_command_says_it_left_the_flagged_rows_out(table, tmp_path, command
     taken = runner.invoke(app, [*args, "--all-flags", *(["--overwrite"] * (args[0] != "evaluate"))])
     assert taken.exit_code == 0, taken.output
     assert "flagged" not in taken.stderr
+    if args[0] == "evaluate":  # what it scored, not only what it said
+        assert re.search(rf"localizations\s+{3000 - FLAGGED}\b", left_out.stdout), left_out.stdout
+        assert re.search(r"localizations\s+3000\b", taken.stdout), taken.stdout
+
+
+def _drift_range_x(res) -> float:
+    return float(re.search(r"range x ([0-9.]+) nm", res.stdout).group(1))
+
+
+def test_drift_estimates_from_the_ok_rows_unless_all_flags(tmp_path):
+    """Two thirds of the rows flagged and moving 400 nm in x over the movie, the 'ok' rows
+    still: the estimate follows the rows the rule lets in."""
+    rng = np.random.default_rng(1)
+    n = 3000
+    th = rng.uniform(0, 2 * np.pi, n)
+    frame = rng.integers(0, 200, n)
+    moving = np.arange(n) < 2000
+    t = complete_locs(
+        pd.DataFrame(
+            {
+                "frame": frame,
+                "x_nm": 2000 + 800 * np.cos(th) + rng.normal(0, 10, n) + moving * 2.0 * frame,
+                "y_nm": 2000 + 800 * np.sin(th) + rng.normal(0, 10, n),
+                "z_nm": 0.0,
+                "photons": 2000.0,
+                "sigma_x_nm": 10.0,
+                "sigma_y_nm": 10.0,
+                "sigma_z_nm": 30.0,
+            }
+        )
+    )
+    t.loc[moving, "flag"] = "z_edge"
+    src = tmp_path / "l.parquet"
+    write_table(t, src)
+    args = ["drift", str(src), "--segments", "4", "--no-z", "-o", str(tmp_path / "d.parquet")]
+    still = runner.invoke(app, args)
+    assert still.exit_code == 0, still.output
+    moved = runner.invoke(app, [*args, "--all-flags", "--overwrite"])
+    assert moved.exit_code == 0, moved.output
+    ranges = _drift_range_x(still), _drift_range_x(moved)
+    assert ranges[0] < 50.0 and ranges[1] > 150.0, ranges
 
 
 def test_filter_keeps_only_ok_rows_unless_all_flags(table, tmp_path):
@@ -87,23 +132,45 @@ def test_filter_keeps_only_ok_rows_unless_all_flags(table, tmp_path):
     assert len(read_parquet(out)[0]) == 3000
 
 
-def test_report_leaves_flagged_rows_out_and_draws_their_huge_sigmas_when_asked(table, tmp_path):
+def test_report_leaves_flagged_rows_out(table, tmp_path):
     src, _ = table
     out = tmp_path / "r.html"
     res = runner.invoke(app, ["report", str(src), "-o", str(out)])
     assert res.exit_code == 0, res.output
     assert f"excluded {FLAGGED} flagged" in out.read_text()
-    # with them: the rows of sigma 2e9 nm are drawn within the image, not as 2e9 nm spots
     res = runner.invoke(app, ["report", str(src), "-o", str(out), "--all-flags", "--overwrite"])
     assert res.exit_code == 0, res.output
     assert f"excluded {FLAGGED} flagged" not in out.read_text()
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux limits")
+@pytest.mark.parametrize(("command", "suffix"), [("render", ".png"), ("report", ".html")])
+def test_impossible_sigmas_fit_in_a_small_memory_limit(table, tmp_path, command, suffix):
+    """Item 1: with the flagged rows taken in, their sigmas of 2e9 nm (and 9.7e9, NaN, 1e-14 nm
+    along z) are drawn within the image's memory: the command runs with 300 MiB beyond what
+    the process holds after a small run of the same command."""
+    from test_first_day_flags import _UNDER_A_LIMIT, _table
+
+    src, _ = table
+    small = tmp_path / "small.parquet"
+    write_table(_table(), small)
+    out = tmp_path / f"out{suffix}"
+    warm = [command, str(small), "-o", str(tmp_path / f"small{suffix}")]
+    args = [command, str(src), "-o", str(out), "--all-flags"]
+    r = subprocess.run(
+        [sys.executable, "-c", _UNDER_A_LIMIT, *warm, "--then", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr
+    assert out.is_file()
+
+
 def test_the_readme_states_the_rule_for_every_consumer():
     row = next(line for line in README.read_text().splitlines() if line.startswith("| `flag`"))
-    for word in ("render", "report", "drift", "filter", "evaluate", "--all-flags", "NaN sigmas"):
+    for word in (*(f"`{c}`" for c in CONSUMERS), "--all-flags", "NaN sigmas"):
         assert word in row, word
-    # every command the row names takes the flag
-    for command in re.findall(r"`(render|report|drift|filter|evaluate)`", row):
+    for command in CONSUMERS:
         res = runner.invoke(app, [command, "--help"], env={"COLUMNS": "200"})
         assert "--all-flags" in res.output, command
