@@ -537,6 +537,23 @@ sys.exit(command(given[at + 1:]))
 """
 
 
+def run_under_a_limit(tmp_path, command: str, suffix: str, args: list[str]):
+    """``sparseloc args`` in a subprocess with 300 MiB beyond what it holds after a small run
+    of ``command`` (whose output has the suffix ``suffix``); returns the finished process."""
+    import subprocess
+    import sys
+
+    small = tmp_path / "small.parquet"
+    write_table(_table(), small)
+    warm = [command, str(small), "-o", str(tmp_path / f"small{suffix}")]
+    return subprocess.run(
+        [sys.executable, "-c", _UNDER_A_LIMIT, *warm, "--then", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
 @pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="Linux limits")
 @pytest.mark.parametrize(
     ("command", "suffix", "extra"), [("render", ".png", ["--px", "8"]), ("report", ".html", [])]
@@ -544,25 +561,13 @@ sys.exit(command(given[at + 1:]))
 def test_under_a_memory_limit_a_command_says_so_in_one_sentence(tmp_path, command, suffix, extra):
     """Item 1: under a memory limit, an image too large for it ends in one sentence and exit
     code 1, not NumPy's _ArrayMemoryError traceback, and writes nothing."""
-    import subprocess
-    import sys
-
     t = _table(2000)
     t["x_nm"] *= 20.0  # a field 100 um wide: 12,500 x 12,500 px at 8 nm
     t["y_nm"] *= 20.0
     src = tmp_path / "locs.parquet"
     write_table(t, src)
-    small = tmp_path / "small.parquet"
-    write_table(_table(), small)
     out = tmp_path / f"out{suffix}"
-    warm = [command, str(small), "-o", str(tmp_path / f"small{suffix}")]
-    args = [command, str(src), "-o", str(out), *extra]
-    r = subprocess.run(
-        [sys.executable, "-c", _UNDER_A_LIMIT, *warm, "--then", *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    r = run_under_a_limit(tmp_path, command, suffix, [command, str(src), "-o", str(out), *extra])
     assert r.returncode == 1, r.stderr
     assert "Traceback" not in r.stderr
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]

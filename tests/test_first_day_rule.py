@@ -5,7 +5,6 @@ uncertainties cannot blow up a report, and the README states the rule as the cod
 from __future__ import annotations
 
 import re
-import subprocess
 import sys
 from pathlib import Path
 
@@ -149,19 +148,12 @@ def test_impossible_sigmas_fit_in_a_small_memory_limit(table, tmp_path, command,
     """Item 1: with the flagged rows taken in, their sigmas of 2e9 nm (and 9.7e9, NaN, 1e-14 nm
     along z) are drawn within the image's memory: the command runs with 300 MiB beyond what
     the process holds after a small run of the same command."""
-    from test_first_day_flags import _UNDER_A_LIMIT, _table
+    from test_first_day_flags import run_under_a_limit
 
     src, _ = table
-    small = tmp_path / "small.parquet"
-    write_table(_table(), small)
     out = tmp_path / f"out{suffix}"
-    warm = [command, str(small), "-o", str(tmp_path / f"small{suffix}")]
-    args = [command, str(src), "-o", str(out), "--all-flags"]
-    r = subprocess.run(
-        [sys.executable, "-c", _UNDER_A_LIMIT, *warm, "--then", *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
+    r = run_under_a_limit(
+        tmp_path, command, suffix, [command, str(src), "-o", str(out), "--all-flags"]
     )
     assert r.returncode == 0, r.stderr
     assert out.is_file()
