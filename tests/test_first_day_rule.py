@@ -21,18 +21,19 @@ FLAGGED = 100
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 
-@pytest.fixture(scope="module")
-def table(tmp_path_factory) -> tuple[Path, Path]:
-    """A ring of 3,000 localizations over 200 frames (enough for a drift estimate), the first
-    100 flagged z_edge with lateral sigmas of 2e9 nm, as the trial's table had; and a truth."""
-    rng = np.random.default_rng(0)
+def _ring(seed: int, x_shift_per_frame: float = 0.0, moving: int = 0) -> pd.DataFrame:
+    """3,000 localizations on a ring of 800 nm radius over 200 frames, the first ``moving``
+    shifted in x by ``x_shift_per_frame`` nm per frame, all flagged 'ok'."""
+    rng = np.random.default_rng(seed)
     n = 3000
     th = rng.uniform(0, 2 * np.pi, n)
-    t = complete_locs(
+    frame = rng.integers(0, 200, n)
+    shift = np.where(np.arange(n) < moving, x_shift_per_frame * frame, 0.0)
+    return complete_locs(
         pd.DataFrame(
             {
-                "frame": rng.integers(0, 200, n),
-                "x_nm": 2000 + 800 * np.cos(th) + rng.normal(0, 10, n),
+                "frame": frame,
+                "x_nm": 2000 + 800 * np.cos(th) + rng.normal(0, 10, n) + shift,
                 "y_nm": 2000 + 800 * np.sin(th) + rng.normal(0, 10, n),
                 "z_nm": rng.uniform(-300, 300, n),
                 "photons": 2000.0,
@@ -43,6 +44,13 @@ def table(tmp_path_factory) -> tuple[Path, Path]:
             }
         )
     )
+
+
+@pytest.fixture(scope="module")
+def table(tmp_path_factory) -> tuple[Path, Path]:
+    """A ring of 3,000 localizations over 200 frames (enough for a drift estimate), the first
+    100 flagged z_edge with lateral sigmas of 2e9 nm, as the trial's table had; and a truth."""
+    t = _ring(seed=0)
     t.loc[: FLAGGED - 1, "flag"] = "z_edge"
     t.loc[: FLAGGED - 1, ["sigma_x_nm", "sigma_y_nm"]] = 2e9
     t.loc[: FLAGGED - 1, "sigma_z_nm"] = np.resize([9.7e9, np.nan, 1e-14], FLAGGED)
@@ -87,26 +95,8 @@ def _drift_range_x(res) -> float:
 def test_drift_estimates_from_the_ok_rows_unless_all_flags(tmp_path):
     """Two thirds of the rows flagged and moving 400 nm in x over the movie, the 'ok' rows
     still: the estimate follows the rows the rule lets in."""
-    rng = np.random.default_rng(1)
-    n = 3000
-    th = rng.uniform(0, 2 * np.pi, n)
-    frame = rng.integers(0, 200, n)
-    moving = np.arange(n) < 2000
-    t = complete_locs(
-        pd.DataFrame(
-            {
-                "frame": frame,
-                "x_nm": 2000 + 800 * np.cos(th) + rng.normal(0, 10, n) + moving * 2.0 * frame,
-                "y_nm": 2000 + 800 * np.sin(th) + rng.normal(0, 10, n),
-                "z_nm": 0.0,
-                "photons": 2000.0,
-                "sigma_x_nm": 10.0,
-                "sigma_y_nm": 10.0,
-                "sigma_z_nm": 30.0,
-            }
-        )
-    )
-    t.loc[moving, "flag"] = "z_edge"
+    t = _ring(seed=1, x_shift_per_frame=2.0, moving=2000)
+    t.loc[:1999, "flag"] = "z_edge"
     src = tmp_path / "l.parquet"
     write_table(t, src)
     args = ["drift", str(src), "--segments", "4", "--no-z", "-o", str(tmp_path / "d.parquet")]
