@@ -14,7 +14,7 @@ import pytest
 from typer.testing import CliRunner
 
 from sparseloc.cli import app
-from sparseloc.io.tables import complete_locs, read_parquet, write_table
+from sparseloc.io.tables import read_parquet, write_table
 
 runner = CliRunner()
 FLAGGED = 100
@@ -24,26 +24,18 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 def _ring(seed: int, x_shift_per_frame: float = 0.0, moving: int = 0) -> pd.DataFrame:
     """3,000 localizations on a ring of 800 nm radius over 200 frames, the first ``moving``
     shifted in x by ``x_shift_per_frame`` nm per frame, all flagged 'ok'."""
-    rng = np.random.default_rng(seed)
+    from test_first_day_flags import _table
+
     n = 3000
+    t = _table(n, seed)
+    rng = np.random.default_rng(seed + 100)
     th = rng.uniform(0, 2 * np.pi, n)
     frame = rng.integers(0, 200, n)
     shift = np.where(np.arange(n) < moving, x_shift_per_frame * frame, 0.0)
-    return complete_locs(
-        pd.DataFrame(
-            {
-                "frame": frame,
-                "x_nm": 2000 + 800 * np.cos(th) + rng.normal(0, 10, n) + shift,
-                "y_nm": 2000 + 800 * np.sin(th) + rng.normal(0, 10, n),
-                "z_nm": rng.uniform(-300, 300, n),
-                "photons": 2000.0,
-                "sigma_x_nm": 10.0,
-                "sigma_y_nm": 10.0,
-                "sigma_z_nm": 30.0,
-                "gof": 1.0,
-            }
-        )
-    )
+    t["frame"] = frame
+    t["x_nm"] = 2000 + 800 * np.cos(th) + rng.normal(0, 10, n) + shift
+    t["y_nm"] = 2000 + 800 * np.sin(th) + rng.normal(0, 10, n)
+    return t
 
 
 @pytest.fixture(scope="module")
