@@ -282,7 +282,7 @@ def test_frame_range_refuses_negative_frames(tmp_path):
     for bad in ("-1:", "0:-2"):
         with pytest.raises(ValueError, match="0-based frame numbers >= 0"):
             frame_range(bad, 6)
-    # as the trial typed it on the command line (was read as "-1:1 is empty")
+    # as typed on the command line: refused in the terms of frame numbers, not of a range
     movie = write_tiff(tmp_path / "m.tif", np.full((6, 16, 16), 110, np.uint16), pixel_size=100.0)
     out = tmp_path / "l.parquet"
     res = run("localize", movie, "--psf", "astig-gauss", "--frames=-1:", "-o", out)
