@@ -16,12 +16,12 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import fft as sfft
 from scipy import ndimage as ndi
-from scipy.optimize import nnls
 
 from ..detect import circular_shape
 from ..engine import kernels
 from ..psf.base import PSFModel, energy_radius
 from .emitters import Emitters
+from .nnls import sparse_nnls
 
 log = logging.getLogger(__name__)
 
@@ -239,18 +239,26 @@ def _place(templates: FrameTemplates, atoms: list[tuple[int, int, int]], shape):
     )
 
 
-def _nnls_sparse(a, y: NDArray) -> NDArray[np.float64]:
-    """Non-negative least squares ``min ||a x - y||, x >= 0`` through the K x K Gram matrix:
-    the atoms are sparse, so ``a' a`` is cheap where a dense NNLS would be O(pixels K^2)."""
-    from scipy.linalg import cholesky, solve_triangular
+class _Exclusion:
+    """The pixels closer than ``distance`` (pixels, exclusive) to an atom placed this cycle:
+    a candidate there is refused in constant time, as a comparison with every atom placed
+    would refuse it (a cycle of a dense 512 x 512 px frame places hundreds)."""
 
-    g = (a.T @ a).toarray()
-    b = a.T @ y
-    g[np.diag_indices_from(g)] += 1e-9 * max(float(np.trace(g)) / len(g), 1e-30)
-    r = cholesky(g, lower=False)
-    d = solve_triangular(r, b, trans="T", lower=False)
-    x, _ = nnls(r, d, maxiter=50 * len(g))
-    return x
+    def __init__(self, shape: tuple[int, int], distance: float) -> None:
+        self.blocked = np.zeros(shape, dtype=bool)
+        h = int(np.ceil(distance))
+        dr, dc = np.mgrid[-h : h + 1, -h : h + 1]
+        self.disc = dr**2 + dc**2 < distance**2
+        self.h = h
+
+    def near(self, r: int, c: int) -> bool:
+        return bool(self.blocked[r, c])
+
+    def add(self, r: int, c: int) -> None:
+        h, (rows, cols) = self.h, self.blocked.shape
+        r0, r1, c0, c1 = max(r - h, 0), min(r + h + 1, rows), max(c - h, 0), min(c + h + 1, cols)
+        d = self.disc[r0 - r + h : r1 - r + h, c0 - c + h : c1 - c + h]
+        self.blocked[r0:r1, c0:c1] |= d
 
 
 def frame_pursuit(
@@ -334,17 +342,19 @@ def frame_pursuit(
             break
         order = np.argsort(-sb[peaks])
         new: list[tuple[int, int, int]] = []
+        taken = _Exclusion(f.shape, excl)
         for r, c in rc[order]:
             if len(atoms) + len(new) >= cap or len(new) >= per_cycle:
                 break
-            if any((r - r2) ** 2 + (c - c2) ** 2 < excl**2 for _, r2, c2 in new):
+            if taken.near(r, c):
                 continue
+            taken.add(r, c)
             new.append((int(jb[r, c]), int(r), int(c)))
         if not new:
             break
         atoms += new
         a = _place(templates, atoms, f.shape)
-        amps = _nnls_sparse(a, y.ravel())
+        amps = sparse_nnls(a, y.ravel())
         keep = amps > 0.5 * min_photons
         atoms = [at for at, k in zip(atoms, keep, strict=True) if k]
         amps = amps[keep]
