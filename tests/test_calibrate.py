@@ -824,13 +824,15 @@ def test_a_pair_seen_as_one_bead_is_the_only_outlier_in_a_crowded_field(model):
     """Two beads 700 nm apart are found as one (the detection merges the lobes of a double
     helix). An outlier test on whole ROIs drops the pair's neighbour too (its ROI holds the
     pair's light), and on a random bead slide the neighbours' light hides the pairs. Each
-    bead's own model error on the voxels the average keeps singles out the pair alone."""
+    bead's own model error on the voxels the average keeps singles out the pair alone, and
+    the reason says what it is (its image repeats at the pair's offset)."""
     rng = np.random.default_rng(1)
     grid = np.array([18.0, 43.0, 68.0, 93.0]) * PX  # 2.5 um apart: every ROI sees neighbours
     pos = np.array([(x, y) for y in grid for x in grid]) + rng.uniform(-50, 50, (16, 2))
     movie = simulate_scan(model, np.vstack([pos, pos[5] + [700.0, 0.0]]), seed=3)
     cal = calibrate_beads(movie, PX, Z_STEP, offset=OFFSET)
-    outliers = cal.beads[cal.beads["reason"] == "outlier"]
+    assert (cal.beads["reason"] == "outlier").sum() == 0
+    outliers = cal.beads[cal.beads["reason"] == "two beads found as one"]
     assert len(outliers) == 1
     found = outliers[["x_nm", "y_nm"]].to_numpy()[0]
     assert min(np.hypot(*(found - pos[5])), np.hypot(*(found - pos[5] - [700.0, 0.0]))) < 300.0

@@ -1155,11 +1155,19 @@ def _drop_outliers(
         if not bad or not few or len(used) - len(bad) < max(min_beads, 1):
             break
         for i in bad:
-            reason[i] = "outlier"
+            reason[i] = _outlier_reason(stacks.rois[i])
             stacks.shifts.pop(i, None)
         used = [i for i in used if i not in bad]
         avg = stacks.register(used, scan.zplanes, iterations, name)
     return used, avg
+
+
+def _outlier_reason(roi: NDArray[np.float64]) -> str:
+    """Why an outlier departs from the beads' model: its ROI (Nz, R, R) holds one image
+    repeated at a fixed offset in every plane (:func:`repeated_light`: two beads closer than
+    the detection parts, found as one), or something else (dirt, an aggregate)."""
+    share, _ = repeated_light(roi)
+    return "two beads found as one" if share > REPEATED_LIGHT else "outlier"
 
 
 #: A bead whose own model error is below this fraction of its signal is no outlier, however
