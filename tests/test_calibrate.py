@@ -772,6 +772,50 @@ def test_bead_position_files(tmp_path, offset_scan):
     far[1] += 450.0  # 4.5 px from every bead
     with pytest.raises(ValueError, match="more than 2 px from every bead found"):
         calibrate_beads(offset_scan["movie"], PX, Z_STEP, offset=OFFSET, beads=far)
+    dark = np.vstack([truth, [[600.0, 11400.0]]])  # a corner without a bead
+    with pytest.raises(ValueError, match=r"\(600, 11400\) nm .* more than 2 px"):
+        calibrate_beads(offset_scan["movie"], PX, Z_STEP, offset=OFFSET, beads=dark)
+
+
+def test_the_match_tolerance_follows_the_beads_scatter():
+    """A listed position may lie 2 px from its bead found, or farther where the beads found
+    scatter more about their positions (an engineered PSF's light cut by the detection's
+    disc): the 99 % distance of that scatter. One position far off among close ones does not
+    widen it."""
+    from sparseloc.calibrate import _match_tolerance
+
+    def tol(dist):  # each position alone near its own bead found
+        d = np.full((len(dist), len(dist)), 100.0)
+        d[np.diag_indices_from(d)] = dist
+        return _match_tolerance(d, np.ones(len(dist), int), merge=9.0)
+
+    assert tol([0.1, 0.2, 0.1, 4.5]) == 2.0
+    assert tol([1.2, 1.4, 1.5, 1.0, 2.1, 0.7]) == pytest.approx(3.03 / 1.177 * 1.3)
+    assert tol([0.1, 0.1, 12.0]) == 2.0  # beyond the merge radius: no scatter to measure
+
+
+def test_listed_beads_the_detection_merges_are_beads(model):
+    """Two beads 1 um apart are found as one bead between them (the detection's merge
+    radius), which a bead file listing both was refused for ("more than 2 px from every bead
+    found"). With the positions known, each listed bead is a bead where its light lies, and
+    the merged detection between them is none."""
+    from sparseloc.psf.base import ShiftedPSF
+
+    shifted = ShiftedPSF(model, *LIGHT_OFFSET)
+    pair = np.array([[5000.0, 6000.0], [6000.0, 6000.0]])
+    positions = np.vstack([[[2500.0, 2500.0], [9000.0, 2550.0], [2520.0, 9500.0]], pair])
+    movie = simulate_scan(shifted, positions, seed=6)
+    plain = calibrate_beads(movie, PX, Z_STEP, offset=OFFSET)
+    midpoint = pair.mean(axis=0) + LIGHT_OFFSET
+    xy = plain.beads[["x_nm", "y_nm"]].to_numpy()
+    assert np.hypot(*(xy - midpoint).T).min() < 200.0  # the detection merges the pair
+    cal = calibrate_beads(movie, PX, Z_STEP, offset=OFFSET, beads=positions)
+    xy = cal.beads[["x_nm", "y_nm"]].to_numpy()
+    for bead in pair + LIGHT_OFFSET:
+        assert np.hypot(*(xy - bead).T).min() < 100.0, (bead, xy)
+    assert np.hypot(*(xy - midpoint).T).min() > 300.0
+    assert cal.params["lateral_origin"] == "beads"
+    assert np.allclose(cal.params["centroid_offset_nm"], LIGHT_OFFSET, atol=10.0)
 
 
 def test_calibrate_cli_with_bead_positions(tmp_path, offset_scan):

@@ -209,15 +209,10 @@ def find_beads(
     ndarray, shape (n, 2)
         Centroids (row, col), brightest first.
     """
-    from scipy.ndimage import gaussian_filter, maximum_filter
+    from scipy.ndimage import maximum_filter
 
-    sm = gaussian_filter(projection, sigma)
-    med = np.median(sm)
-    # Pixel noise from the high-pass part of the frame (robust to the beads' light), scaled
-    # by the Gaussian's noise gain 1 / (2 sqrt(pi) sigma).
-    hp = projection - gaussian_filter(projection, 1.0)
-    noise = 1.4826 * np.median(np.abs(hp - np.median(hp))) / (2 * np.sqrt(np.pi) * sigma) + 1e-12
-    peaks = (sm == maximum_filter(sm, size=int(2 * np.ceil(sigma) + 1))) & (sm > med + 6 * noise)
+    sm, floor = _smoothed_light(projection, sigma)
+    peaks = (sm == maximum_filter(sm, size=int(2 * np.ceil(sigma) + 1))) & (sm > floor)
     rr, cc = np.nonzero(peaks)
     if rr.size == 0:
         return np.zeros((0, 2))
@@ -236,6 +231,109 @@ def find_beads(
         if all((r - r0) ** 2 + (c - c0) ** 2 > (merge_radius / 2) ** 2 for r0, c0 in merged):
             merged.append((r, c))
     return np.array(merged, dtype=np.float64).reshape(-1, 2)
+
+
+def _smoothed_light(
+    projection: NDArray[np.float64], sigma: float
+) -> tuple[NDArray[np.float64], float]:
+    """The projection smoothed by a Gaussian of ``sigma`` px, and the level a bead's light
+    must pass there: 6 robust standard deviations of the smoothed frame's noise above its
+    median."""
+    from scipy.ndimage import gaussian_filter
+
+    sm = gaussian_filter(projection, sigma)
+    # Pixel noise from the high-pass part of the frame (robust to the beads' light), scaled
+    # by the Gaussian's noise gain 1 / (2 sqrt(pi) sigma).
+    hp = projection - gaussian_filter(projection, 1.0)
+    noise = 1.4826 * np.median(np.abs(hp - np.median(hp))) / (2 * np.sqrt(np.pi) * sigma) + 1e-12
+    return sm, float(np.median(sm) + 6 * noise)
+
+
+def _listed_beads(
+    found: NDArray[np.float64],
+    known: ArrayLike,
+    projection: NDArray[np.float64],
+    p: float,
+    detect_sigma: float,
+    threshold: float,
+    roi_size: int | None,
+) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """The beads where their positions are known: each listed position's bead.
+
+    The detection finds beads by their light, which an engineered PSF spreads around the
+    emitter, and it merges beads closer than its merge radius (a false bead between them).
+    With the positions known, each listed bead's light lies at its position plus one offset
+    that every bead shares (one PSF): the median offset of the positions' nearest beads
+    found. A listed bead is the bead found within a match tolerance
+    (:func:`_match_tolerance`) of where its light lies, else, where the detection found none
+    of its own, that place, if the smoothed light there passes the detection's bar. A bead
+    found near one position only but farther than the tolerance, or a position without
+    light, means a wrong file: refused. A bead found that no position claims is left out: a
+    bead the file does not list, or the detection's merge of listed beads.
+
+    Returns
+    -------
+    centres : ndarray, shape (K, 2)
+        Bead centres (row, col; px) in the file's order.
+    listed : ndarray of int, shape (K,)
+        Each position's index in ``centres``.
+    """
+    xy = np.asarray(known, dtype=np.float64).reshape(-1, 2)
+    want = np.c_[xy[:, 1] / p - 0.5, xy[:, 0] / p - 0.5]
+    merge = _merge_radius(detect_sigma, roi_size)
+    d = np.hypot(*(want[:, None, :] - found[None, :, :]).transpose(2, 0, 1))
+    close = np.flatnonzero(d.min(axis=1) <= merge)
+    if close.size == 0:
+        raise ValueError(
+            "none of the bead file's positions lies near a bead found; check the file's units "
+            "and origin"
+        )
+    shift = np.median(found[np.argmin(d[close], axis=1)] - want[close], axis=0)
+    expect = want + shift
+    d = np.hypot(*(expect[:, None, :] - found[None, :, :]).transpose(2, 0, 1))
+    claims = (d <= merge).sum(axis=0)  # positions within the merge radius of each bead found
+    tol = _match_tolerance(d, claims, merge)
+    sm, floor = _smoothed_light(projection, detect_sigma)
+    bar = max(floor, threshold * float(sm.max()))
+    centres: list[NDArray[np.float64]] = []
+    used_found: set[int] = set()
+    for k in range(len(xy)):
+        j = int(np.argmin(d[k]))
+        if d[k, j] <= tol:
+            centres.append(found[j])
+            used_found.add(j)
+            continue
+        r, c = np.round(expect[k]).astype(int)
+        inside = 0 <= r < sm.shape[0] and 0 <= c < sm.shape[1]
+        if (d[k, j] <= merge and claims[j] == 1) or not inside or sm[r, c] <= bar:
+            x, y = xy[k]
+            raise ValueError(
+                f"bead position ({x:.0f}, {y:.0f}) nm of the bead file is more than "
+                f"{tol:.3g} px from every bead found; check the file's units and origin"
+            )
+        centres.append(expect[k])
+    if len(used_found) < len(found):
+        log.info(
+            "%d bead(s) found that the bead file does not list left out",
+            len(found) - len(used_found),
+        )
+    return np.array(centres, dtype=np.float64).reshape(-1, 2), np.arange(len(xy))
+
+
+def _match_tolerance(d: NDArray[np.float64], claims: NDArray[np.intp], merge: float) -> float:
+    """How far (px) a listed position may lie from its bead found: :data:`BEAD_MATCH_PX`, or
+    the 99 % distance of the beads' own scatter about the shared offset where it is wider
+    (an engineered PSF's light, cut by the detection's disc, centres a bead within a pixel or
+    two). The scatter is the median distance of the positions from their nearest bead found,
+    over positions near a bead found that no other position claims (not the detection's
+    merges): for a 2-D Gaussian scatter of sigma per axis, the median distance is 1.177
+    sigma and the 99 % distance 3.03 sigma."""
+    nearest = np.argmin(d, axis=1)
+    dist = d[np.arange(len(d)), nearest]
+    alone = (dist <= merge) & (claims[nearest] == 1)
+    if not alone.any():
+        return BEAD_MATCH_PX
+    return max(BEAD_MATCH_PX, 3.03 / 1.177 * float(np.median(dist[alone])))
 
 
 def _roi(stack: NDArray[np.float64], r: int, c: int, half: int) -> NDArray[np.float64]:
@@ -436,6 +534,11 @@ def _calibrate_scan(
     ``tick()`` between the steps."""
     p, step = scan.pixel_size, scan.step
     centres = _detect(scan.projection, detect_sigma, threshold, roi_size)
+    listed = None
+    if known is not None:
+        centres, listed = _listed_beads(
+            centres, known, scan.projection, p, detect_sigma, threshold, roi_size
+        )
     tick()
     camera = CameraNoise(*noise, scan.background)
     variance = camera.sd(np.zeros((scan.data.shape[0], 1, 1)))[:, 0, 0] ** 2
@@ -476,7 +579,7 @@ def _calibrate_scan(
     origin: dict[str, Any] = {"lateral_origin": "centroid"}
     if known is not None:
         table = _bead_table(centres, used, reason, residual, stacks, centre, half)
-        centre, origin = _centre_on_beads(table, used, known, centres, p, centre)
+        centre, origin = _centre_on_beads(table, used, known, listed, p, centre)
     cr, cc = centre
     origin["centroid_over_z_nm"] = _centroid_over_z(clean, centre, half, p)
     # The model ends where its light falls below its noise (dim beads), or at the ROI.
@@ -636,7 +739,7 @@ def _detect(
     projection: NDArray[np.float64], detect_sigma: float, threshold: float, roi_size: int | None
 ) -> NDArray[np.float64]:
     """Bead centres (row, col; px) on the z-averaged frame; ``ValueError`` when none."""
-    merge = max(3.0 * detect_sigma, (roi_size or 0) / 2.0)
+    merge = _merge_radius(detect_sigma, roi_size)
     centres = find_beads(projection, sigma=detect_sigma, threshold=threshold, merge_radius=merge)
     if centres.shape[0] == 0:
         raise ValueError(
@@ -644,6 +747,11 @@ def _detect(
             "check that the file is a bead z-scan"
         )
     return centres
+
+
+def _merge_radius(detect_sigma: float, roi_size: int | None) -> float:
+    """How close (px) two maxima of the smoothed projection are one bead's."""
+    return max(3.0 * detect_sigma, (roi_size or 0) / 2.0)
 
 
 #: Smallest and largest half side (px) of the automatic ROI and of a model cut to its light.
@@ -1334,7 +1442,8 @@ def _centroid_over_z(
     return {"x": [float(dx.min()), float(dx.max())], "y": [float(dy.min()), float(dy.max())]}
 
 
-#: A known bead position farther than this (pixels) from every bead found matches none.
+#: A known bead position farther than this (pixels) from every bead found matches none, unless
+#: the beads found scatter more about their positions (:func:`_match_tolerance`).
 BEAD_MATCH_PX = 2.0
 
 
@@ -1342,28 +1451,18 @@ def _centre_on_beads(
     table: pd.DataFrame,
     used: list[int],
     known: ArrayLike,
-    centres: NDArray[np.float64],
+    listed: NDArray[np.intp],
     p: float,
     centre: tuple[float, float],
 ) -> tuple[tuple[float, float], dict[str, Any]]:
     """The model centre (row, col in px) that puts the registered beads at their ``known``
     positions (B, 2; x, y nm) on average, and what that moved (for the calibration's record).
 
-    Each known position is matched to the nearest bead found (within :data:`BEAD_MATCH_PX`);
-    the used beads among them fix the offset of the light's centroid from the emitter.
+    ``listed``: each known position's bead (:func:`_listed_beads`); the used beads among
+    them fix the offset of the light's centroid from the emitter.
     """
     xy = np.asarray(known, dtype=np.float64).reshape(-1, 2)
-    found = np.c_[(centres[:, 1] + 0.5) * p, (centres[:, 0] + 0.5) * p]
-    d = np.hypot(*(xy[:, None, :] - found[None, :, :]).transpose(2, 0, 1))
-    nearest = np.argmin(d, axis=1)
-    far = np.flatnonzero(d[np.arange(len(xy)), nearest] > BEAD_MATCH_PX * p)
-    if far.size:
-        x, y = xy[far[0]]
-        raise ValueError(
-            f"bead position ({x:.0f}, {y:.0f}) nm of the bead file is more than "
-            f"{BEAD_MATCH_PX:g} px from every bead found; check the file's units and origin"
-        )
-    pairs = [(k, int(i)) for k, i in enumerate(nearest) if int(i) in used]
+    pairs = [(k, int(i)) for k, i in enumerate(listed) if int(i) in used]
     if not pairs:
         raise ValueError("none of the bead file's positions is a bead the calibration used")
     model_xy = table[["x_nm", "y_nm"]].to_numpy()
