@@ -24,23 +24,19 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.linalg import cholesky, solve_triangular
-from scipy.optimize import nnls
 
 from sparseloc.pipeline import LocalizeParams, _FrameSolver
 from sparseloc.psf import make_psf
 from sparseloc.simulate import simulate
 from sparseloc.solvers import frame_mp
-from sparseloc.solvers.nnls import RIDGE, sparse_nnls
+from sparseloc.solvers.nnls import RIDGE, active_set_nnls, sparse_nnls
 
 
 def dense_nnls(a, y):
-    """scipy's Lawson-Hanson NNLS on the same ridged Gram system, through its Cholesky factor."""
+    """scipy's Lawson-Hanson NNLS on the same ridged Gram system (the method used before)."""
     g = (a.T @ a).toarray()
     g[np.diag_indices_from(g)] += RIDGE * max(float(np.trace(g)) / max(len(g), 1), 1e-30)
-    r = cholesky(g, lower=False)
-    x, _ = nnls(r, solve_triangular(r, a.T @ y, trans="T", lower=False), maxiter=50 * len(g))
-    return x
+    return active_set_nnls(g, a.T @ y)
 
 
 def run(solver, frame, engine) -> dict:

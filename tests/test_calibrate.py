@@ -777,6 +777,16 @@ def test_bead_position_files(tmp_path, offset_scan):
         calibrate_beads(offset_scan["movie"], PX, Z_STEP, offset=OFFSET, beads=dark)
 
 
+def test_a_bead_listed_twice_or_outside_the_stack_is_no_refusal(offset_scan):
+    """A bead file may list a bead twice, or beads of a larger field than the stack holds:
+    the twin is one bead, the position outside is left out."""
+    truth = offset_scan["positions"]
+    listed = np.vstack([truth, truth[:1], [[30000.0, 5000.0]]])
+    cal = calibrate_beads(offset_scan["movie"], PX, Z_STEP, offset=OFFSET, beads=listed)
+    assert cal.params["lateral_origin"] == "beads" and cal.params["n_beads_known"] == 4
+    assert np.allclose(cal.params["centroid_offset_nm"], LIGHT_OFFSET, atol=3.0)
+
+
 def test_the_match_tolerance_follows_the_beads_scatter():
     """A listed position may lie 2 px from its bead found, or farther where the beads found
     scatter more about their positions (an engineered PSF's light cut by the detection's
@@ -791,7 +801,7 @@ def test_the_match_tolerance_follows_the_beads_scatter():
 
     assert tol([0.1, 0.2, 0.1, 4.5]) == 2.0
     assert tol([1.2, 1.4, 1.5, 1.0, 2.1, 0.7]) == pytest.approx(3.03 / 1.177 * 1.3)
-    assert tol([0.1, 0.1, 12.0]) == 2.0  # beyond the merge radius: no scatter to measure
+    assert tol([0.1, 12.0, 12.0]) == 2.0  # beyond the merge radius: not the scatter
 
 
 def test_listed_beads_the_detection_merges_are_beads(model):

@@ -43,6 +43,9 @@ def test_sparse_nnls_is_the_nnls_optimum(seed):
     y = a @ truth + rng.normal(0, 20, a.shape[0])  # noise: some amplitudes end at zero
     x = sparse_nnls(a, y)
     ref = _reference(a, y)
+    g = sp.csc_matrix(a.T @ a)
+    g = sp.csc_matrix(g + nnls_module.RIDGE * g.diagonal().mean() * sp.identity(g.shape[0]))
+    assert nnls_module._pivoting(g, a.T @ y) is not None  # not the fallback's answer
     assert np.all(x >= 0)
     assert np.sum(x == 0) >= 5  # the bound is active somewhere, or the test proves little
     # the same objective; the same amplitudes, where twice-placed atoms (whose split only the
@@ -59,6 +62,9 @@ def test_optimality_conditions_hold():
     a = _atoms(rng, 40, 80)
     y = a @ rng.uniform(-200, 1000, a.shape[1])  # negative truths: many amplitudes at zero
     x = sparse_nnls(a, y)
+    gs = sp.csc_matrix(a.T @ a)
+    gs = sp.csc_matrix(gs + nnls_module.RIDGE * gs.diagonal().mean() * sp.identity(gs.shape[0]))
+    assert nnls_module._pivoting(gs, a.T @ y) is not None
     g = (a.T @ a).toarray()
     g[np.diag_indices_from(g)] += nnls_module.RIDGE * np.trace(g) / len(g)
     grad = g @ x - a.T @ y

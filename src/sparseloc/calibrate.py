@@ -258,7 +258,8 @@ def _listed_beads(
     threshold: float,
     roi_size: int | None,
 ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
-    """The beads where their positions are known: each listed position's bead.
+    """The beads where their positions are known: each listed position's bead, then the beads
+    found that no position lists.
 
     The detection finds beads by their light, which an engineered PSF spreads around the
     emitter, and it merges beads closer than its merge radius (a false bead between them).
@@ -268,17 +269,22 @@ def _listed_beads(
     (:func:`_match_tolerance`) of where its light lies, else, where the detection found none
     of its own, that place, if the smoothed light there passes the detection's bar. A bead
     found near one position only but farther than the tolerance, or a position without
-    light, means a wrong file: refused. A bead found that no position claims is left out: a
-    bead the file does not list, or the detection's merge of listed beads.
+    light, means a wrong file: refused. A position whose light would lie outside the frame
+    is left out (a file of a larger field). A bead found within the merge radius of a
+    position and claimed by none is the detection's merge of listed beads: left out; one
+    farther from every position is a bead the file does not list: kept, so that its light is
+    modelled where it falls on a listed bead's ROI.
 
     Returns
     -------
-    centres : ndarray, shape (K, 2)
-        Bead centres (row, col; px) in the file's order.
+    centres : ndarray, shape (n, 2)
+        Bead centres (row, col; px): the listed beads in the file's order, then the others.
     listed : ndarray of int, shape (K,)
-        Each position's index in ``centres``.
+        Each position's index in ``centres`` (-1 where it was left out; positions listed
+        twice share one).
     """
-    xy = np.asarray(known, dtype=np.float64).reshape(-1, 2)
+    xy_all = np.asarray(known, dtype=np.float64).reshape(-1, 2)
+    xy, twin = np.unique(np.round(xy_all, 1), axis=0, return_inverse=True)
     want = np.c_[xy[:, 1] / p - 0.5, xy[:, 0] / p - 0.5]
     merge = _merge_radius(detect_sigma, roi_size)
     d = np.hypot(*(want[:, None, :] - found[None, :, :]).transpose(2, 0, 1))
@@ -296,44 +302,54 @@ def _listed_beads(
     sm, floor = _smoothed_light(projection, detect_sigma)
     bar = max(floor, threshold * float(sm.max()))
     centres: list[NDArray[np.float64]] = []
-    used_found: set[int] = set()
+    index = np.full(len(xy), -1)
+    taken: set[int] = set()
     for k in range(len(xy)):
         j = int(np.argmin(d[k]))
-        if d[k, j] <= tol:
+        if d[k, j] <= tol and j not in taken:
+            index[k] = len(centres)
             centres.append(found[j])
-            used_found.add(j)
+            taken.add(j)
             continue
         r, c = np.round(expect[k]).astype(int)
-        inside = 0 <= r < sm.shape[0] and 0 <= c < sm.shape[1]
-        if (d[k, j] <= merge and claims[j] == 1) or not inside or sm[r, c] <= bar:
-            x, y = xy[k]
+        if not (0 <= r < sm.shape[0] and 0 <= c < sm.shape[1]):
+            log.warning("bead position (%.0f, %.0f) nm lies outside the stack: left out", *xy[k])
+            continue
+        if (d[k, j] <= merge and claims[j] == 1) or sm[r, c] <= bar:
             raise ValueError(
-                f"bead position ({x:.0f}, {y:.0f}) nm of the bead file is more than "
-                f"{tol:.3g} px from every bead found; check the file's units and origin"
+                f"bead position ({xy[k, 0]:.0f}, {xy[k, 1]:.0f}) nm of the bead file is more "
+                f"than {tol:.3g} px from every bead found; check the file's units and origin"
             )
+        index[k] = len(centres)
         centres.append(expect[k])
-    if len(used_found) < len(found):
-        log.info(
-            "%d bead(s) found that the bead file does not list left out",
-            len(found) - len(used_found),
-        )
-    return np.array(centres, dtype=np.float64).reshape(-1, 2), np.arange(len(xy))
+    if not centres:
+        raise ValueError("every position of the bead file lies outside the stack")
+    unlisted = [found[j] for j in range(len(found)) if j not in taken and claims[j] == 0]
+    out = np.array(centres + unlisted, dtype=np.float64).reshape(-1, 2)
+    return out, index[twin.ravel()]
 
 
 def _match_tolerance(d: NDArray[np.float64], claims: NDArray[np.intp], merge: float) -> float:
     """How far (px) a listed position may lie from its bead found: :data:`BEAD_MATCH_PX`, or
     the 99 % distance of the beads' own scatter about the shared offset where it is wider
     (an engineered PSF's light, cut by the detection's disc, centres a bead within a pixel or
-    two). The scatter is the median distance of the positions from their nearest bead found,
-    over positions near a bead found that no other position claims (not the detection's
-    merges): for a 2-D Gaussian scatter of sigma per axis, the median distance is 1.177
-    sigma and the 99 % distance 3.03 sigma."""
+    two), up to half the merge radius. The scatter is the median distance of the positions
+    from their nearest bead found, over the positions near a bead found that no other
+    position claims (not the detection's merges), where there are :data:`SCATTER_BEADS` or
+    more: for a 2-D Gaussian scatter of sigma per axis, the median distance is 1.177 sigma
+    and the 99 % distance 3.03 sigma."""
     nearest = np.argmin(d, axis=1)
     dist = d[np.arange(len(d)), nearest]
     alone = (dist <= merge) & (claims[nearest] == 1)
-    if not alone.any():
+    if alone.sum() < SCATTER_BEADS:
         return BEAD_MATCH_PX
-    return max(BEAD_MATCH_PX, 3.03 / 1.177 * float(np.median(dist[alone])))
+    wide = 3.03 / 1.177 * float(np.median(dist[alone]))
+    return float(np.clip(wide, BEAD_MATCH_PX, max(BEAD_MATCH_PX, merge / 2.0)))
+
+
+#: Fewest listed beads, each near a bead found of its own, that measure the beads' scatter
+#: about their positions (fewer: the match tolerance stays :data:`BEAD_MATCH_PX`).
+SCATTER_BEADS = 4
 
 
 def _roi(stack: NDArray[np.float64], r: int, c: int, half: int) -> NDArray[np.float64]:
@@ -462,8 +478,11 @@ def calibrate_beads(
         none for steps of 30 nm or more.
     beads : array_like, shape (B, 2), optional
         The beads' known x, y (nm, native coordinates; :func:`read_bead_positions`): the
-        model's lateral origin is then the emitter, placed so the matched beads sit at their
-        known positions on average. Without them it is the centroid of the z-averaged image.
+        listed positions are the beads, also where the detection merges two or misses one
+        (beads found that the file does not list count as well; :func:`_listed_beads`), and
+        the model's lateral origin is the emitter, placed so the listed beads used sit at
+        their known positions on average. Without them it is the centroid of the z-averaged
+        image.
     fit_pupil : bool
         Also fit the pupil phase to the average (``pupil_options`` go to
         :func:`sparseloc.psf.retrieval.fit_pupil`: ``na``, ``wavelength``, ...).
@@ -648,8 +667,8 @@ def _cluster_warning(stacks: _BeadStacks, used: list[int], centres: NDArray[np.f
     p = stacks.p
     found = []
     for i in used:
-        share, lag = repeated_light(stacks.rois[i])
-        if share > REPEATED_LIGHT:
+        several, lag = _holds_several(stacks.rois[i])
+        if several:
             r, c = centres[i]
             x, y = (c + 0.5) * p, (r + 0.5) * p
             found.append(f"at x {x:.0f}, y {y:.0f} nm, repeated {lag * p:.0f} nm away")
@@ -1271,11 +1290,17 @@ def _drop_outliers(
 
 
 def _outlier_reason(roi: NDArray[np.float64]) -> str:
-    """Why an outlier departs from the beads' model: its ROI (Nz, R, R) holds one image
-    repeated at a fixed offset in every plane (:func:`repeated_light`: two beads closer than
-    the detection parts, found as one), or something else (dirt, an aggregate)."""
-    share, _ = repeated_light(roi)
-    return "two beads found as one" if share > REPEATED_LIGHT else "outlier"
+    """Why an outlier departs from the beads' model: its ROI (Nz, R, R) holds several beads
+    found as one (:func:`_holds_several`), or something else (dirt, an aggregate)."""
+    return "two beads found as one" if _holds_several(roi)[0] else "outlier"
+
+
+def _holds_several(roi: NDArray[np.float64]) -> tuple[bool, float]:
+    """Whether a bead's ROI (Nz, R, R) holds one image repeated at a fixed offset in every
+    plane (:func:`repeated_light`: beads closer than the detection parts), and that offset
+    (px)."""
+    share, lag = repeated_light(roi)
+    return share > REPEATED_LIGHT, lag
 
 
 #: A bead whose own model error is below this fraction of its signal is no outlier, however
@@ -1462,7 +1487,8 @@ def _centre_on_beads(
     them fix the offset of the light's centroid from the emitter.
     """
     xy = np.asarray(known, dtype=np.float64).reshape(-1, 2)
-    pairs = [(k, int(i)) for k, i in enumerate(listed) if int(i) in used]
+    first = {int(i): k for k, i in reversed(list(enumerate(listed)))}  # a twin once
+    pairs = [(k, i) for i, k in first.items() if i in used]
     if not pairs:
         raise ValueError("none of the bead file's positions is a bead the calibration used")
     model_xy = table[["x_nm", "y_nm"]].to_numpy()
