@@ -15,14 +15,12 @@ PX = 100.0
 BACKGROUND = 20.0
 
 
-@pytest.fixture(scope="module")
-def crowded():
+def _crowded_frame(model, seed: int) -> tuple[np.ndarray, pd.DataFrame]:
     """One 48 x 48 px frame of 24 double helices (1,500-6,000 photons) over a flat background:
     their images cover most of every 16 px block the spatial estimate takes its darker
     pixels from."""
-    model = make_psf("dh-analytic")
     lo, hi = model.z_range
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     n, size = 24, 48
     x = rng.uniform(300, size * PX - 300, n)
     y = rng.uniform(300, size * PX - 300, n)
@@ -31,7 +29,24 @@ def crowded():
     mu = model.render(x, y, z, photons, (size, size), PX) + BACKGROUND
     frame = rng.poisson(mu).astype(float)
     truth = pd.DataFrame(dict(frame=0, x_nm=x, y_nm=y, z_nm=z, photons=photons))
+    return frame, truth
+
+
+@pytest.fixture(scope="module")
+def crowded():
+    """One crowded frame (:func:`_crowded_frame`)."""
+    model = make_psf("dh-analytic")
+    frame, truth = _crowded_frame(model, 0)
     return model, frame, truth
+
+
+@pytest.fixture(scope="module")
+def crowded_movie():
+    """Six crowded frames (:func:`_crowded_frame`), too few for a temporal background."""
+    model = make_psf("dh-analytic")
+    frames, truths = zip(*(_crowded_frame(model, seed) for seed in range(6)), strict=True)
+    truth = pd.concat([t.assign(frame=k) for k, t in enumerate(truths)], ignore_index=True)
+    return model, np.stack(frames), truth
 
 
 def _spy_fits(monkeypatch) -> list[float]:
@@ -62,20 +77,25 @@ def _spy_estimates(monkeypatch) -> list[float]:
     return seen
 
 
-def test_a_crowded_frame_is_refitted_over_the_background_its_emitters_hid(crowded, monkeypatch):
-    model, frame, truth = crowded
+def test_a_crowded_frame_is_refitted_over_the_background_its_emitters_hid(
+    crowded_movie, monkeypatch
+):
+    model, frames, truth = crowded_movie
     p = LocalizeParams(pixel_size=PX)
     with monkeypatch.context() as m:
         m.setattr(pipeline._FrameSolver, "residual_background", lambda self, f, fit, **k: fit)
-        first = evaluate(localize(frame[None], model, p, check=False).table, truth)
-    seen = _spy_estimates(monkeypatch)
-    again = evaluate(localize(frame[None], model, p, check=False).table, truth)
-    # the frame's own estimate holds the emitters' light; without it the estimate is near the
-    # background, and the emitters it hid are found
-    assert len(seen) == 2
-    assert seen[0] > BACKGROUND + 4.0
-    assert abs(seen[1] - BACKGROUND) < abs(seen[0] - BACKGROUND) / 3
-    assert again.recall > first.recall and again.precision >= first.precision
+        first = evaluate(localize(frames, model, p, check=False).table, truth)
+    spied = _spy_estimates(monkeypatch)
+    again = evaluate(localize(frames, model, p, check=False).table, truth)
+    seen = np.array(spied)
+    # each frame's own estimate holds the emitters' light; without it the estimate is near
+    # the background, and the refit over it is the better table (pooled over the frames: in
+    # one frame the gain is an emitter or two, which rounding-level changes can move)
+    assert len(seen) == 2 * len(frames)
+    own, again_seen = seen[0::2], seen[1::2]
+    assert np.all(own > BACKGROUND + 4.0)
+    assert np.all(np.abs(again_seen - BACKGROUND) < np.abs(own - BACKGROUND) / 3)
+    assert again.recall >= first.recall and again.jaccard > first.jaccard
 
 
 def test_a_frame_without_emitters_and_an_scmos_map(crowded):
