@@ -806,9 +806,9 @@ def test_the_match_tolerance_follows_the_beads_scatter():
 
 def test_listed_beads_the_detection_merges_are_beads(model):
     """Two beads 1 um apart are found as one bead between them (the detection's merge
-    radius), which a bead file listing both was refused for ("more than 2 px from every bead
-    found"). With the positions known, each listed bead is a bead where its light lies, and
-    the merged detection between them is none."""
+    radius), 5 px from either listed position: matching the positions to the beads found
+    would refuse a correct file. With the positions known, each listed bead is a bead where
+    its light lies, and the merged detection between them is none."""
     from sparseloc.psf.base import ShiftedPSF
 
     shifted = ShiftedPSF(model, *LIGHT_OFFSET)

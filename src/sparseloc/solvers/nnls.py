@@ -3,12 +3,12 @@
 The frame solver's pursuit refits the amplitudes of every atom it placed after each cycle. Its
 atoms are templates centred on pixels of the frame, so each overlaps only its neighbours and
 the Gram matrix ``A'A`` is sparse. Lawson and Hanson's active-set method (scipy's ``nnls``)
-adds one atom per step on a dense factor: its cost grows with the cube of the atoms (40 s for
-3,000 atoms of a dense 512 x 512 px frame). Block principal pivoting (Kim & Park, SIAM J. Sci.
-Comput. 33, 3261 (2011)) exchanges every atom on the wrong side of the optimality conditions
-at once and solves each passive set with a sparse factorization: a few steps, each far
-below the dense method's cost. Both return the unique optimum when ``A'A`` is positive
-definite, which the small ridge below ensures.
+adds one atom per step on a dense factor: its cost grows with the cube of the atoms, which a
+dense frame counts in thousands (docs/benchmarks/pursuit_nnls.txt). Block principal pivoting
+(Kim & Park, SIAM J. Sci. Comput. 33, 3261 (2011)) exchanges every atom on the wrong side of
+the optimality conditions at once and solves each passive set with a sparse factorization: a
+few steps, each far below the dense method's cost. Both return the unique optimum when
+``A'A`` is positive definite, which the small ridge below ensures.
 """
 
 from __future__ import annotations
