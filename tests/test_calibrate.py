@@ -953,6 +953,27 @@ def test_dim_beads_on_a_crowded_slide_are_all_used(model):
     assert cal.params["bead_roi_size_px"] <= 31  # within the spacing (30 px) and a pixel
 
 
+def test_beads_near_the_edge_of_a_dark_slide_are_used_in_a_smaller_roi():
+    """Six bright beads on a background of 1 photon/px, five of them 1.4 um from the frame's
+    edges. With so little noise the light profile of an astigmatic pupil model reaches far:
+    an ROI of 99 % of the light would not fit around the beads near the edge and leave one
+    bead. The ROI shrinks, down to the radius holding 97 %, until they fit."""
+    from sparseloc.calibrate_crowd import ROI_ENERGY_LEAST
+
+    edge, far = 1400.0, SHAPE[0] * PX - 1400.0
+    pos = [(edge, edge), (6000.0, edge), (far, edge), (edge, 6000.0), (6000.0, 6000.0),
+           (far, far)]  # fmt: skip
+    truth = bead_scan_truth(pos, ZP, PHOTONS)
+    sim = simulate(
+        make_psf("astig"), scene=truth, n_frames=ZP.size, shape=SHAPE, pixel_size=PX,
+        background=1.0, seed=1,
+    )  # fmt: skip
+    cal = calibrate_beads(sim.movie, PX, Z_STEP, offset=OFFSET)
+    assert cal.n_used == 6, cal.beads
+    assert cal.params["roi_energy_fraction"][0] >= ROI_ENERGY_LEAST
+    assert cal.params["model_error"] < 0.1
+
+
 def test_dim_beads_far_apart_get_the_model_of_their_light_not_of_their_noise(model):
     """Four beads 6 um apart, 30 px from the frame's edges. Dim beads' light beyond the
     lobes is below a model's pixel noise, and the light profile's noise, summed ring by ring,

@@ -47,6 +47,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .calibrate_crowd import (
     REPEATED_LIGHT,
+    ROI_ENERGY_LEAST,
     LightProfile,
     light_profile,
     neighbour_light,
@@ -790,7 +791,7 @@ def _roi_size(
     is measured."""
     profile = _light_profile(data, centres, variance)
     if roi_size is None:
-        half = int(np.clip(profile.half, *ROI_HALF)) if profile is not None else 8
+        half = _fitting_half(profile, centres, data.shape[1:]) if profile is not None else 8
         roi = 2 * half + 1
         if profile is not None:
             mean, least = profile.held(half)
@@ -808,6 +809,32 @@ def _roi_size(
         roi += 1 - roi % 2
         half = roi // 2
     return roi, half, profile
+
+
+def _fitting_half(
+    profile: LightProfile, centres: NDArray[np.float64], shape: tuple[int, int]
+) -> int:
+    """The automatic ROI's half side (px): the radius holding
+    :data:`~sparseloc.calibrate_crowd.ROI_ENERGY` of a plane's light, or, where beads lie
+    nearer the frame's edge than that, the largest radius down to the one holding
+    :data:`~sparseloc.calibrate_crowd.ROI_ENERGY_LEAST` that fits the most beads' ROIs
+    inside the frame."""
+    full = int(np.clip(profile.half, *ROI_HALF))
+    least = int(np.clip(profile.radius(ROI_ENERGY_LEAST), ROI_HALF[0], full))
+    pixels = np.round(np.asarray(centres, dtype=np.float64).reshape(-1, 2)).astype(int)
+    fits = {h: sum(_roi_inside(r, c, h, shape) for r, c in pixels) for h in range(least, full + 1)}
+    most = max(fits.values())
+    half = max(h for h, n in fits.items() if n == most)
+    if half < full:
+        log.info(
+            "ROI %d x %d px instead of %d x %d px: %d bead(s) more fit inside the frame",
+            2 * half + 1,
+            2 * half + 1,
+            2 * full + 1,
+            2 * full + 1,
+            most - fits[full],
+        )
+    return half
 
 
 def _light_profile(

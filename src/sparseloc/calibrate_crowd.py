@@ -34,6 +34,7 @@ from .psf.spline import SplinePSF
 __all__ = [
     "REPEATED_LIGHT",
     "ROI_ENERGY",
+    "ROI_ENERGY_LEAST",
     "LightProfile",
     "light_profile",
     "neighbour_light",
@@ -44,6 +45,11 @@ __all__ = [
 #: Fraction of a plane's light the automatic ROI holds (on average over the planes): light left
 #: outside the model is missing from every fit's photons and costs precision.
 ROI_ENERGY = 0.99
+#: The least fraction the automatic ROI holds where beads near the frame's edge would not fit
+#: in an ROI of :data:`ROI_ENERGY`: a model of 97 % of the light from all the beads is better
+#: than one of 99 % from a few (the calibration's bead average and its model-error check need
+#: the beads).
+ROI_ENERGY_LEAST = 0.97
 
 
 @dataclass
@@ -76,6 +82,12 @@ class LightProfile:
         """Mean and smallest fraction of a plane's light within ``half`` px."""
         k = int(min(max(half, 0), self.fraction.size - 1))
         return float(self.fraction[k]), float(self.fraction_min[k])
+
+    def radius(self, fraction: float) -> int:
+        """Smallest radius (px) holding ``fraction`` of a plane's light on average (the
+        largest radius measured where none does)."""
+        hold = self.fraction >= fraction
+        return int(np.argmax(hold)) if hold.any() else self.fraction.size - 1
 
 
 def light_profile(
