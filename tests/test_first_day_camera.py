@@ -188,6 +188,31 @@ def test_an_emccd_without_its_em_gain_is_refused(movie, tmp_path):
     assert res.exit_code == 0, res.output
 
 
+def test_a_movie_that_begins_with_blank_frames_is_localized(movie, tmp_path):
+    """Dropped frames (all zeros) or frames taken with the shutter closed (the offset and its
+    noise) at the start of a movie: the offset was checked against the file's first frame
+    alone and refused as "not below the median pixel value", with --frames too. The check
+    now reads frames spread over the run; an offset above all of them is still refused, and
+    a frame range that holds no frame says so."""
+    adu = tifffile.imread(movie)
+    rng = np.random.default_rng(0)
+    dark = np.round(100.0 + rng.normal(0.0, 1.5, adu[:3].shape)).astype(adu.dtype)
+    for name, head in (("zero", np.zeros_like(adu[:3])), ("dark", dark)):
+        path = tmp_path / f"{name}.tif"
+        tifffile.imwrite(path, np.concatenate([head, adu]))
+        for frames in ("0:11", "3:11"):
+            out = tmp_path / f"{name}_{frames[0]}.parquet"
+            res = run("localize", path, "-o", out, *LOCALIZE, "--workers", 1, "--offset", 100,
+                      "--frames", frames)  # fmt: skip
+            assert res.exit_code == 0, res.output
+            assert out.exists()
+    out = tmp_path / "high.parquet"
+    res = run("localize", tmp_path / "zero.tif", "-o", out, *LOCALIZE, "--offset", 60000)
+    refused(res, "--offset", "spread over the run")
+    refused(run("localize", movie, "-o", out, *LOCALIZE, "--frames", "5:3"), "holds no frame")
+    assert not out.exists()
+
+
 def test_simulate_reads_the_camera_section(tmp_path):
     cfg = tmp_path / "cam.toml"
     cfg.write_text("[camera]\noffset = 300.0\ngain = 0.5\n")

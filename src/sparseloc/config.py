@@ -309,6 +309,8 @@ def frame_range(frames: str | None, n: int) -> tuple[int, int]:
         )
     if stop > n:
         raise ValueError(f"--frames {frames} goes past the movie's {n} frames (0:{n})")
+    if stop <= start:
+        raise ValueError(f"--frames {frames} holds no frame")
     return start, stop
 
 
@@ -402,20 +404,35 @@ def build_model(options: dict[str, Any]) -> PSFModel:
     return model
 
 
-def build_camera(options: dict[str, Any], first: NDArray) -> Camera:
+#: Most frames of the run's range whose pixel medians the camera offset is checked against.
+OFFSET_CHECK_FRAMES = 8
+
+
+def build_camera(
+    options: dict[str, Any], movie: Any, start: int = 0, stop: int | None = None
+) -> Camera:
     """The camera of ``options`` (:func:`~sparseloc.camera.camera_from_options`), checked
-    against the movie's first frame (ADU)."""
+    against the movie's frames ``start:stop`` (ADU): its maps against their shape, its
+    offset against the median pixel value of up to :data:`OFFSET_CHECK_FRAMES` of them,
+    spread over the range (the offset lies below it in at least one; a blank frame, dropped
+    or taken with the shutter closed, says nothing about it)."""
     cam = camera_from_options(options)
+    stop = len(movie) if stop is None else stop
+    first = movie.frames(start, start + 1)
     if cam.map_shape is not None and cam.map_shape != first.shape[-2:]:
         raise ValueError(
             f"the camera maps are {cam.map_shape[0]}x{cam.map_shape[1]} pixels but the "
             f"frames are {first.shape[-2]}x{first.shape[-1]}"
         )
-    if cam.offset_map is None and cam.offset >= float(np.median(first)):
-        raise ValueError(
-            f"the offset ({cam.offset:g} ADU) is not below the median pixel value "
-            f"({float(np.median(first)):g} ADU) of the first frame; check --offset"
-        )
+    if cam.offset_map is None:
+        picks = np.unique(np.linspace(start, stop - 1, min(OFFSET_CHECK_FRAMES, stop - start)))
+        level = max(float(np.median(movie.frames(int(i), int(i) + 1))) for i in picks)
+        if cam.offset >= level:
+            raise ValueError(
+                f"the offset ({cam.offset:g} ADU) is not below the median pixel value of any "
+                f"of {len(picks)} frame(s) spread over the run (at most {level:g} ADU); check "
+                "--offset"
+            )
     return cam
 
 
@@ -485,17 +502,17 @@ def build_job(options: dict[str, Any], movie: Any) -> LocalizeJob:
     opts = {**LOCALIZE_DEFAULTS, **check_options(options)}
     model = build_model(opts)
     px = resolve_pixel_size(opts, model, getattr(movie, "pixel_size", None))
-    first = movie.frames(0, 1)
-    cam = build_camera(opts, first)
+    start, stop = frame_range(opts["frames"], len(movie))
+    cam = build_camera(opts, movie, start, stop)
+    shape = movie.frames(start, start + 1).shape[-2:]
     window, margin = window_for(model, px, opts["window"], opts["margin"])
-    _check_frames_hold_a_window(first.shape[-2:], window, opts["window"] is not None)
-    read_var = read_variance_photons(cam, first.shape[-2:])
+    _check_frames_hold_a_window(shape, window, opts["window"] is not None)
+    read_var = read_variance_photons(cam, shape)
     lo, hi = model.z_range
     z_range = (
         lo if opts["z_min"] is None else opts["z_min"],
         hi if opts["z_max"] is None else opts["z_max"],
     )
-    start, stop = frame_range(opts["frames"], len(movie))
     params = LocalizeParams(
         pixel_size=px,
         method=opts["method"],
