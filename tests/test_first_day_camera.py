@@ -379,6 +379,10 @@ def test_the_camera_command_asks_about_an_emccd_unless_the_camera_is_given(tmp_p
     res = run("camera", tif, "--camera", "emccd", "--em-gain", 300)
     assert res.exit_code == 0, res.output
     assert "an EMCCD?" not in res.output
+    # the line's slope is uncertain by a few per cent beyond its standard errors, which moves
+    # its intercept, far below the data, by tens of ADU: no "at least", no offset to copy
+    assert "offset at least" not in res.output and "not a bound" in res.output
+    assert "--offset DARK_LEVEL" in res.output
 
 
 @pytest.mark.parametrize("kind", ["scmos", "emccd"])

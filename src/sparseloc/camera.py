@@ -895,6 +895,14 @@ class CameraEstimate:
     read_noise_bound: float = float("nan")
 
     @property
+    def offset_is_bound(self) -> bool:
+        """Whether the estimated offset is a lower bound of the camera's to trust: from a
+        steady series' line that carries no caution (single frames' emitters, an EMCCD's
+        skewed noise or a narrow range of brightness bias the line beyond its standard
+        errors, and its intercept far below the data moves with the slope)."""
+        return not self.offset_given and self.method == "temporal" and not self.caution
+
+    @property
     def read_noise_resolved(self) -> bool:
         """Whether the line measured the read noise (its read variance lies more than two
         standard errors above zero); where no bound was computed, whether it came out above
@@ -1033,7 +1041,7 @@ def _steady_line(frames: ArrayLike, camera: Camera) -> CameraEstimate | None:
         est = estimate_camera(frames, kind=camera.kind, em_gain=camera.em_gain)
     except ValueError:
         return None
-    if est.method != "temporal" or est.caution or not (np.isfinite(est.gain) and est.gain > 0):
+    if not est.offset_is_bound or not (np.isfinite(est.gain) and est.gain > 0):
         return None
     return est
 

@@ -1355,13 +1355,18 @@ def camera_cmd(
     rough = est.method != "temporal"  # single frames: the emitters' images bias the line
     if est.offset_given:
         typer.echo(f"offset {est.offset:.1f} ADU (given)")
-    elif placed and rough:
-        # the bound holds for the line of a steady series; single frames' line is biased
+    elif placed and not est.offset_is_bound:
+        # the bound holds for the line of a steady series without a caution
         placed = False
+        why = (
+            " from single frames, not a bound (their line is biased as the gain is"
+            if rough
+            else ", not a bound (the line's slope is uncertain beyond its standard errors, and "
+            "the offset far below the data moves with it"
+        )
         typer.echo(
-            f"offset about {est.offset:.1f} ADU from single frames, not a bound (their line "
-            "is biased as the gain is: see the caution); give --offset (the median of a dark "
-            "frame)"
+            f"offset about {est.offset:.1f} ADU{why}: see the caution); give --offset (the "
+            "median of a dark frame)"
         )
     elif placed:
         typer.echo(
