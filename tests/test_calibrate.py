@@ -1208,6 +1208,38 @@ def _astig_beads_160nm():
     return px, stack.movie, movie
 
 
+def test_a_fine_grid_from_noisy_beads_is_as_sharp_as_their_psf():
+    """A hidden-data trial (EMCCD, 160 nm pixels, four beads of 10,000 photons on a
+    background of 30) read every emitter's photons 10 % high and the background a quarter
+    low: the half-pixel grid clipped its dark nodes' noise at zero each round, the beads'
+    fitted backgrounds could not see the floor that left, and it grew into a model broader
+    than the PSF (peak 15 % low, wings five times the PSF's). The grid now keeps the pixel
+    model's floor and is clipped once, after the z smoothing."""
+    from sparseloc.camera import Camera
+
+    px = 160.0
+    optics = dict(na=1.3, wavelength=600.0, waves=0.25, z_range=(-1000.0, 1000.0))
+    true = make_psf("astig", **optics)
+    planes = np.arange(-800.0, 800.1, 20.0)
+    beads = [(2000.0, 2000.0), (5500.0, 2000.0), (2000.0, 5500.0), (5500.0, 5500.0)]
+    cam = Camera(kind="emccd", offset=500.0, gain=20.0, em_gain=200.0, qe=0.95, read_noise=50.0)
+    stack = simulate(
+        true, scene=bead_scan_truth(beads, planes, photons=1e4), n_frames=planes.size,
+        shape=(80, 80), pixel_size=px, background=30.0, camera=cam, seed=3,
+    )  # fmt: skip
+    gain = cam.gain / cam.em_gain / cam.qe
+    cal = calibrate_beads(stack.movie, px, z=planes, offset=500.0, gain=gain, camera=cam)
+    assert cal.psf.oversample == 2
+    side = 19
+    ring = np.hypot(*np.mgrid[:side, :side] - side // 2) >= 8
+    for z in (0.0, 600.0):
+        at = np.array([side / 2 * px]), np.array([side / 2 * px]), np.array([z])
+        got, want = (m.images(*at, (side, side), px)[0] for m in (cal.psf, true))
+        got, want = got / got.sum(), want / want.sum()
+        assert abs(got.max() / want.max() - 1.0) < 0.05, (z, got.max(), want.max())
+        assert got[ring].mean() < 2.0 * want[ring].mean(), (z, got[ring].mean(), want[ring].mean())
+
+
 def test_the_model_check_allows_for_the_error_the_calibration_measured(monkeypatch):
     """Astigmatic beads on 160 nm pixels, modelled at the camera's pixels: the calibration
     measures its model error (the bead images are sampled coarsely) and the count selection

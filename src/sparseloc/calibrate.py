@@ -1398,7 +1398,10 @@ def _spline_model(
     o = OVERSAMPLE
     grid = oversampled_model(clean, beads, o)
     if zwin:
-        grid = np.maximum(smooth_along_z(grid, zwin), 0.0)
+        grid = smooth_along_z(grid, zwin)
+    # clipped after the smoothing, which averages the dark nodes' noise first
+    grid = np.maximum(grid, 0.0)
+    grid *= o * o / grid.sum(axis=(1, 2), keepdims=True)
     return SplinePSF(grid, p, zplanes, centre=(cr * o, cc * o), name=name, oversample=o)
 
 

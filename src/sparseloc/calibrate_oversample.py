@@ -78,13 +78,16 @@ def oversampled_model(
     ndarray, shape (Nz, R * oversample, C * oversample)
         Node ``(u, v)`` is the model at ``(u, v) / oversample`` in the pixel model's frame:
         a :class:`~sparseloc.psf.spline.SplinePSF` with ``oversample`` and the centre times
-        ``oversample``. Each plane sums to ``oversample**2`` (one photon per phase).
+        ``oversample``. Each plane sums to ``oversample**2`` (one photon per phase) and
+        keeps the pixel model's mean level along its border; dark nodes hold the beads'
+        noise about it, negative values too (the caller clips them after its smoothing).
     """
     o = int(oversample)
     nz = clean.shape[0]
     grid = _upsampled(clean, o)
     shape = grid.shape[1:]
     samples = [_sample_coords(d, dy, dx, o, shape) for d, dy, dx in beads]
+    floor = _border_mean(grid)
     for _ in range(rounds):
         acc = np.zeros_like(grid)
         cnt = np.zeros_like(grid)
@@ -95,9 +98,21 @@ def oversampled_model(
         acc = gaussian_filter(acc, (0.0, SMOOTH, SMOOTH), mode="constant")
         cnt = gaussian_filter(cnt, (0.0, SMOOTH, SMOOTH), mode="constant")
         seen = cnt > 1e-3
-        grid = np.maximum(grid + np.where(seen, acc / np.where(seen, cnt, 1.0), 0.0), 0.0)
+        grid = grid + np.where(seen, acc / np.where(seen, cnt, 1.0), 0.0)
+        # The beads' fitted backgrounds cannot tell the model's floor from their own, so the
+        # residuals leave it where it is; it stays the pixel model's. (A clip at zero here
+        # raised the dark nodes' noise each round into a floor that grew: a model broader
+        # than the PSF, photons read 10 % high and backgrounds low.)
+        grid += (floor - _border_mean(grid))[:, None, None]
         grid *= o * o / grid.sum(axis=(1, 2), keepdims=True)
     return grid
+
+
+def _border_mean(stack: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Each plane's mean over its outermost rows and columns (Nz,)."""
+    edge = np.ones(stack.shape[1:], bool)
+    edge[1:-1, 1:-1] = False
+    return stack[:, edge].mean(axis=1)
 
 
 def _upsampled(clean: NDArray[np.float64], o: int) -> NDArray[np.float64]:
