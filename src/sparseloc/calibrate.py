@@ -71,7 +71,7 @@ from .calibrate_zsmooth import (
     smooth_along_z,
     smoothing_nm,
 )
-from .camera import Camera, camera_mismatch, noise_variance
+from .camera import Camera, camera_mismatch, photon_noise
 from .psf.spline import SplinePSF
 
 __all__ = [
@@ -508,8 +508,9 @@ def calibrate_beads(
         For a stack that is not 3-D or has one frame, a bad z step, no usable beads, fewer
         than ``min_beads``, all beads saturated, NaNs; each message says what to try.
     """
+    noise = photon_noise(camera)
     scan = read_scan(
-        stack, pixel_size, z_step, z, valid, z0_slice, offset, gain, saturation, camera
+        stack, pixel_size, z_step, z, valid, z0_slice, offset, gain, saturation, camera, noise
     )
     if detect_sigma is None:
         detect_sigma = detection_sigma(scan.pixel_size)
@@ -524,7 +525,7 @@ def calibrate_beads(
         z_smooth,
         beads,
         progress or (lambda: None),
-        photon_noise(camera),
+        noise,
     )
     if fit_pupil:
         cal.pupil = _fit_pupil_in_frame(cal, pupil_options)
@@ -639,6 +640,7 @@ def _calibrate_scan(
         "iterations": int(iterations),
         "z_smooth_planes": int(zwin),
         "n_beads_found": nb,
+        "defective_pixels": scan.defects,
         "n_beads_used": len(used),
         "roi_energy_fraction": _held(profile, model_half),
         "n_beads_with_neighbours": sum(1 for i in used if neighbours.get(i)),
@@ -685,18 +687,6 @@ def _cluster_warning(stacks: _BeadStacks, used: list[int], centres: NDArray[np.f
         f"{which} in every plane: several beads closer than the detection can part, found as "
         f"one, and {whole}; check PSF.png, and image a sparser bead sample"
     )
-
-
-def photon_noise(camera: Camera | None) -> tuple[float, float]:
-    """The camera's noise in photons as ``variance = a * mu + b`` for ``mu`` expected photons:
-    ``(a, b)`` from :func:`sparseloc.camera.noise_variance` (an sCMOS map's read variance
-    averaged over its pixels); ``(1, 0)``, photon counting, without a camera."""
-    if camera is None:
-        return 1.0, 0.0
-    shape = camera.map_shape or (1, 1)
-    zero = noise_variance(np.zeros(shape), camera)
-    one = noise_variance(np.ones(shape), camera)
-    return float(np.mean(one - zero)), float(np.mean(zero))
 
 
 def _model_error(

@@ -73,6 +73,11 @@ def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
             f"centroid lies {dx:+.1f}, {dy:+.1f} nm (x, y) from the emitter "
             f"(rms over beads {cal.params['bead_position_rms_nm']:.1f} nm)"
         )
+    if cal.params.get("defective_pixels"):
+        lines.append(
+            f"  {cal.params['defective_pixels']} defective (hot or stuck) pixel(s) replaced by "
+            "the median of their neighbours"
+        )
     if cal.params.get("bead_warning"):
         lines.append(f"  warning: {cal.params['bead_warning']}")
     if cal.params.get("cluster_warning"):

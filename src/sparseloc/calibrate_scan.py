@@ -18,6 +18,7 @@ import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from .camera import Camera, camera_from_options, to_photons
+from .defects import defective_pixels, replace_defects
 from .units import check_pixel_size, check_z_step
 
 __all__ = ["BeadScan", "read_bead_positions", "read_scan", "read_z_file", "scan_conversion"]
@@ -168,6 +169,7 @@ class BeadScan:
     offset: float  # ADU
     gain: float  # photons per ADU: the camera's gain (e-/ADU) / EM gain / QE (scan_conversion)
     background: NDArray[np.float64] | None = None  # (Nz,) each frame's background (photons/px)
+    defects: int = 0  # defective (hot or stuck) pixels replaced by their neighbours
 
 
 def read_scan(
@@ -181,11 +183,14 @@ def read_scan(
     gain: float,
     saturation: float | None,
     camera: Camera | None = None,
+    noise: tuple[float, float] = (1.0, 0.0),
 ) -> BeadScan:
-    """Check the stack, place its planes in z, convert it to photons and subtract each
-    frame's background (its median: beads cover a small fraction of the field). Where
-    ``camera`` has sCMOS maps, they convert the stack (``offset`` and ``gain`` are then their
-    medians, :func:`scan_conversion`)."""
+    """Check the stack, place its planes in z, convert it to photons, replace defective
+    (hot or stuck) pixels by their neighbours (:mod:`sparseloc.defects`; ``noise``: the
+    camera's variance per photon and read variance, photons^2) and subtract each frame's
+    background (its median: beads cover a small fraction of the field). Where ``camera`` has
+    sCMOS maps, they convert the stack (``offset`` and ``gain`` are then their medians,
+    :func:`scan_conversion`)."""
     if z is not None and z0_slice is not None:
         raise ValueError(
             "--z0-slice places z = 0 in an even scan (--z-step); with each frame's z given "
@@ -202,13 +207,18 @@ def read_scan(
         )
     if photons.shape[0] < 4:
         raise ValueError(f"a calibration needs at least 4 z planes, got {photons.shape[0]}")
+    defects = defective_pixels(photons, p, *noise)
+    if defects.any():
+        log.info("%d defective (hot or stuck) pixel(s) replaced by their neighbours", defects.sum())
+        photons = replace_defects(photons, defects)
     bg = _frame_background(photons)
     if np.median(bg) < 0 and offset > 0:
         raise ValueError(f"the offset {offset:g} ADU is above most pixel values; check --offset")
     data = photons - bg[:, None, None]
     return BeadScan(
-        data, data.mean(axis=0), zplanes, step, p, saturation, sat_frames, offset, gain, bg
-    )
+        data, data.mean(axis=0), zplanes, step, p, saturation, sat_frames, offset, gain, bg,
+        int(defects.sum()),
+    )  # fmt: skip
 
 
 def _checked_stack(

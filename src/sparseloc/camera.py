@@ -1046,6 +1046,18 @@ def _steady_line(frames: ArrayLike, camera: Camera) -> CameraEstimate | None:
     return est
 
 
+def photon_noise(camera: Camera | None) -> tuple[float, float]:
+    """The camera's noise in photons as ``variance = a * mu + b`` for ``mu`` expected photons:
+    ``(a, b)`` from :func:`sparseloc.camera.noise_variance` (an sCMOS map's read variance
+    averaged over its pixels); ``(1, 0)``, photon counting, without a camera."""
+    if camera is None:
+        return 1.0, 0.0
+    shape = camera.map_shape or (1, 1)
+    zero = noise_variance(np.zeros(shape), camera)
+    one = noise_variance(np.ones(shape), camera)
+    return float(np.mean(one - zero)), float(np.mean(zero))
+
+
 def offset_mismatch(frames: ArrayLike, camera: Camera, est: CameraEstimate | None = None) -> str:
     """A warning where a steady series (a bead z-stack) says the camera's offset is higher
     than the one given.

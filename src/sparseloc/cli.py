@@ -875,6 +875,13 @@ def localize(
             _check_suffix(check, _FIGURE_SUFFIXES, "the check's picture")
             check = _new_output(check, overwrite=bool(opts["overwrite"]), inputs=[*inputs, out])
         job = _run(build_job, opts, mov)
+        if job.defects is not None:
+            typer.echo(
+                f"note: {int(job.defects.sum())} defective (hot or stuck) pixel(s) stand above "
+                "their neighbours in every frame as no light could; each is replaced by the "
+                "median of its neighbours",
+                err=True,
+            )
         wide = _wide_window_note(job.params)
         if wide:  # said before the work: it is the work that takes long
             typer.echo(f"note: {wide}", err=True)
@@ -907,7 +914,7 @@ def _frame_check(path: Path, table_path: Path, table, mov, job) -> None:
         table, _ = _read_locs(table_path)
     p = job.params
     try:
-        frames = CameraFrames(mov, job.camera)
+        frames = CameraFrames(mov, job.camera, job.defects)
         res = check_frame(frames, job.start, table, job.model, p, job.read_variance_map)
         typer.echo(f"check of frame {job.start}: {res.summary(addition_bar(p), p.min_snr)}")
         title = f"frame {job.start}: localizations, their model and the residual"
@@ -1018,7 +1025,7 @@ def _localize_in_processes(mov, job, workers: int):
         try:
             return _run(
                 run_localize,
-                CameraFrames(mov, job.camera),
+                CameraFrames(mov, job.camera, job.defects),
                 job.model,
                 job.params,
                 start=job.start,
@@ -1059,7 +1066,7 @@ def _localize_chunked(opts, out, mov, job, auto: bool = False) -> None:
         with bar:
             res = _run(
                 localize_chunked,
-                CameraFrames(mov, job.camera),
+                CameraFrames(mov, job.camera, job.defects),
                 job.model,
                 job.params,
                 run_dir,

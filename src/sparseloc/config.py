@@ -325,6 +325,9 @@ class LocalizeJob:
     stop: int
     #: sCMOS read variance (photons^2) per pixel, or None where it is one number (in params).
     read_variance_map: NDArray[np.float64] | None
+    #: Defective (hot or stuck) pixels, replaced by their neighbours in every frame
+    #: (:func:`find_defects`), or None where the movie shows none.
+    defects: NDArray[np.bool_] | None = None
 
 
 #: Built-in pupil models (:data:`sparseloc.psf.PSF_NAMES`), which take the pupil's optics.
@@ -406,6 +409,29 @@ def build_model(options: dict[str, Any]) -> PSFModel:
 
 #: Most frames of the run's range whose pixel medians the camera offset is checked against.
 OFFSET_CHECK_FRAMES = 8
+#: Most frames, spread over the movie, whose median finds its defective pixels; fewer where
+#: they would hold more than :data:`DEFECT_PIXELS` pixels in all.
+DEFECT_FRAMES = 50
+DEFECT_PIXELS = 20_000_000
+
+
+def find_defects(movie: Any, camera: Camera, pixel_size: float) -> NDArray[np.bool_] | None:
+    """The movie's defective (hot or stuck) pixels (:func:`~sparseloc.defects.defective_pixels`
+    of up to :data:`DEFECT_FRAMES` frames spread over the whole movie, whatever the run's
+    range: a run of one frame finds the same ones), or None where there are none."""
+    from .camera import photon_noise, to_photons
+    from .defects import defective_pixels
+
+    n = len(movie)
+    first = movie.frames(0, 1)
+    per_frame = int(np.prod(first.shape[-2:]))
+    count = max(1, min(DEFECT_FRAMES, n, DEFECT_PIXELS // per_frame))
+    picks = np.unique(np.linspace(0, n - 1, count).astype(int))
+    photons = np.concatenate([to_photons(movie.frames(int(i), int(i) + 1), camera) for i in picks])
+    factor, _ = photon_noise(camera)
+    read_var = read_variance_photons(camera, first.shape[-2:])
+    mask = defective_pixels(photons, pixel_size, factor, read_var)
+    return mask if mask.any() else None
 
 
 def build_camera(
@@ -532,4 +558,6 @@ def build_job(options: dict[str, Any], movie: Any) -> LocalizeJob:
         regrow=opts["regrow"],
         haze=opts["haze"],
     )
-    return LocalizeJob(model, cam, params, start, stop, read_var if read_var.ndim == 2 else None)
+    defects = find_defects(movie, cam, px)
+    read_map = read_var if read_var.ndim == 2 else None
+    return LocalizeJob(model, cam, params, start, stop, read_map, defects)

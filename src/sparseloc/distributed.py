@@ -57,6 +57,7 @@ from numpy.typing import NDArray
 
 from . import __version__
 from .camera import Camera, to_photons
+from .defects import replace_defects
 from .digest import array_digest, psf_hash
 from .io.atomic import write_text_atomic
 from .io.tables import LOCS_COLUMNS, empty_locs, read_parquet, write_parquet
@@ -130,10 +131,15 @@ class CameraFrames:
         Camera counts (a :class:`sparseloc.io.movie.Movie` reads lazily).
     camera : Camera, optional
         Conversion to photons; ``None`` when the frames already are photons.
+    defects : ndarray of bool, shape (rows, cols), optional
+        Defective pixels, each replaced in every frame by the median of its neighbours
+        (:func:`sparseloc.defects.replace_defects`).
     """
 
-    def __init__(self, movie: Any, camera: Camera | None = None) -> None:
-        self.movie, self.camera = movie, camera
+    def __init__(
+        self, movie: Any, camera: Camera | None = None, defects: NDArray[np.bool_] | None = None
+    ) -> None:
+        self.movie, self.camera, self.defects = movie, camera, defects
 
     def __len__(self) -> int:
         return len(self.movie)
@@ -149,8 +155,12 @@ class CameraFrames:
         else:
             raw = np.asarray(self.movie[start:stop])
         if self.camera is None:
-            return np.asarray(raw, dtype=np.float64)
-        return to_photons(raw, self.camera)
+            photons = np.asarray(raw, dtype=np.float64)
+        else:
+            photons = to_photons(raw, self.camera)
+        if self.defects is not None:
+            photons = replace_defects(photons, self.defects)
+        return photons
 
     def identity(self) -> dict:
         """What identifies the data for resuming: the source's own ``identity()``, its files
@@ -176,6 +186,8 @@ class CameraFrames:
         else:
             ident = {"sha256": array_digest(np.asarray(self.movie))}
         ident["camera"] = self.camera.to_dict() if self.camera is not None else None
+        if self.defects is not None:
+            ident["defects"] = array_digest(np.packbits(self.defects))
         return ident
 
 

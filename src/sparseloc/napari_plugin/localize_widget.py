@@ -51,7 +51,7 @@ def localize_job(job: Any, movie: Any, progress: Any) -> Any:
     from ..pipeline import localize
 
     return localize(
-        CameraFrames(movie, job.camera),
+        CameraFrames(movie, job.camera, job.defects),
         job.model,
         job.params,
         start=job.start,
@@ -68,7 +68,7 @@ def check_job_frame(job: Any, movie: Any, index: int, table: Any) -> Any:
     from ..distributed import CameraFrames
     from ..pipeline import check_frame
 
-    frames = CameraFrames(movie, job.camera)
+    frames = CameraFrames(movie, job.camera, job.defects)
     return check_frame(frames, index, table, job.model, job.params, job.read_variance_map)
 
 
