@@ -62,7 +62,8 @@ _CAUSES_HIGH = (
     "likely causes: the wrong PSF (a calibration or mask of another microscope, or the "
     "built-in default where another was meant), wrong camera settings (offset, gain in "
     "e-/ADU), read noise not given for an sCMOS camera, an EMCCD camera not declared or "
-    "its EM gain not given (--em-gain)"
+    "its EM gain not given (--em-gain), or a background that changes across the field "
+    "(an illumination profile, a haze: --haze lets the fits follow it)"
 )
 _CAUSES_LOW = (
     "likely causes: an offset set too low (the camera's dark level then counts as light), a "
