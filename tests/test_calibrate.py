@@ -912,6 +912,21 @@ def test_a_cluster_found_as_one_bead_is_named(model, cal, one_bead):
     assert single.params["cluster_warning"] == ""
 
 
+def test_the_summary_says_why_beads_at_several_heights_narrow_the_z_range(cal, one_bead):
+    """A rehearsal's tilted slide (beads +-150 nm) gave a model 200 nm shorter at each end
+    than its scan, and emitters there flagged z_edge, without a word why."""
+    from sparseloc.calibrate_output import calibration_summary
+
+    said = "\n".join(calibration_summary(cal))
+    assert cal.z[0] > ZP[0] and cal.z[-1] < ZP[-1]
+    spread = cal.params["bead_height_spread_nm"]
+    assert 20.0 < spread < 60.0  # the fixture's beads lie within +-40 nm
+    assert f"up to {spread:.0f} nm above or below their mean height" in said
+    assert f"of the scan's {ZP[0]:.0f}..{ZP[-1]:.0f}" in said
+    single = calibrate_beads(one_bead, PX, Z_STEP, offset=OFFSET)
+    assert "mean height" not in "\n".join(calibration_summary(single))
+
+
 def test_repeated_light_sees_fixed_offsets_not_moving_lobes():
     """Two lobes turning with z (one double helix) repeat at no fixed offset; the same image
     twice, 7 px apart (two equal beads), repeats at half the central peak; a spot that

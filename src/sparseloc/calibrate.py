@@ -641,6 +641,8 @@ def _calibrate_scan(
         "z_smooth_planes": int(zwin),
         "n_beads_found": nb,
         "defective_pixels": scan.defects,
+        "bead_height_spread_nm": float(max_dz),
+        "scan_z_range_nm": [float(scan.zplanes[0]), float(scan.zplanes[-1])],
         "n_beads_used": len(used),
         "roi_energy_fraction": _held(profile, model_half),
         "n_beads_with_neighbours": sum(1 for i in used if neighbours.get(i)),

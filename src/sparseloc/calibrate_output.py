@@ -73,6 +73,14 @@ def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
             f"centroid lies {dx:+.1f}, {dy:+.1f} nm (x, y) from the emitter "
             f"(rms over beads {cal.params['bead_position_rms_nm']:.1f} nm)"
         )
+    scan = cal.params.get("scan_z_range_nm")
+    if scan is not None and (cal.z[0] > scan[0] or cal.z[-1] < scan[-1]):
+        lines.append(
+            f"  the beads lie up to {cal.params['bead_height_spread_nm']:.0f} nm above or below "
+            "their mean height (a tilted or uneven slide): the model keeps the planes every "
+            "bead's data covers, "
+            f"z {cal.z[0]:.0f}..{cal.z[-1]:.0f} nm of the scan's {scan[0]:.0f}..{scan[-1]:.0f}"
+        )
     if cal.params.get("defective_pixels"):
         lines.append(
             f"  {cal.params['defective_pixels']} defective (hot or stuck) pixel(s) replaced by "
