@@ -207,7 +207,7 @@ def challenge_rows(data: Path, workdir: Path) -> list[dict]:
             options = {"psf": str(psf_file), "pixel_size": PX, **CHALLENGE_CAMERA}
             job = build_job(options, movie)
             t0 = time.perf_counter()
-            frames = CameraFrames(movie, job.camera)
+            frames = CameraFrames(movie, job.camera, job.defects)
             res = localize(frames, job.model, job.params)
             truth = challenge_truth(folder / "activations_LD.csv", len(movie))
             row = score("SMLM16 LD AS" + label, res.table, truth, time.perf_counter() - t0)
@@ -256,7 +256,7 @@ def rendered_rows(
                     options = {"psf": str(psf_file), "pixel_size": PX, **CHALLENGE_CAMERA}
                     job = build_job(options, movie)
                     t0 = time.perf_counter()
-                    frames = CameraFrames(movie, job.camera)
+                    frames = CameraFrames(movie, job.camera, job.defects)
                     res = localize(frames, job.model, job.params)
                     label = f"SMLM16 {kind} {dens} (rendered){suffix}"
                     row = score(label, res.table, truth, time.perf_counter() - t0)

@@ -93,7 +93,7 @@ def run(data: Path, psfs: list[str], photons: list[float], n: int, work: Path) -
             )
             with Movie.open(path) as movie:
                 job = build_job({"psf": str(psf_file), "pixel_size": PX, **CHALLENGE_CAMERA}, movie)
-                frames = CameraFrames(movie, job.camera)
+                frames = CameraFrames(movie, job.camera, job.defects)
                 t0 = time.perf_counter()
                 kept = localize(frames, job.model, job.params, starts=truth, check=False)
                 found = localize(frames, job.model, job.params)
