@@ -74,9 +74,10 @@ def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
             f"(rms over beads {cal.params['bead_position_rms_nm']:.1f} nm)"
         )
     scan = cal.params.get("scan_z_range_nm")
-    if scan is not None and (cal.z[0] > scan[0] or cal.z[-1] < scan[-1]):
+    spread = cal.params.get("bead_height_spread_nm", 0.0)
+    if scan is not None and spread >= cal.params["z_step_nm"]:
         lines.append(
-            f"  the beads lie up to {cal.params['bead_height_spread_nm']:.0f} nm above or below "
+            f"  the beads lie up to {spread:.0f} nm above or below "
             "their mean height (a tilted or uneven slide): the model keeps the planes every "
             "bead's data covers, "
             f"z {cal.z[0]:.0f}..{cal.z[-1]:.0f} nm of the scan's {scan[0]:.0f}..{scan[-1]:.0f}"

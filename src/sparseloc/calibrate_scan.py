@@ -211,6 +211,8 @@ def read_scan(
     if defects.any():
         log.info("%d defective (hot or stuck) pixel(s) replaced by their neighbours", defects.sum())
         photons = replace_defects(photons, defects)
+        # a pixel stuck at the camera's maximum is no bead's saturation
+        sat_frames = np.where(defects, 0, sat_frames)
     bg = _frame_background(photons)
     if np.median(bg) < 0 and offset > 0:
         raise ValueError(f"the offset {offset:g} ADU is above most pixel values; check --offset")

@@ -45,6 +45,7 @@ __all__ = [
     "gain_mismatch",
     "noise_variance",
     "offset_mismatch",
+    "photon_noise",
     "photon_transfer",
     "to_photons",
 ]
