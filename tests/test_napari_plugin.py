@@ -263,6 +263,25 @@ def test_preview_is_localize_on_the_current_frame(qtbot, viewer, movie, tmp_path
     np.testing.assert_allclose(resid.data, check.residual)
 
 
+def test_previews_of_one_movie_look_for_defective_pixels_once(qtbot, viewer, movie, monkeypatch):
+    """The search reads up to 50 frames of the movie; a preview per click would pay it each
+    time. A change of camera settings searches again."""
+    import sparseloc.config as config
+
+    calls = []
+    real = config.find_defects
+    monkeypatch.setattr(config, "find_defects", lambda *a: calls.append(1) or real(*a))
+    layer = _movie_layer(viewer, movie)
+    w = _localize_widget(viewer, layer)
+    for frame in (0, 1):
+        viewer.dims.set_point(0, frame)
+        _finish(qtbot, w.preview())
+    assert len(calls) == 1
+    w.cam.offset.value = 99.0
+    _finish(qtbot, w.preview())
+    assert len(calls) == 2
+
+
 def test_run_writes_the_cli_table_and_cancel_writes_nothing(
     qtbot, viewer, movie, tmp_path, monkeypatch
 ):

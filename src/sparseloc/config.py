@@ -519,9 +519,13 @@ def _check_frames_hold_a_window(shape: tuple[int, int], window: int, given: bool
     )
 
 
-def build_job(options: dict[str, Any], movie: Any) -> LocalizeJob:
+def build_job(
+    options: dict[str, Any], movie: Any, defects: NDArray[np.bool_] | str | None = "find"
+) -> LocalizeJob:
     """The run that ``options`` (:data:`LOCALIZE_DEFAULTS` keys) describe on ``movie`` (an
     object with ``len()``, ``frames(start, stop)`` in ADU and ``pixel_size``, nm or None).
+    ``defects``: the movie's defective pixels where already found (:func:`find_defects` with
+    the same camera and pixel size: a viewer's previews of one movie), else "find".
 
     Raises ValueError in one sentence for options that do not fit the movie or each other.
     """
@@ -558,6 +562,7 @@ def build_job(options: dict[str, Any], movie: Any) -> LocalizeJob:
         regrow=opts["regrow"],
         haze=opts["haze"],
     )
-    defects = find_defects(movie, cam, px)
+    if isinstance(defects, str):
+        defects = find_defects(movie, cam, px)
     read_map = read_var if read_var.ndim == 2 else None
     return LocalizeJob(model, cam, params, start, stop, read_map, defects)

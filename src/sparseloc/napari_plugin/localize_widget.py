@@ -92,6 +92,9 @@ class LocalizeWidget(Container):
 
     def __init__(self, viewer: Any) -> None:
         self.viewer = viewer
+        # each movie's defective pixels, found once per camera and pixel size (a preview
+        # would otherwise read 50 frames on every click)
+        self._defects: dict[tuple, Any] = {}
         d = LOCALIZE_DEFAULTS
         self.movie = ComboBox(
             name="movie", label="movie layer", choices=layer_choices(viewer, "Image")
@@ -208,7 +211,11 @@ class LocalizeWidget(Container):
             layer = self.movie.value
             movie = self._movie()
             f = current_frame(self.viewer, layer)
-            job = build_job({**self.given_options(), "frames": f"{f}:{f + 1}"}, movie)
+            opts = self.given_options()
+            key = (id(layer.data), repr(sorted((k, str(v)) for k, v in opts.items())))
+            known = self._defects.get(key, "find")
+            job = build_job({**opts, "frames": f"{f}:{f + 1}"}, movie, known)
+            self._defects[key] = job.defects
         except INPUT_ERRORS as exc:
             return self._refuse(exc, movie)
 
