@@ -126,5 +126,8 @@ def test_localize_replaces_stuck_pixels(tmp_path):
                   "--offset", OFFSET, "--workers", 1)  # fmt: skip
         assert res.exit_code == 0, res.output
         assert (f"{mask.sum()} defective" in res.output) == (name == "stuck")
-        scores[name] = evaluate(read_parquet(out)[0], sim.truth).jaccard
+        table, meta = read_parquet(out)
+        listed = sorted(map(tuple, meta["defective_pixels"]))
+        assert listed == (sorted(map(tuple, np.argwhere(mask).tolist())) if name == "stuck" else [])
+        scores[name] = evaluate(table, sim.truth).jaccard
     assert scores["stuck"] > scores["clean"] - 3.0, scores

@@ -9,12 +9,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 __all__ = ["localized_metadata", "write_localized"]
 
 
 def localized_metadata(result: Any, movie: Any, job: Any) -> dict[str, Any]:
     """The metadata stored with a run's table: the analysis (``result.metadata``), the movie's
-    files, the camera and the PSF's width by depth (for the ``sx``, ``sy`` of Picasso exports).
+    files, the camera, the defective pixels replaced (row, col) and the PSF's width by depth
+    (for the ``sx``, ``sy`` of Picasso exports).
 
     Parameters
     ----------
@@ -29,6 +32,8 @@ def localized_metadata(result: Any, movie: Any, job: Any) -> dict[str, Any]:
 
     paths = [str(p) for p in getattr(movie, "paths", ())]
     meta = {**result.metadata, "movie": paths, "camera": job.camera.to_dict()}
+    defects = getattr(job, "defects", None)
+    meta["defective_pixels"] = [] if defects is None else np.argwhere(defects).tolist()
     meta["psf_width"] = psf_width_table(job.model, job.params.pixel_size)
     return meta
 
