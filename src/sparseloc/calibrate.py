@@ -813,7 +813,12 @@ def _fitting_half(
     inside the frame."""
     full = int(np.clip(profile.half, *ROI_HALF))
     least = int(np.clip(profile.radius(ROI_ENERGY_LEAST), ROI_HALF[0], full))
-    pixels = np.round(np.asarray(centres, dtype=np.float64).reshape(-1, 2)).astype(int)
+    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+    # beads that overlap another (rejected whatever the ROI, see _vet_beads) do not count
+    gaps = np.hypot(*(centres[:, None, :] - centres[None, :, :]).transpose(2, 0, 1))
+    np.fill_diagonal(gaps, np.inf)
+    alone = gaps.min(axis=1, initial=np.inf) >= 2.0 * max(profile.core, 1.0)
+    pixels = np.round(centres[alone]).astype(int)
     fits = {h: sum(_roi_inside(r, c, h, shape) for r, c in pixels) for h in range(least, full + 1)}
     most = max(fits.values())
     half = max(h for h, n in fits.items() if n == most)
