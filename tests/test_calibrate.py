@@ -913,8 +913,8 @@ def test_a_cluster_found_as_one_bead_is_named(model, cal, one_bead):
 
 
 def test_the_summary_says_why_beads_at_several_heights_narrow_the_z_range(cal, one_bead):
-    """A rehearsal's tilted slide (beads +-150 nm) gave a model 200 nm shorter at each end
-    than its scan, and emitters there flagged z_edge, without a word why."""
+    """Beads at several heights (a tilted slide) leave the model shorter than the scan at
+    each end, and emitters there are flagged z_edge: the summary says why."""
     from sparseloc.calibrate_output import calibration_summary
 
     said = "\n".join(calibration_summary(cal))
@@ -1224,12 +1224,11 @@ def _astig_beads_160nm():
 
 
 def test_a_fine_grid_from_noisy_beads_is_as_sharp_as_their_psf():
-    """A hidden-data trial (EMCCD, 160 nm pixels, four beads of 10,000 photons on a
-    background of 30) read every emitter's photons 10 % high and the background a quarter
-    low: the half-pixel grid clipped its dark nodes' noise at zero each round, the beads'
-    fitted backgrounds could not see the floor that left, and it grew into a model broader
-    than the PSF (peak 15 % low, wings five times the PSF's). The grid now keeps the pixel
-    model's floor and is clipped once, after the z smoothing."""
+    """Noisy beads (EMCCD, 160 nm pixels, 10,000 photons on a background of 30) on the
+    half-pixel grid: a clip of its dark nodes' noise at zero in every round raises a floor
+    that the beads' fitted backgrounds cannot see, and a model broader than the PSF reads
+    photons high and backgrounds low. The grid keeps the pixel model's floor and is clipped
+    once, after the z smoothing: its peak and wings are the PSF's."""
     from sparseloc.camera import Camera
 
     px = 160.0

@@ -37,9 +37,9 @@ def test_the_sharpest_image_an_objective_forms_bounds_a_pixel_against_its_neighb
 
 @pytest.mark.parametrize("px", [65.0, 80.0])
 def test_a_sharp_fiducial_on_fine_pixels_is_light(px):
-    """A review found that on 65-80 nm pixels a bright emitter in every frame, centred on a
-    pixel, was taken for a defect: its rise was measured from the darkest neighbour, a
-    corner that holds light too, against a bound made for the brightest neighbour's."""
+    """On 65-80 nm pixels a bright emitter in every frame, centred on a pixel, comes close to
+    the bound: its rise is measured from the darkest neighbour, a corner that holds light
+    too, so the bound counts that corner's light (``c / s + 1``)."""
     model = make_psf("astig", na=1.49, wavelength=520.0, waves=0.0)
     c = 16.5 * px  # a pixel's centre
     scene = pd.DataFrame({"frame": np.arange(20), "x_nm": c, "y_nm": c, "z_nm": 0.0,
@@ -87,8 +87,8 @@ def bead_stack():
 
 
 def test_calibration_of_a_stack_with_stuck_pixels(bead_stack, tmp_path):
-    """0.1 % of the pixels stuck: the calibration refused the stack ("the beads depart from
-    their average by 62 %"). They are replaced by their neighbours and said so."""
+    """0.1 % of the pixels stuck: left in, they make the beads disagree with their average
+    (or read as a bead); they are replaced by their neighbours and said so."""
     from sparseloc.calibrate import calibrate_beads
 
     stuck, mask = _stuck(bead_stack, 14, seed=3)
@@ -109,8 +109,8 @@ def test_calibration_of_a_stack_with_stuck_pixels(bead_stack, tmp_path):
 
 
 def test_localize_replaces_stuck_pixels(tmp_path):
-    """The same stuck pixels in a movie made up most of a run's false localizations (464 of
-    a rehearsal's 12 frames, Jaccard 54 % against 96 %) and slowed it 6-fold."""
+    """Stuck pixels in a movie read as emitters in every frame (false localizations, slow
+    fits); replaced, the run scores as on the clean movie and the table lists them."""
     from sparseloc.evaluate import evaluate
     from sparseloc.io.tables import read_parquet
 

@@ -190,10 +190,9 @@ def test_an_emccd_without_its_em_gain_is_refused(movie, tmp_path):
 
 def test_a_movie_that_begins_with_blank_frames_is_localized(movie, tmp_path):
     """Dropped frames (all zeros) or frames taken with the shutter closed (the offset and its
-    noise) at the start of a movie: the offset was checked against the file's first frame
-    alone and refused as "not below the median pixel value", with --frames too. The check
-    now reads frames spread over the run; an offset above all of them is still refused, and
-    a frame range that holds no frame says so."""
+    noise) at the start of a movie say nothing about the offset: it is checked against
+    frames spread over the run, with or without --frames past them; an offset above all of
+    them is still refused, and a frame range that holds no frame says so."""
     adu = tifffile.imread(movie)
     rng = np.random.default_rng(0)
     dark = np.round(100.0 + rng.normal(0.0, 1.5, adu[:3].shape)).astype(adu.dtype)

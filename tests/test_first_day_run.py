@@ -92,8 +92,8 @@ def test_a_failed_check_on_crowded_windows_names_the_model_then_the_crowding():
     assert "a wrong PSF or camera setting inflates both counts" in crowded.message
     alone = check_fit(gof, np.full(gof.size, dof), emitters=np.ones(gof.size))
     assert alone.verdict == "misfit" and "crowded" not in alone.message
-    # a rehearsal's illumination profile (5 to 40 photons/px) gave a misfit whose causes
-    # named no background; --haze took its Jaccard from 60 to 93 %
+    # a background that changes across the field (an illumination profile) is a cause,
+    # and --haze its remedy
     assert "--haze" in alone.message
     # the fifth walk-through: at a goodness of fit of 6.3 the crowding still softened a wrong
     # model; unresolved emitters (each below the count selection's ratio of 80) can add at

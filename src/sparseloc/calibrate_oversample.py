@@ -101,8 +101,8 @@ def oversampled_model(
         grid = grid + np.where(seen, acc / np.where(seen, cnt, 1.0), 0.0)
         # The beads' fitted backgrounds cannot tell the model's floor from their own, so the
         # residuals leave it where it is; it stays the pixel model's. (A clip at zero here
-        # raised the dark nodes' noise each round into a floor that grew: a model broader
-        # than the PSF, photons read 10 % high and backgrounds low.)
+        # would raise the dark nodes' noise, round by round, into a floor: a model broader
+        # than the PSF.)
         grid += (floor - _border_mean(grid))[:, None, None]
         grid *= o * o / grid.sum(axis=(1, 2), keepdims=True)
     return grid
