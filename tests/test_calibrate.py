@@ -1235,7 +1235,8 @@ def test_a_fine_grid_from_noisy_beads_is_as_sharp_as_their_psf():
     optics = dict(na=1.3, wavelength=600.0, waves=0.25, z_range=(-1000.0, 1000.0))
     true = make_psf("astig", **optics)
     planes = np.arange(-800.0, 800.1, 20.0)
-    beads = [(2000.0, 2000.0), (5500.0, 2000.0), (2000.0, 5500.0), (5500.0, 5500.0)]
+    # sub-pixel phases spread over the pixel (see the next test)
+    beads = [(2000.0, 2000.0), (5560.0, 2090.0), (2100.0, 5540.0), (5530.0, 5630.0)]
     cam = Camera(kind="emccd", offset=500.0, gain=20.0, em_gain=200.0, qe=0.95, read_noise=50.0)
     stack = simulate(
         true, scene=bead_scan_truth(beads, planes, photons=1e4), n_frames=planes.size,
@@ -1252,6 +1253,28 @@ def test_a_fine_grid_from_noisy_beads_is_as_sharp_as_their_psf():
         got, want = got / got.sum(), want / want.sum()
         assert abs(got.max() / want.max() - 1.0) < 0.05, (z, got.max(), want.max())
         assert got[ring].mean() < 2.0 * want[ring].mean(), (z, got[ring].mean(), want[ring].mean())
+
+
+def test_beads_at_one_sub_pixel_phase_keep_the_pixel_model():
+    """Nine beads on a grid of whole pixels (all at one sub-pixel phase) on coarse pixels:
+    the half-pixel grid's nodes between phases are sampled by no bead, its misfit to the
+    beads is small and says nothing of them, and emitters elsewhere fit it badly. The
+    pixel model stays; the same beads at spread phases get the grid."""
+    from sparseloc.calibrate_oversample import phases_spread
+
+    px = 160.0
+    whole = np.array([(x, y) for y in (15.0, 40.0, 65.0) for x in (15.0, 40.0, 65.0)]) * px
+    spread = whole + np.random.default_rng(3).uniform(-0.5, 0.5, whole.shape) * px
+    assert not phases_spread(whole / px + 0.01 * np.random.default_rng(4).normal(size=(9, 2)))
+    assert phases_spread(spread / px)
+    grids = {}
+    for name, beads in (("whole", whole), ("spread", spread)):
+        stack = simulate(
+            make_psf("astig"), scene=bead_scan_truth(beads, ZP, PHOTONS), n_frames=ZP.size,
+            shape=(80, 80), pixel_size=px, background=10.0, seed=1,
+        )  # fmt: skip
+        grids[name] = calibrate_beads(stack.movie, px, Z_STEP, offset=OFFSET).psf.oversample
+    assert grids == {"whole": 1, "spread": 2}
 
 
 def test_the_model_check_allows_for_the_error_the_calibration_measured(monkeypatch):

@@ -58,6 +58,7 @@ from .calibrate_error import MAX_MODEL_ERROR, bead_errors, bead_model_error, sel
 from .calibrate_oversample import (
     OVERSAMPLE,
     oversampled_model,
+    phases_spread,
     undersampled,
     worth_oversampling,
 )
@@ -1385,7 +1386,12 @@ def _spline_model(
     modelled light) and smoothed along z as the average was; else the average itself."""
     p, step = stacks.p, stacks.step
     cr, cc = centre
-    if not (worth_oversampling(len(used)) and undersampled([stacks.rois[i] for i in used])):
+    offsets = np.array([stacks.shifts[i][:2] / p for i in used])
+    if not (
+        worth_oversampling(len(used))
+        and phases_spread(offsets)
+        and undersampled([stacks.rois[i] for i in used])
+    ):
         return SplinePSF(clean, p, zplanes, centre=(cr, cc), name=name)
     beads = [
         (_shift_stack(stacks.rois[i], np.array([0.0, 0.0, stacks.shifts[i][2]]), p, step)[sl],

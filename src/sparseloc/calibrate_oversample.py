@@ -31,6 +31,7 @@ __all__ = [
     "OVERSAMPLE",
     "ROUNDS",
     "oversampled_model",
+    "phases_spread",
     "undersampled",
     "worth_oversampling",
 ]
@@ -43,6 +44,23 @@ SMOOTH = 0.5
 ROUNDS = 10
 #: Beads per sub-pixel phase of the grid, on average, below which it is not fitted.
 BEADS_PER_PHASE = 1
+
+
+def phases_spread(offsets: NDArray[np.float64], oversample: int = OVERSAMPLE) -> bool:
+    """Whether the beads' sub-pixel positions ``offsets`` (B, 2; pixels, any whole-pixel
+    part) differ along each axis by more than half the grid's node spacing (their smallest
+    arc on the pixel's circle of phases spans over ``1 / (2 oversample)`` px). Beads that all
+    sit at one phase sample the grid's nodes between phases at none: the grid then holds the
+    smoothing's guess there, and its misfit to the beads says nothing about it."""
+    phases = np.mod(np.asarray(offsets, dtype=np.float64).reshape(-1, 2), 1.0)
+    if len(phases) < 2:
+        return False
+    for axis in range(2):
+        p = np.sort(phases[:, axis])
+        gaps = np.diff(np.append(p, p[0] + 1.0))
+        if 1.0 - gaps.max() <= 0.5 / oversample:
+            return False
+    return True
 
 
 def worth_oversampling(n_beads: int, oversample: int = OVERSAMPLE) -> bool:
