@@ -74,6 +74,7 @@ from .calibrate_zsmooth import (
 )
 from .camera import Camera, camera_mismatch, photon_noise
 from .psf.spline import SplinePSF
+from .psf.symmetry import mirror_warning
 
 __all__ = [
     "Calibration",
@@ -651,6 +652,7 @@ def _calibrate_scan(
         "model_error_z": [float(v) for v in error.per_plane],
         "model_self_influence": float(error.influence),
         "bead_warning": ONE_BEAD_WARNING if len(used) == 1 else "",
+        "mirror_warning": mirror_warning(psf, p),
         "cluster_warning": _cluster_warning(stacks, used, centres),
         **origin,
     }

@@ -89,6 +89,8 @@ def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
         )
     if cal.params.get("bead_warning"):
         lines.append(f"  warning: {cal.params['bead_warning']}")
+    if cal.params.get("mirror_warning"):
+        lines.append(f"  warning: {cal.params['mirror_warning']}")
     if cal.params.get("cluster_warning"):
         lines.append(f"  warning: {cal.params['cluster_warning']}")
     if cal.params.get("camera_warning"):

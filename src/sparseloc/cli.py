@@ -817,6 +817,7 @@ def localize(
     written."""
     from .config import LOCALIZE_DEFAULTS, build_job
     from .distributed import resumable_by_default
+    from .psf.symmetry import mirror_warning
 
     given = {
         "psf": psf,
@@ -875,6 +876,9 @@ def localize(
             _check_suffix(check, _FIGURE_SUFFIXES, "the check's picture")
             check = _new_output(check, overwrite=bool(opts["overwrite"]), inputs=[*inputs, out])
         job = _run(build_job, opts, mov)
+        mirror = mirror_warning(job.model, job.params.pixel_size, job.params.z_range)
+        if mirror:
+            typer.echo(f"note: {mirror}", err=True)
         if job.defects is not None:
             typer.echo(
                 f"note: {int(job.defects.sum())} defective (hot or stuck) pixel(s) stand above "
