@@ -74,7 +74,7 @@ from .calibrate_zsmooth import (
 )
 from .camera import Camera, camera_mismatch, photon_noise
 from .psf.spline import SplinePSF
-from .psf.symmetry import mirror_warning
+from .psf.symmetry import mirror_warning, ncc_planes
 
 __all__ = [
     "Calibration",
@@ -594,7 +594,7 @@ def _calibrate_scan(
     sl, zplanes = _model_planes(scan.zplanes, max_dz, step)
     zwin = _z_window(stacks, used, sl, step) if z_smooth else 0
     clean = model_stack(avg[sl], zwin)
-    bead_ncc = np.array([_ncc_planes(stacks.aligned(i)[sl], clean) for i in used])
+    bead_ncc = np.array([ncc_planes(stacks.aligned(i)[sl], clean) for i in used])
     # Lateral origin: the centroid of the z-averaged image (the lobes' midpoint for a DH), or
     # the emitter itself where the beads' positions are known.
     proj = clean.mean(axis=0)
@@ -1565,16 +1565,6 @@ def _fit_pupil_in_frame(cal: Calibration, pupil_options: dict[str, Any] | None) 
         res.psf, res.x0 - xc, res.y0 - yc, res.z0, z_range=(zplanes[0], zplanes[-1])
     )
     return res
-
-
-def _ncc_planes(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Normalised cross-correlation of two stacks, plane by plane."""
-    a = a.reshape(a.shape[0], -1)
-    b = b.reshape(b.shape[0], -1)
-    a = a - a.mean(axis=1, keepdims=True)
-    b = b - b.mean(axis=1, keepdims=True)
-    den = np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1)
-    return (a * b).sum(axis=1) / np.maximum(den, 1e-300)
 
 
 def calibrate_file(
