@@ -116,6 +116,7 @@ def frame_residual(
     templates: ArrayLike,
     min_snr: float = 5.0,
     window_background: ArrayLike | None = None,
+    known_light: ArrayLike | None = None,
 ) -> FrameResidual:
     """Check one frame's localizations against the frame (see the module notes).
 
@@ -145,6 +146,9 @@ def frame_residual(
         Each localization's fitted background (photons/pixel, the tables' ``background``):
         the background within its box instead of ``background`` (the mean where boxes
         overlap; each localization's support takes its own).
+    known_light : array_like, shape (rows, cols), optional
+        Light the run knew besides the localizations' (photons/pixel; bright emitters'
+        halos, :func:`sparseloc.pipeline.check_frame`), added to the background.
     templates : array_like, shape (P, T, T)
         Centred unit images the unexplained-light test correlates with (odd ``T``; each
         localization's light is counted within ``T`` x ``T`` pixels): the run's detection
@@ -168,6 +172,8 @@ def frame_residual(
     if window_background is not None:
         own = np.asarray(window_background, dtype=np.float64)
         bg = _fitted_background(bg, boxes, own)
+    if known_light is not None:
+        bg = bg + np.asarray(known_light, dtype=np.float64)
     mu = np.maximum(bg + light, 1e-9)
     factor = noise_factor_of(noise)
     w = likelihood_weight(noise, qe)

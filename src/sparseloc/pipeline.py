@@ -58,8 +58,9 @@ from .solvers.frame_compose import (
 from .solvers.frame_grow import grown_groups
 from .solvers.frame_l1 import l1_templates, tiled_l1_starts
 from .solvers.frame_windows import background_shape, inside, light_pieces, sum_pieces
+from .solvers.halo import Halo, halo_of
 from .solvers.refine import LR_THRESHOLD, refine_solution
-from .solvers.two_tier import detection_planes, solve_two_tier
+from .solvers.two_tier import detection_match, detection_planes, solve_two_tier
 from .solvers.variance import noise_factor_of, read_variance_crop
 
 log = logging.getLogger(__name__)
@@ -181,24 +182,63 @@ def _residual_spatial_background(
     pixel_size: float,
     reach: float,
     noise: dict,
+    halo: NDArray | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The spatial background (:func:`~sparseloc.detect.spatial_background`) of ``frame``
-    less the light of ``emitters`` (K, 4; nm, photons; finite) within ``reach`` (nm) of each, as the
-    frame solver's windows count it (a model's far halo stays in the background), and that
-    light; both (rows, cols), photons per pixel.
-
-    What is left keeps the shot noise of the light taken away: the percentile's noise
-    correction counts it with the read variance of ``noise`` (:func:`_background_noise`),
-    in the same units (photons, without ``qe``).
-    """
+    """The spatial background of ``frame`` less the light of ``emitters`` (K, 4; nm, photons;
+    finite) within ``reach`` (nm) of each, as the frame solver's windows count it (a model's
+    far halo stays in the background; ``halo``, the part of it rendered, is taken away from
+    the frame as that light is), and that light; both (rows, cols), photons per pixel."""
     f = np.asarray(frame, dtype=np.float64)
     em = np.asarray(emitters, dtype=np.float64).reshape(-1, 4)
     rows, cols = f.shape
     pieces = light_pieces(model, em, f.shape, pixel_size, (0.0, 0.0), reach)
     light = sum_pieces(pieces, (0, rows, 0, cols))
+    known = light if halo is None else light + halo
+    return _spatial_background_without(f, known, noise), light
+
+
+def _halo_gate(
+    model: PSFModel, work: PSFModel, templates, p: LocalizeParams
+) -> tuple[Halo, float] | None:
+    """``model``'s halo beyond its spline table ``work`` (:class:`~sparseloc.solvers.halo.Halo`)
+    against the two tiers' detection planes, and that detection's threshold; None where the
+    solver renders ``model`` itself."""
+    if work is model:
+        return None
+    planes = detection_planes(templates)
+    zr = p.z_range or model.z_range
+    halo = Halo.measure(model, work, p.pixel_size, planes, zr)
+    return halo, p.min_snr * detection_match(templates, planes)
+
+
+def _halo_light(
+    gate: tuple[Halo, float] | None,
+    model: PSFModel,
+    work: PSFModel,
+    emitters: NDArray,
+    background: NDArray,
+    noise: dict,
+    p: LocalizeParams,
+) -> NDArray | None:
+    """The halos (photons/pixel) of the emitters (K, 4) that the detection could see over
+    ``background`` with the camera's ``noise`` (:func:`_background_noise`): ``model``'s light
+    beyond its spline table ``work``'s (:func:`~sparseloc.solvers.halo.halo_of`), or None."""
+    if gate is None:
+        return None
+    halo, threshold = gate
+    variance = noise["noise_factor"] * np.maximum(background, 1e-3) + noise["read_variance"]
+    variance = np.broadcast_to(variance, np.shape(background))
+    return halo_of(halo, model, work, emitters, variance, p.pixel_size, threshold)
+
+
+def _spatial_background_without(frame: NDArray, light: NDArray, noise: dict) -> NDArray:
+    """The spatial background (:func:`~sparseloc.detect.spatial_background`) of ``frame``
+    less ``light`` (photons/pixel). What is left keeps the shot noise of the light taken
+    away: the percentile's noise correction counts it with the read variance of ``noise``
+    (:func:`_background_noise`), in the same units (photons, without ``qe``)."""
     kw = dict(noise)
     kw["read_variance"] = kw["read_variance"] + kw["noise_factor"] * light
-    return spatial_background(f - light, **kw), light
+    return spatial_background(np.asarray(frame, dtype=np.float64) - light, **kw)
 
 
 def _reach(templates) -> float:
@@ -262,8 +302,10 @@ class _FrameSolver:
         shape: tuple[int, int],
         read_variance: NDArray | None = None,
         spatial: bool = False,
+        halo_model: PSFModel | None = None,
     ) -> None:
         self.model = model
+        self.halo_model = model if halo_model is None else halo_model
         self.p = params
         self.noise_kw = _noise_kwargs(params, read_variance)
         # the frames' backgrounds come from their own pixels: estimated again without the
@@ -281,6 +323,20 @@ class _FrameSolver:
         self.l1 = l1_templates(model, self.templates) if params.second_start else None
         planes = np.unique(self.l1.z) if self.l1 is not None else np.zeros(1)
         self.l1_spacing = float(np.min(np.diff(planes))) if planes.size > 1 else 0.0
+        self._halo: tuple[Halo, float] | None = None
+        self._halo_measured = False  # when first needed
+
+    def halo(self, fit: FrameFit, background: NDArray) -> NDArray | None:
+        """The light of ``fit``'s emitters beyond what the solver renders of them, where the
+        detection could see it (:func:`_halo_light`; the halo that of ``halo_model``, the
+        run's model before its spline table), or None."""
+        if not self._halo_measured:
+            self._halo = _halo_gate(self.halo_model, self.model, self.templates, self.p)
+            self._halo_measured = True
+        em = fit.emitters.as_array().reshape(-1, 4)
+        return _halo_light(
+            self._halo, self.halo_model, self.model, em, background, self.background_noise, self.p
+        )
 
     def start(self, frame: NDArray, background: NDArray, read_variance: Any = None):
         """The pursuit's emitters of one frame or crop (the fits' starting point); the read
@@ -332,23 +388,46 @@ class _FrameSolver:
         self, frame: NDArray, background: NDArray, start: NDArray | None = None
     ) -> FrameFit:
         """Solve one frame: by the run's schedule (:meth:`solve`), or the fits from ``start``
-        (K, 4) if given; where the background is the frame's own spatial estimate, then
-        :meth:`residual_background` (without its search where ``start`` is given)."""
-        shape = self.background_shape(background)
-        if start is not None:
-            emitters = Emitters.from_array(np.asarray(start, dtype=np.float64).reshape(-1, 4))
-            kw = self.fit_kwargs(shape=shape)
-            fit = frame_fit(frame, self.model, emitters, background=background, **kw)
-        else:
-            fit = self.solve(frame, background, shape)
+        (K, 4) if given. Where bright emitters' halos (:meth:`halo`) could be detected, the
+        frame is solved again with them in the background (a spatial background estimated
+        again from the frame less them). Where the background is the frame's own spatial
+        estimate, then :meth:`residual_background` (without its search where ``start`` is
+        given)."""
+        fit = self.solved(frame, background, start)
+        halo = self.halo(fit, background)
+        if halo is not None:
+            if self.spatial:
+                background = _spatial_background_without(frame, halo, self.background_noise)
+            fit = self.solved(frame, background, start, halo)
         if not self.spatial:
             return fit
-        return self.residual_background(frame, fit, search=start is None)
+        return self.residual_background(frame, fit, search=start is None, halo=halo)
 
-    def residual_background(self, frame: NDArray, fit: FrameFit, search: bool = True) -> FrameFit:
+    def solved(
+        self,
+        frame: NDArray,
+        background: NDArray,
+        start: NDArray | None,
+        fixed_light: NDArray | None = None,
+    ) -> FrameFit:
+        """The frame's fit by the run's schedule, or from ``start`` (K, 4) if given, with the
+        light ``fixed_light`` (photons/pixel) known."""
+        shape = self.background_shape(background)
+        if start is None:
+            return self.solve(frame, background, shape, fixed_light)
+        emitters = Emitters.from_array(np.asarray(start, dtype=np.float64).reshape(-1, 4))
+        kw = self.fit_kwargs(shape=shape)
+        return frame_fit(
+            frame, self.model, emitters, background=background, fixed_light=fixed_light, **kw
+        )
+
+    def residual_background(
+        self, frame: NDArray, fit: FrameFit, search: bool = True, halo: NDArray | None = None
+    ) -> FrameFit:
         """``fit`` refitted with the frame's spatial background estimated again from the frame
         less ``fit``'s light, from its emitters and those the pursuit finds in what that
-        background and that light leave.
+        background and that light leave; ``halo`` (photons/pixel), light beyond the
+        emitters' reach, is left out of the estimate and known in the fits.
 
         The spatial estimate takes each block's darker pixels for the background. Where
         emitters' images cover most of a block (a crowded frame, a broad PSF) those pixels
@@ -364,16 +443,24 @@ class _FrameSolver:
             return fit
         f = np.asarray(frame, dtype=np.float64)
         background, light = _residual_spatial_background(
-            f, arr, self.model, self.p.pixel_size, self.reach, self.background_noise
+            f, arr, self.model, self.p.pixel_size, self.reach, self.background_noise, halo
         )
+        seen = background + light if halo is None else background + light + halo
         if search:
-            arr = np.vstack([arr, self.start(f, background + light).as_array().reshape(-1, 4)])
+            arr = np.vstack([arr, self.start(f, seen).as_array().reshape(-1, 4)])
         emitters = Emitters.from_array(arr)
         kw = self.fit_kwargs(shape=self.background_shape(background))
-        return frame_fit(f, self.model, emitters, background=background, **kw)
+        return frame_fit(f, self.model, emitters, background=background, fixed_light=halo, **kw)
 
-    def solve(self, frame: NDArray, background: NDArray, shape: NDArray | None) -> FrameFit:
-        """The frame's fit by the run's schedule (``shape``: :meth:`background_shape`)."""
+    def solve(
+        self,
+        frame: NDArray,
+        background: NDArray,
+        shape: NDArray | None,
+        fixed_light: NDArray | None = None,
+    ) -> FrameFit:
+        """The frame's fit by the run's schedule (``shape``: :meth:`background_shape`), with
+        the light ``fixed_light`` (photons/pixel) known."""
         if self.p.frame_schedule in ("two-tier", "auto"):
             fit = solve_two_tier(
                 frame,
@@ -387,10 +474,11 @@ class _FrameSolver:
                 cache=self.detection_cache,
                 whole_when_crowded=self.p.frame_schedule == "auto",
                 whole=self.whole if self.p.frame_schedule == "auto" else None,
+                fixed_light=fixed_light,
             )
             if fit is not None:
                 return fit
-        return self.whole(frame, background, shape=shape)
+        return self.whole(frame, background, fixed_light, shape=shape)
 
     def whole(
         self,
@@ -669,6 +757,7 @@ def localize(
         shape,
         read_variance,
         not _temporal(params, n),
+        model,
     )
     parts: list[dict] = []
     early = _EarlyCheck(work_args[0], params, shape) if check and stop - start > 1 else None
@@ -715,7 +804,8 @@ def check_frame(
     FrameResidual
         Of that frame in photons over the run's background estimate of it (the rule of
         :func:`localize`; a spatial one estimated again without the localizations' light,
-        as the frame solver does), the localizations rendered with the model the fits used, the
+        as the frame solver does) and bright localizations' halos (as the frame solver knows
+        them), the localizations rendered with the model the fits used, the
         unexplained light found with the run's detection planes
         (:func:`~sparseloc.solvers.two_tier.detection_planes`). Compare its support and
         signal-to-noise with :func:`addition_bar`.
@@ -740,9 +830,14 @@ def check_frame(
     work = work_model_for(model, params)
     templates = run_templates(work, params)
     noise = _background_noise(params, read_variance)
+    em = rows[cols].to_numpy()
+    halo = None
+    if params.method == "frame":
+        gate = _halo_gate(model, work, templates, params)
+        halo = _halo_light(gate, model, work, em, bg, noise, params)
     if params.method == "frame" and not _temporal(params, n) and len(rows):
         bg, _ = _residual_spatial_background(
-            frame, rows[cols].to_numpy(), work, params.pixel_size, _reach(templates), noise
+            frame, em, work, params.pixel_size, _reach(templates), noise, halo
         )
     return frame_residual(
         frame,
@@ -755,6 +850,7 @@ def check_frame(
         read_variance=noise["read_variance"],
         min_snr=params.min_snr,
         window_background=fitted,
+        known_light=halo,
         templates=detection_planes(templates),
     )
 
@@ -1053,11 +1149,12 @@ class _FrameWork:
         shape: tuple[int, int],
         read_variance: NDArray | None = None,
         spatial: bool = False,
+        model: PSFModel | None = None,
     ) -> None:
         self.p = p
         self.tiling = tiles(shape, p.window, p.margin)
         if p.method == "frame":
-            self.solver: Any = _FrameSolver(work_model, p, shape, read_variance, spatial)
+            self.solver: Any = _FrameSolver(work_model, p, shape, read_variance, spatial, model)
         else:
             self.solver = _Solver(work_model, p)
             self.read_variance = read_variance

@@ -265,9 +265,9 @@ class _Unit:
 class _Tier1:
     """The frame, its noise and the fitting options of one frame's tier-1 fits."""
 
-    def __init__(self, f, bg, model, opts, noise_factor, rv, z_flip):
+    def __init__(self, f, bg, model, opts, noise_factor, rv, z_flip, fixed=None):
         self.f, self.bg, self.model, self.opts = f, bg, model, opts
-        self.light = NeighbourLight(model, f.shape, opts["pixel_size"])
+        self.light = NeighbourLight(model, f.shape, opts["pixel_size"], fixed)
         self.px, self.pad = opts["pixel_size"], int(opts["pad"])
         keys = ("noise", "read_variance", "qe", "plane", "background_shape")
         kw = {k: opts[k] for k in keys if k in opts}
@@ -331,10 +331,9 @@ class _Tier1:
 
 
 def _light(light: NeighbourLight, rows: list[NDArray], box) -> NDArray[np.float64]:
-    r0, r1, c0, c1 = box
     rows = [r for r in rows if len(r)]
     if not rows:
-        return np.zeros((r1 - r0, c1 - c0))
+        return light.known(box)
     return light.window(np.vstack(rows), box)
 
 
@@ -354,6 +353,7 @@ def solve_two_tier(
     cache: dict | None = None,
     whole_when_crowded: bool = False,
     whole=None,
+    fixed_light: NDArray | None = None,
 ) -> FrameFit | None:
     """Solve one frame in two tiers (see the module notes).
 
@@ -397,6 +397,9 @@ def solve_two_tier(
         on a crop around the crowd, with the kept units' light known, instead of sending
         the frame whole (the frame's size then does not decide how much of it the
         whole-frame solver sees).
+    fixed_light : ndarray, shape (rows, cols), optional
+        Light known besides the emitters' (photons/pixel): in every window's known light and
+        under every detection.
 
     Returns
     -------
@@ -408,8 +411,9 @@ def solve_two_tier(
     px, reach = opts["pixel_size"], float(opts["reach"])
     rv = np.broadcast_to(np.asarray(read_variance, dtype=np.float64), f.shape)
     det = dict(noise_factor=noise_factor, threshold=min_snr)
-    tier = _Tier1(f, bg, model, opts, noise_factor, rv, z_flip)
+    tier = _Tier1(f, bg, model, opts, noise_factor, rv, z_flip, fixed_light)
     light = tier.light
+    seen = bg if fixed_light is None else bg + fixed_light
     crowd = crowd_distance(templates)
     if cache is None:
         cache = {}
@@ -422,8 +426,8 @@ def solve_two_tier(
     det["threshold"] = min_snr * cache["match"]
 
     # 1. candidates, strongest first
-    cand = detect_candidates(f, bg, planes, read_variance=rv, cache=spectra, **det)
-    starts = z_starts(f, bg, cand, templates) if len(cand) else np.zeros((0, 4))
+    cand = detect_candidates(f, seen, planes, read_variance=rv, cache=spectra, **det)
+    starts = z_starts(f, seen, cand, templates) if len(cand) else np.zeros((0, 4))
 
     # 2. units: each candidate that the units before it leave significant is fitted as one
     # emitter with their light known (the others are parts of their images), then each unit
@@ -461,7 +465,7 @@ def solve_two_tier(
     crowd_pts = np.vstack([resid, *(_unit_points([units[k]], px) for k in promoted)])
     kept = [k for k in range(len(units)) if k not in set(promoted)]
     n_kept = sum(len(units[k].rows) for k in kept)
-    start = np.vstack([*(units[k].rows for k in promoted), z_starts(f, bg, resid, templates)])
+    start = np.vstack([*(units[k].rows for k in promoted), z_starts(f, seen, resid, templates)])
     if whole_when_crowded and crowded(start, n_kept, px, reach, f.shape, large=whole is None):
         return _whole(counts)
 
