@@ -8,7 +8,7 @@ import pytest
 
 from sparseloc.config import LocalizeParams
 from sparseloc.evaluate import match_localizations
-from sparseloc.pipeline import _FrameSolver, localize, work_model_for
+from sparseloc.pipeline import _FrameSolver, addition_bar, check_frame, localize, work_model_for
 from sparseloc.psf import make_psf
 from sparseloc.solvers.halo import Halo, halo_of
 from sparseloc.solvers.two_tier import detection_planes
@@ -94,9 +94,28 @@ def test_a_bright_emitter_leaves_no_ring_of_false_emitters(dh):
     truth = truth[(np.hypot(truth[:, 0] - 3650, truth[:, 1] - 3550) > 1000) | (truth[:, 3] > 1e5)]
     mu = 10.0 + model.render(*truth.T, SHAPE, PX)
     frame = rng.poisson(mu).astype(float)[None]
-    locs = localize(frame, model, p, check=False).table
-    locs = locs[locs["flag"] == "ok"]
+    table = localize(frame, model, p, check=False).table
+    locs = table[table["flag"] == "ok"]
     t = {"frame": 0, "x_nm": truth[:, 0], "y_nm": truth[:, 1], "z_nm": truth[:, 2]}
     m = match_localizations(locs, pd.DataFrame(t))
     assert len(locs) - len(m) <= 1
     assert len(m) >= len(truth) - 1
+    # the frame check knows the same halo: no light left that an emitter would explain
+    check = check_frame(frame, 0, table, model, p)
+    assert np.all(check.unexplained_snr < np.sqrt(addition_bar(p)))
+
+
+def test_a_calibration_says_when_light_beyond_its_roi_would_stand_out(dh):
+    """A spline table (as a bead calibration is) holds no light beyond its ROI: a run says
+    how many localizations are bright enough for that light to stand above the noise."""
+    model, work, p, _, _ = dh
+    rng = np.random.default_rng(5)
+    em = np.array([[3650.0, 3550.0, 200.0, BRIGHT], [1200.0, 1300.0, -300.0, 3000.0]])
+    frame = rng.poisson(10.0 + model.render(*em.T, SHAPE, PX)).astype(float)[None]
+    bright = localize(frame, work, p).metadata.get("beyond_roi")
+    assert bright is not None and bright["count"] == 1
+    assert bright["roi_half_nm"] == pytest.approx(work.roi_half(PX))
+    dim = rng.poisson(10.0 + model.render(*em[1:].T, SHAPE, PX)).astype(float)[None]
+    assert "beyond_roi" not in localize(dim, work, p).metadata
+    # the pupil model renders that light itself: nothing to say
+    assert "beyond_roi" not in localize(frame, model, p).metadata

@@ -950,6 +950,16 @@ def _run_notes(meta: dict) -> None:
     check = meta.get("model_check")
     if check:
         typer.echo(ModelCheck(**check).summary())
+    bright = meta.get("beyond_roi")
+    if bright:
+        n, half = bright["count"], bright["roi_half_nm"] / 1000.0
+        typer.echo(
+            f"note: {n} localization{'' if n == 1 else 's'} so bright that light of "
+            f"{'its' if n == 1 else 'theirs'} beyond the calibration's ROI ({half:.1f} um from "
+            "the emitter), which its model does not hold, would stand above the noise: false "
+            "localizations can ring such emitters there; a pupil calibration (calibrate "
+            "--fit-pupil --model pupil) models that light"
+        )
 
 
 def _table_not_truth(locs: Path, truth: Path) -> tuple[Any, Any]:

@@ -219,16 +219,18 @@ def _halo_light(
     background: NDArray,
     noise: dict,
     p: LocalizeParams,
+    counted: int | None = None,
 ) -> NDArray | None:
     """The halos (photons/pixel) of the emitters (K, 4) that the detection could see over
     ``background`` with the camera's ``noise`` (:func:`_background_noise`): ``model``'s light
-    beyond its spline table ``work``'s (:func:`~sparseloc.solvers.halo.halo_of`), or None."""
+    beyond its spline table ``work``'s (:func:`~sparseloc.solvers.halo.halo_of`; that table's
+    light counted within ``counted`` px of each emitter's pixel where given), or None."""
     if gate is None:
         return None
     halo, threshold = gate
     variance = noise["noise_factor"] * np.maximum(background, 1e-3) + noise["read_variance"]
     variance = np.broadcast_to(variance, np.shape(background))
-    return halo_of(halo, model, work, emitters, variance, p.pixel_size, threshold)
+    return halo_of(halo, model, work, emitters, variance, p.pixel_size, threshold, counted)
 
 
 def _spatial_background_without(frame: NDArray, light: NDArray, noise: dict) -> NDArray:
@@ -769,7 +771,42 @@ def localize(
     table = _table(parts)
     if check:
         meta["model_check"] = check_model(table, work_args[0], params, shape).to_dict()
+        bright = beyond_roi(table, model, work_args[0], params, read_variance)
+        if bright:
+            meta["beyond_roi"] = bright
     return LocalizeResult(table, stop - start, n_windows, seconds, meta)
+
+
+def beyond_roi(
+    table: pd.DataFrame,
+    model: PSFModel,
+    work: PSFModel,
+    params: LocalizeParams,
+    read_variance: NDArray | None = None,
+) -> dict | None:
+    """Where a bead calibration's model ends at its ROI (no halo rendered beyond it), the
+    localizations bright enough that their light just beyond the ROI would reach the
+    detection's threshold (:meth:`~sparseloc.solvers.halo.Halo.at_roi_edge`, at each one's
+    fitted background): a dict with their ``count`` and the ROI's half-width
+    ``roi_half_nm``, or None."""
+    if params.method != "frame" or not isinstance(work, SplinePSF) or not len(table):
+        return None
+    templates = run_templates(work, params)
+    gate = _halo_gate(model, work, templates, params)
+    if gate is not None and gate[0].response.max() > 0:
+        return None  # the model renders its halo
+    planes = detection_planes(templates)
+    zr = params.z_range or work.z_range
+    edge = Halo.at_roi_edge(work, params.pixel_size, planes, zr)
+    noise = _background_noise(params, read_variance)
+    rv = float(np.median(noise["read_variance"]))
+    bg = table["background"].to_numpy() if "background" in table else np.zeros(len(table))
+    sigma = np.sqrt(noise["noise_factor"] * np.maximum(np.nan_to_num(bg), 1e-3) + rv)
+    z, photons = table["z_nm"].to_numpy(), table["photons"].to_numpy()
+    ok = np.isfinite(z) & np.isfinite(photons)
+    threshold = params.min_snr * detection_match(templates, planes)
+    n = int(np.sum(edge.detectable(z[ok], photons[ok], sigma[ok], threshold)))
+    return {"count": n, "roi_half_nm": work.roi_half(params.pixel_size)} if n else None
 
 
 def _getter(frames: Any) -> Callable[[int, int], Any]:
@@ -834,7 +871,9 @@ def check_frame(
     halo = None
     if params.method == "frame":
         gate = _halo_gate(model, work, templates, params)
-        halo = _halo_light(gate, model, work, em, bg, noise, params)
+        # frame_residual counts each localization's light within a template's box
+        box = templates.images.shape[-1] // 2
+        halo = _halo_light(gate, model, work, em, bg, noise, params, box)
     if params.method == "frame" and not _temporal(params, n) and len(rows):
         bg, _ = _residual_spatial_background(
             frame, em, work, params.pixel_size, _reach(templates), noise, halo

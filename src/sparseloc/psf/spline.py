@@ -425,6 +425,15 @@ class SplinePSF(PSFBase):
             out.append((max(c + 2.0, n + 1.0 - c) / os_) * px)
         return out[0], out[1]
 
+    def roi_half(self, pixel_size: float) -> float:
+        """Distance (nm) from the emitter to the nearest edge of the stack the table was
+        made from (its ROI): beyond it the table holds no data, only its taper to zero."""
+        px = check_pixel_size(pixel_size)
+        self._check_pixel(px)
+        ny, nx = self._ny - 2 * _PAD, self._nx - 2 * _PAD
+        (cy, cx), os_ = self.centre, self.oversample
+        return min(cy, ny - 1 - cy, cx, nx - 1 - cx) / os_ * px
+
     def support_radius(
         self,
         pixel_size: float,

@@ -23,8 +23,9 @@ from numpy.typing import NDArray
 from scipy.signal import fftconvolve
 
 from ..psf.base import PSFModel
+from ..psf.spline import SplinePSF
 
-__all__ = ["HALO_PLANES", "HALO_RADIUS_NM", "Halo", "halo_of"]
+__all__ = ["EDGE_PX", "HALO_PLANES", "HALO_RADIUS_NM", "Halo", "halo_of"]
 
 #: Farthest (nm) from an emitter a halo is rendered: a pupil model's rings hold about 1 % of
 #: its light beyond 8 um, and spread over a disc that wide it sits far below any noise.
@@ -32,6 +33,9 @@ HALO_RADIUS_NM = 8000.0
 
 #: z planes over the model's range at which the halo's detectability is measured.
 HALO_PLANES = 21
+
+#: Pixels at the edge of a bead calibration's ROI whose light stands for the light beyond it.
+EDGE_PX = 2
 
 
 @dataclass(frozen=True)
@@ -78,6 +82,39 @@ class Halo:
         centre = np.full(z.size, (half + 0.5) * px)
         imgs = np.asarray(model.images(centre, centre, z, (n, n), px), dtype=np.float64)
         halos = imgs - np.asarray(table.images(centre, centre, z, (n, n), px))
+        return cls.of_images(z, imgs, halos, planes)
+
+    @classmethod
+    def at_roi_edge(
+        cls,
+        table: SplinePSF,
+        pixel_size: float,
+        planes: NDArray,
+        z_range: tuple[float, float] | None = None,
+    ) -> Halo:
+        """For a model known only within its ROI (a bead calibration's table): the light of
+        the ROI's outermost :data:`EDGE_PX` pixels around the emitter, a stand-in for the
+        light just beyond it (a PSF's light does not stop where a ROI does)."""
+        px = float(pixel_size)
+        h = int(np.floor(table.roi_half(px) / px + 1e-9))
+        half = h + 1
+        n = 2 * half + 1
+        zr = z_range or table.z_range
+        z = np.linspace(zr[0], zr[1], HALO_PLANES)
+        centre = np.full(z.size, (half + 0.5) * px)
+        imgs = np.asarray(table.images(centre, centre, z, (n, n), px), dtype=np.float64)
+        yy, xx = np.mgrid[:n, :n]
+        dist = np.maximum(np.abs(yy - half), np.abs(xx - half))
+        edge = (dist > h - EDGE_PX) & (dist <= h)
+        return cls.of_images(z, imgs, imgs * edge, planes)
+
+    @classmethod
+    def of_images(cls, z: NDArray, imgs: NDArray, halos: NDArray, planes: NDArray) -> Halo:
+        """From one photon's images (P, n, n; the emitter at the middle pixel's centre) at
+        the planes ``z`` and their halos (the same shape), against the detection's
+        templates ``planes``."""
+        n = imgs.shape[-1]
+        half = n // 2
         yy, xx = np.mgrid[:n, :n]
         dist = np.maximum(np.abs(yy - half), np.abs(xx - half))
         ring = imgs.max(axis=0)
@@ -91,7 +128,7 @@ class Halo:
             for tj, nj in zip(t, norms, strict=True):
                 corr = fftconvolve(halos, tj[None, ::-1, ::-1], mode="same", axes=(1, 2))
                 response = np.maximum(response, corr.max(axis=(1, 2)) / nj)
-        return cls(z, response, peak, float(1.0 / norms.min()))
+        return cls(np.asarray(z, dtype=np.float64), response, peak, float(1.0 / norms.min()))
 
     def detectable(self, z: NDArray, photons: NDArray, sigma: NDArray, threshold: float):
         """Which emitters' halos reach the detection's ``threshold`` on their own: ``z``
@@ -119,12 +156,14 @@ def halo_of(
     noise: NDArray,
     pixel_size: float,
     threshold: float,
+    counted: int | None = None,
 ) -> NDArray[np.float64] | None:
     """The halo light (rows, cols; photons/pixel) of the emitters (K, 4; nm, photons) whose
     halo could be detected: each one's image from ``model`` less that from its spline
-    ``table``, out to :meth:`Halo.extent`. ``noise``: the noise variance (photons^2) per
-    pixel of the frame; ``threshold``: the detection's. None where no emitter's halo is
-    detectable."""
+    ``table``, out to :meth:`Halo.extent`; where the table's light is counted only within
+    ``counted`` pixels of the emitter's pixel (a frame check's boxes), less that part of
+    it. ``noise``: the noise variance (photons^2) per pixel of the frame; ``threshold``:
+    the detection's. None where no emitter's halo is detectable."""
     em = np.asarray(emitters, dtype=np.float64).reshape(-1, 4)
     em = em[np.all(np.isfinite(em), axis=1)]
     rows, cols = noise.shape
@@ -145,6 +184,9 @@ def halo_of(
         c0, c1 = max(cx - half, 0), min(cx + half + 1, cols)
         args = ([em[k, 0]], [em[k, 1]], [em[k, 2]], [em[k, 3]], (r1 - r0, c1 - c0), px)
         origin = (c0 * px, r0 * px)
-        img = model.render(*args, origin=origin) - table.render(*args, origin=origin)
-        out[r0:r1, c0:c1] += img
+        known = table.render(*args, origin=origin)
+        if counted is not None:
+            rr, cc = np.ogrid[r0:r1, c0:c1]
+            known *= (np.abs(rr - cy) <= counted) & (np.abs(cc - cx) <= counted)
+        out[r0:r1, c0:c1] += model.render(*args, origin=origin) - known
     return out
