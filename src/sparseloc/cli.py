@@ -954,11 +954,11 @@ def _run_notes(meta: dict) -> None:
     if bright:
         n, half = bright["count"], bright["roi_half_nm"] / 1000.0
         typer.echo(
-            f"note: {n} localization{'' if n == 1 else 's'} so bright that light of "
-            f"{'its' if n == 1 else 'theirs'} beyond the calibration's ROI ({half:.1f} um from "
-            "the emitter), which its model does not hold, would stand above the noise: false "
-            "localizations can ring such emitters there; a pupil calibration (calibrate "
-            "--fit-pupil --model pupil) models that light"
+            f"note: {n} localization{'' if n == 1 else 's'} so bright that "
+            f"{'its' if n == 1 else 'their'} light beyond the calibration's ROI ({half:.1f} um "
+            "from the emitter), which its model does not hold, would stand above the noise: "
+            "false localizations can ring such emitters there; a pupil calibration "
+            "(calibrate --fit-pupil --model pupil) models that light"
         )
 
 

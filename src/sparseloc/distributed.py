@@ -61,7 +61,14 @@ from .defects import replace_defects
 from .digest import array_digest, psf_hash
 from .io.atomic import write_text_atomic
 from .io.tables import LOCS_COLUMNS, empty_locs, read_parquet, write_parquet
-from .pipeline import LocalizeParams, check_model, localize, run_metadata, work_model_for
+from .pipeline import (
+    LocalizeParams,
+    beyond_roi,
+    check_model,
+    localize,
+    run_metadata,
+    work_model_for,
+)
 from .psf.base import PSFModel
 
 __all__ = [
@@ -520,6 +527,9 @@ def localize_chunked(
     if res.table is not None:
         check = check_model(res.table, work_model, params, source.shape)
         res.metadata["model_check"] = check.to_dict()
+        bright = beyond_roi(res.table, work_model, params, read_variance)
+        if bright:
+            res.metadata["beyond_roi"] = bright
     return res
 
 

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from . import __version__
 from .config import METHODS, LocalizeParams
@@ -186,34 +186,49 @@ def _residual_spatial_background(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The spatial background of ``frame`` less the light of ``emitters`` (K, 4; nm, photons;
     finite) within ``reach`` (nm) of each, as the frame solver's windows count it (a model's
-    far halo stays in the background; ``halo``, the part of it rendered, is taken away from
-    the frame as that light is), and that light; both (rows, cols), photons per pixel."""
+    far halo stays in the background), and that light; both (rows, cols), photons per
+    pixel. Where part of the far halo is known (``halo``, photons/pixel: the light of
+    bright emitters' models beyond their spline table), it is taken away too, and the
+    emitters' light is the table's whole (the halo begins where the table ends)."""
     f = np.asarray(frame, dtype=np.float64)
     em = np.asarray(emitters, dtype=np.float64).reshape(-1, 4)
     rows, cols = f.shape
+    if halo is not None and isinstance(model, SplinePSF):
+        reach = max(model.zero_beyond(pixel_size))
     pieces = light_pieces(model, em, f.shape, pixel_size, (0.0, 0.0), reach)
     light = sum_pieces(pieces, (0, rows, 0, cols))
     known = light if halo is None else light + halo
     return _spatial_background_without(f, known, noise), light
 
 
-def _halo_gate(
-    model: PSFModel, work: PSFModel, templates, p: LocalizeParams
-) -> tuple[Halo, float] | None:
-    """``model``'s halo beyond its spline table ``work`` (:class:`~sparseloc.solvers.halo.Halo`)
-    against the two tiers' detection planes, and that detection's threshold; None where the
-    solver renders ``model`` itself."""
-    if work is model:
+def _halo_gate(work: PSFModel, templates, p: LocalizeParams) -> tuple[Halo, float] | None:
+    """The halo of the model the spline table ``work`` was made from beyond that table
+    (:class:`~sparseloc.solvers.halo.Halo`) against the two tiers' detection planes, and
+    that detection's threshold; None for a table made from data (a bead calibration) or a
+    model the solver renders itself."""
+    source = getattr(work, "source", None)
+    if source is None:
         return None
     planes = detection_planes(templates)
-    zr = p.z_range or model.z_range
-    halo = Halo.measure(model, work, p.pixel_size, planes, zr)
-    return halo, p.min_snr * detection_match(templates, planes)
+    zr = p.z_range or work.z_range
+    halo = Halo.measure(source, work, p.pixel_size, planes, zr)
+    return halo, _detection_threshold(templates, planes, p)
+
+
+def _detection_threshold(templates, planes: NDArray, p: LocalizeParams) -> float:
+    """The two tiers' detection threshold (standard deviations) of a run with ``planes``."""
+    return p.min_snr * detection_match(templates, planes)
+
+
+def _noise_variance(background: ArrayLike, noise: dict) -> NDArray[np.float64]:
+    """The noise variance (photons^2) per pixel over ``background`` (photons/pixel) with the
+    camera's ``noise`` (:func:`_background_noise`), as the detection takes it."""
+    bg = np.asarray(background, dtype=np.float64)
+    return noise["noise_factor"] * np.maximum(bg, 1e-3) + noise["read_variance"]
 
 
 def _halo_light(
     gate: tuple[Halo, float] | None,
-    model: PSFModel,
     work: PSFModel,
     emitters: NDArray,
     background: NDArray,
@@ -222,15 +237,15 @@ def _halo_light(
     counted: int | None = None,
 ) -> NDArray | None:
     """The halos (photons/pixel) of the emitters (K, 4) that the detection could see over
-    ``background`` with the camera's ``noise`` (:func:`_background_noise`): ``model``'s light
-    beyond its spline table ``work``'s (:func:`~sparseloc.solvers.halo.halo_of`; that table's
-    light counted within ``counted`` px of each emitter's pixel where given), or None."""
+    ``background`` with the camera's ``noise`` (:func:`_background_noise`): the light of the
+    model the spline table ``work`` was made from beyond the table's
+    (:func:`~sparseloc.solvers.halo.halo_of`; the table's light counted within ``counted``
+    px of each emitter's pixel where given), or None."""
     if gate is None:
         return None
     halo, threshold = gate
-    variance = noise["noise_factor"] * np.maximum(background, 1e-3) + noise["read_variance"]
-    variance = np.broadcast_to(variance, np.shape(background))
-    return halo_of(halo, model, work, emitters, variance, p.pixel_size, threshold, counted)
+    variance = np.broadcast_to(_noise_variance(background, noise), np.shape(background))
+    return halo_of(halo, work.source, work, emitters, variance, p.pixel_size, threshold, counted)
 
 
 def _spatial_background_without(frame: NDArray, light: NDArray, noise: dict) -> NDArray:
@@ -304,10 +319,8 @@ class _FrameSolver:
         shape: tuple[int, int],
         read_variance: NDArray | None = None,
         spatial: bool = False,
-        halo_model: PSFModel | None = None,
     ) -> None:
         self.model = model
-        self.halo_model = model if halo_model is None else halo_model
         self.p = params
         self.noise_kw = _noise_kwargs(params, read_variance)
         # the frames' backgrounds come from their own pixels: estimated again without the
@@ -329,16 +342,13 @@ class _FrameSolver:
         self._halo_measured = False  # when first needed
 
     def halo(self, fit: FrameFit, background: NDArray) -> NDArray | None:
-        """The light of ``fit``'s emitters beyond what the solver renders of them, where the
-        detection could see it (:func:`_halo_light`; the halo that of ``halo_model``, the
-        run's model before its spline table), or None."""
+        """The light of ``fit``'s emitters beyond what the solver renders of them (the spline
+        table's), where the detection could see it (:func:`_halo_light`), or None."""
         if not self._halo_measured:
-            self._halo = _halo_gate(self.halo_model, self.model, self.templates, self.p)
+            self._halo = _halo_gate(self.model, self.templates, self.p)
             self._halo_measured = True
         em = fit.emitters.as_array().reshape(-1, 4)
-        return _halo_light(
-            self._halo, self.halo_model, self.model, em, background, self.background_noise, self.p
-        )
+        return _halo_light(self._halo, self.model, em, background, self.background_noise, self.p)
 
     def start(self, frame: NDArray, background: NDArray, read_variance: Any = None):
         """The pursuit's emitters of one frame or crop (the fits' starting point); the read
@@ -759,7 +769,6 @@ def localize(
         shape,
         read_variance,
         not _temporal(params, n),
-        model,
     )
     parts: list[dict] = []
     early = _EarlyCheck(work_args[0], params, shape) if check and stop - start > 1 else None
@@ -771,7 +780,7 @@ def localize(
     table = _table(parts)
     if check:
         meta["model_check"] = check_model(table, work_args[0], params, shape).to_dict()
-        bright = beyond_roi(table, model, work_args[0], params, read_variance)
+        bright = beyond_roi(table, work_args[0], params, read_variance)
         if bright:
             meta["beyond_roi"] = bright
     return LocalizeResult(table, stop - start, n_windows, seconds, meta)
@@ -779,32 +788,30 @@ def localize(
 
 def beyond_roi(
     table: pd.DataFrame,
-    model: PSFModel,
     work: PSFModel,
     params: LocalizeParams,
     read_variance: NDArray | None = None,
 ) -> dict | None:
-    """Where a bead calibration's model ends at its ROI (no halo rendered beyond it), the
-    localizations bright enough that their light just beyond the ROI would reach the
-    detection's threshold (:meth:`~sparseloc.solvers.halo.Halo.at_roi_edge`, at each one's
-    fitted background): a dict with their ``count`` and the ROI's half-width
-    ``roi_half_nm``, or None."""
+    """Where the run's model is a table made from data (a bead calibration, which ends at
+    its ROI: no halo is rendered beyond it), the localizations bright enough that their
+    light just beyond the ROI would reach the detection's threshold
+    (:meth:`~sparseloc.solvers.halo.Halo.at_roi_edge`, at each one's fitted background): a
+    dict with their ``count`` and the ROI's half-width ``roi_half_nm``, or None."""
     if params.method != "frame" or not isinstance(work, SplinePSF) or not len(table):
         return None
+    if getattr(work, "source", None) is not None:
+        return None  # a table of a model: the solver renders its halo
     templates = run_templates(work, params)
-    gate = _halo_gate(model, work, templates, params)
-    if gate is not None and gate[0].response.max() > 0:
-        return None  # the model renders its halo
     planes = detection_planes(templates)
     zr = params.z_range or work.z_range
     edge = Halo.at_roi_edge(work, params.pixel_size, planes, zr)
     noise = _background_noise(params, read_variance)
-    rv = float(np.median(noise["read_variance"]))
+    noise["read_variance"] = float(np.median(noise["read_variance"]))
     bg = table["background"].to_numpy() if "background" in table else np.zeros(len(table))
-    sigma = np.sqrt(noise["noise_factor"] * np.maximum(np.nan_to_num(bg), 1e-3) + rv)
+    sigma = np.sqrt(_noise_variance(np.nan_to_num(bg), noise))
     z, photons = table["z_nm"].to_numpy(), table["photons"].to_numpy()
     ok = np.isfinite(z) & np.isfinite(photons)
-    threshold = params.min_snr * detection_match(templates, planes)
+    threshold = _detection_threshold(templates, planes, params)
     n = int(np.sum(edge.detectable(z[ok], photons[ok], sigma[ok], threshold)))
     return {"count": n, "roi_half_nm": work.roi_half(params.pixel_size)} if n else None
 
@@ -868,12 +875,13 @@ def check_frame(
     templates = run_templates(work, params)
     noise = _background_noise(params, read_variance)
     em = rows[cols].to_numpy()
-    halo = None
+    halo = counted = None
     if params.method == "frame":
-        gate = _halo_gate(model, work, templates, params)
+        gate = _halo_gate(work, templates, params)
+        halo = _halo_light(gate, work, em, bg, noise, params)
         # frame_residual counts each localization's light within a template's box
         box = templates.images.shape[-1] // 2
-        halo = _halo_light(gate, model, work, em, bg, noise, params, box)
+        counted = _halo_light(gate, work, em, bg, noise, params, box)
     if params.method == "frame" and not _temporal(params, n) and len(rows):
         bg, _ = _residual_spatial_background(
             frame, em, work, params.pixel_size, _reach(templates), noise, halo
@@ -889,7 +897,7 @@ def check_frame(
         read_variance=noise["read_variance"],
         min_snr=params.min_snr,
         window_background=fitted,
-        known_light=halo,
+        known_light=counted,
         templates=detection_planes(templates),
     )
 
@@ -1188,12 +1196,11 @@ class _FrameWork:
         shape: tuple[int, int],
         read_variance: NDArray | None = None,
         spatial: bool = False,
-        model: PSFModel | None = None,
     ) -> None:
         self.p = p
         self.tiling = tiles(shape, p.window, p.margin)
         if p.method == "frame":
-            self.solver: Any = _FrameSolver(work_model, p, shape, read_variance, spatial, model)
+            self.solver: Any = _FrameSolver(work_model, p, shape, read_variance, spatial)
         else:
             self.solver = _Solver(work_model, p)
             self.read_variance = read_variance
