@@ -401,8 +401,8 @@ class _FrameSolver:
     ) -> FrameFit:
         """Solve one frame: by the run's schedule (:meth:`solve`), or the fits from ``start``
         (K, 4) if given. Where bright emitters' halos (:meth:`halo`) could be detected, the
-        frame is solved again with them in the background (a spatial background estimated
-        again from the frame less them). Where the background is the frame's own spatial
+        frame is solved again with them known (a spatial background estimated again from the
+        frame less them). Where the background is the frame's own spatial
         estimate, then :meth:`residual_background` (without its search where ``start`` is
         given)."""
         fit = self.solved(frame, background, start)
@@ -438,8 +438,8 @@ class _FrameSolver:
     ) -> FrameFit:
         """``fit`` refitted with the frame's spatial background estimated again from the frame
         less ``fit``'s light, from its emitters and those the pursuit finds in what that
-        background and that light leave; ``halo`` (photons/pixel), light beyond the
-        emitters' reach, is left out of the estimate and known in the fits.
+        background and that light leave; ``halo`` (photons/pixel), bright emitters' light
+        beyond their spline table, is left out of the estimate and known in the fits.
 
         The spatial estimate takes each block's darker pixels for the background. Where
         emitters' images cover most of a block (a crowded frame, a broad PSF) those pixels
