@@ -16,6 +16,7 @@ import pytest
 from typer.testing import CliRunner
 
 from sparseloc.calibrate import calibrate_beads, read_z_file
+from sparseloc.calibrate_output import calibration_summary
 from sparseloc.cli import app
 from sparseloc.detect import spatial_background
 from sparseloc.io.calibration import load_calibration, read_calibration_info, save_calibration
@@ -637,6 +638,10 @@ def test_pupil_fit_saved_in_the_calibration_frame(tmp_path):
         a = pupil.images(*c, z, (nr, nr), PX)[0]
         b = spline.images(*c, z, (nr, nr), PX)[0]
         assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.97
+    # the summary names the model the file serves, as the tables that use it record it
+    recorded = read_calibration_info(path)["content_hash"]
+    assert recorded == pupil.content_hash != spline.content_hash
+    assert f"hash {recorded}" in calibration_summary(cal, None, recorded)[0]
 
 
 def test_cli_calibrate_refuses_a_pixel_size_that_contradicts_the_file(tmp_path, scan):

@@ -20,7 +20,9 @@ def calibration_path(path: str | Path) -> Path:
     return out
 
 
-def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
+def calibration_summary(
+    cal: Any, seconds: float | None = None, content_hash: str | None = None
+) -> list[str]:
     """The key numbers of a calibration, one line each: beads used, planes (and the smoothing
     along z the beads chose), ROI, hash (and the time taken), the model error, the model's
     origin, the known bead positions' offset, a camera gain the stack contradicts, the
@@ -32,6 +34,9 @@ def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
         From :func:`sparseloc.calibrate.calibrate_beads` or ``calibrate_file``.
     seconds : float, optional
         Time the calibration took (s), added to the first line.
+    content_hash : str, optional
+        The hash the written file records (a pupil model's where the file serves the
+        pupil); default the spline model's.
 
     Returns
     -------
@@ -57,7 +62,7 @@ def calibration_summary(cal: Any, seconds: float | None = None) -> list[str]:
     lines = [
         f"{cal.n_used} of {len(cal.beads)} beads used; {nz} planes z "
         f"{cal.z[0]:.0f}..{cal.z[-1]:.0f} nm{smoothed}, ROI {nr} x {nc} px{cut}; "
-        f"hash {cal.content_hash}{took}",
+        f"hash {content_hash or cal.content_hash}{took}",
         error,
     ]
     wander = cal.params["centroid_over_z_nm"]

@@ -1210,6 +1210,7 @@ def calibrate(
     from .calibrate_output import calibration_path, calibration_summary, write_calibration
     from .calibrate_scan import scan_conversion
     from .camera import camera_from_options
+    from .io.calibration import read_calibration_info
 
     out = _run(calibration_path, _output_path(output))
     if z_step is None and z_file is None:
@@ -1279,7 +1280,8 @@ def calibrate(
         camera=scan_camera,
     )
     _run(write_calibration, cal, out, fig_path, model=model)
-    for line in calibration_summary(cal, time.perf_counter() - t0):
+    recorded = read_calibration_info(out)["content_hash"]
+    for line in calibration_summary(cal, time.perf_counter() - t0, recorded):
         typer.echo(line)
     typer.echo(f"wrote {out} and {fig_path}")
 

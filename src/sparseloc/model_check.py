@@ -207,7 +207,7 @@ def check_fit(
     if med > upper:
         verdict = "misfit"
         with_error = (
-            f" (with {known:.2f} for the calibration's measured model error)" if known else ""
+            f" (with {known:.2g} for the calibration's measured model error)" if known else ""
         )
         message = (
             f"the model does not describe the data: {said}, above {upper:.2f}{with_error}, "
