@@ -19,8 +19,9 @@ group of quasi-permanently emitting molecules can serve as a (noisier) fiducial 
 The drift of a frame is the mean over the fiducials present of (position - that fiducial's
 median position); frames without any fiducial are interpolated linearly; the curve is then
 smoothed by a running median (robust to a wrong match) followed by a running mean (which
-removes the median's steps), both over ``smooth_frames`` frames, and referenced to zero at
-the first frame. :mod:`sparseloc.drift` re-exports :func:`fiducial_drift`.
+removes the median's steps), both over ``smooth_frames`` frames (past the movie's ends the
+curve continues at the rate of its last ``smooth_frames`` frames), and referenced to zero
+at the first frame. :mod:`sparseloc.drift` re-exports :func:`fiducial_drift`.
 """
 
 from __future__ import annotations
@@ -360,9 +361,38 @@ def _fill_gaps(values: NDArray) -> NDArray:
 
 
 def _smooth(values: NDArray, size: int) -> NDArray:
-    """Running median then running mean over ``size`` frames along axis 0."""
-    size = min(size, values.shape[0])
+    """Running median then running mean over ``size`` frames along axis 0, the series
+    continued past each end by its point reflection about the line fitted to its ``size``
+    frames there: a drift that goes on at a steady rate keeps it to the last frame (a plain
+    mirror would flatten it there by about the rate times ``size / 4``)."""
+    n = values.shape[0]
+    size = min(size, n)
     if size <= 1:
         return values.copy()
-    out = median_filter(values, size=(size, 1), mode="mirror")
-    return uniform_filter1d(out, size, axis=0, mode="mirror")
+    pad = size
+    ext = np.vstack(
+        [
+            _reflected(values[:size], pad, at_start=True),
+            values,
+            _reflected(values[n - size :], pad, at_start=False),
+        ]
+    )
+    out = median_filter(ext, size=(size, 1), mode="nearest")
+    out = uniform_filter1d(out, size, axis=0, mode="nearest")
+    return out[pad : pad + n]
+
+
+def _reflected(end: NDArray, pad: int, at_start: bool) -> NDArray:
+    """``pad`` rows continuing the rows ``end`` (the series' first or last ones) past that
+    end: each row reflected through the point of the least-squares line of ``end`` at the
+    end's frame."""
+    m = end.shape[0]
+    t = np.arange(m, dtype=np.float64)
+    edge = 0.0 if at_start else m - 1.0
+    pivot = np.array([np.polyval(np.polyfit(t, end[:, k], 1), edge) for k in range(end.shape[1])])
+    # the frames at distance 1 .. pad from the end, mirrored (repeating the series if short)
+    idx = np.arange(1, pad + 1) % (2 * m - 2) if m > 1 else np.zeros(pad, int)
+    idx = np.where(idx < m, idx, 2 * m - 2 - idx)
+    if at_start:
+        return (2 * pivot - end[idx])[::-1]
+    return 2 * pivot - end[m - 1 - idx]
