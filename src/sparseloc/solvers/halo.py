@@ -34,7 +34,9 @@ HALO_RADIUS_NM = 8000.0
 #: z planes over the model's range at which the halo's detectability is measured.
 HALO_PLANES = 21
 
-#: Pixels at the edge of a bead calibration's ROI whose light stands for the light beyond it.
+#: Pixels at the edge of a bead calibration's ROI whose light stands for the light beyond it:
+#: the ring one pixel past the ROI is as wide (a pixel either way of the emitter's sub-pixel
+#: position), and one pixel alone would read the ROI's noisiest ring.
 EDGE_PX = 2
 
 
