@@ -163,8 +163,8 @@ def test_fiducial_drift_recovers_drift(truth):
 
 def test_a_steady_fiducial_drift_is_followed_to_the_movies_ends():
     """A drift at a steady rate (60 and 30 nm over 150 frames) seen on three fiducials with
-    2 nm noise: its smoothing keeps the rate at both ends (a mirror there flattened the first
-    and last dozen frames, the span 54 of 60 nm)."""
+    2 nm noise: its smoothing keeps the rate at both ends (a mirror there would flatten the
+    first and last dozen frames and shorten the span)."""
     rng = np.random.default_rng(4)
     frames = np.arange(150)
     rows = []

@@ -80,7 +80,8 @@ def test_a_spline_table_has_no_halo(dh):
 @pytest.mark.parametrize("given", ["pupil", "table"])
 def test_a_bright_emitter_leaves_no_ring_of_false_emitters(dh, given):
     """A 250,000-photon double helix among ordinary emitters: its halo (up to a quarter of
-    its light lies beyond the reach) was a ring of emitters 2-3.5 um around it."""
+    its light lies beyond the spline table) left unknown reads as a ring of emitters 2-3.5
+    um around it; known, it leaves none."""
     model, table, p, _, _ = dh
     rng = np.random.default_rng(3)
     ordinary = np.column_stack(
