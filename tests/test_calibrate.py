@@ -642,6 +642,21 @@ def test_pupil_fit_saved_in_the_calibration_frame(tmp_path):
     recorded = read_calibration_info(path)["content_hash"]
     assert recorded == pupil.content_hash != spline.content_hash
     assert f"hash {recorded}" in calibration_summary(cal, None, recorded)[0]
+    # each model carries its own error on the beads into the solvers, the pupil's through
+    # the spline table the pipeline renders it with
+    from sparseloc.config import LocalizeParams
+    from sparseloc.pipeline import work_model_for
+    from sparseloc.solvers.variance import model_error_of
+
+    own = cal.pupil.model_error
+    assert 0 < own < 0.2 and own != pytest.approx(cal.params["model_error"], rel=1e-3)
+    assert model_error_of(spline) == pytest.approx(cal.params["model_error"])
+    assert model_error_of(pupil) == pytest.approx(own) and pupil.error_table is not None
+    work = work_model_for(pupil, LocalizeParams(pixel_size=PX))
+    assert work is not pupil and model_error_of(work) == pytest.approx(own)
+    assert work.error_table is pupil.error_table
+    pupil_line = next(x for x in calibration_summary(cal) if "pupil fit" in x)
+    assert f"the beads depart from it by {100 * own:.1f} %" in pupil_line
 
 
 def test_cli_calibrate_refuses_a_pixel_size_that_contradicts_the_file(tmp_path, scan):

@@ -73,6 +73,7 @@ from .calibrate_zsmooth import (
     smoothing_nm,
 )
 from .camera import Camera, camera_mismatch, photon_noise
+from .psf.base import PSFModel
 from .psf.spline import SplinePSF
 from .psf.symmetry import mirror_warning, ncc_planes
 
@@ -141,6 +142,8 @@ class Calibration:
     pupil: Any = None
     params: dict[str, Any] = field(default_factory=dict)
     bead_ncc: NDArray[np.float64] | None = None
+    #: The beads a model's error is measured on (not written to the calibration file).
+    evidence: Any = field(default=None, repr=False, compare=False)
 
     @property
     def model_cut(self) -> int | None:
@@ -531,6 +534,7 @@ def calibrate_beads(
     )
     if fit_pupil:
         cal.pupil = _fit_pupil_in_frame(cal, pupil_options)
+        _pupil_model_error(cal)
     if camera is not None and camera.map_shape is None:
         cal.params["camera_warning"] = camera_mismatch(stack, camera)
     log.info("calibrated from %d of %d beads, %d planes", cal.n_used, len(cal.beads), cal.z.size)
@@ -627,7 +631,8 @@ def _calibrate_scan(
         model = _spline_model(smooth, again, used, sl, zwin, zplanes, centre, name)
         return _cropped(model, model_half)
 
-    error = _model_error(psf, stacks, used, scan, noise, rebuild)
+    evidence = _BeadEvidence.of(stacks, used, scan, noise)
+    error = _model_error(psf, evidence, scan, rebuild)
     psf.model_error = error.overall  # the solvers' allowance (sparseloc.solvers.variance)
     params = {
         "pixel_size_nm": p,
@@ -665,6 +670,7 @@ def _calibrate_scan(
         projection=scan.projection,
         params=params,
         bead_ncc=bead_ncc,
+        evidence=evidence,
     )
 
 
@@ -694,28 +700,56 @@ def _cluster_warning(stacks: _BeadStacks, used: list[int], centres: NDArray[np.f
     )
 
 
+@dataclass(frozen=True)
+class _BeadEvidence:
+    """What a model's error is measured on: the used beads' ROI stacks (photons less the
+    frame's background), the voxels of each that are its own light (``masks``), the planes'
+    z and background, and the camera's noise ``a * mu + b`` (:func:`photon_noise`)."""
+
+    rois: list[NDArray[np.float64]]
+    masks: list[NDArray[np.bool_]]
+    zplanes: NDArray[np.float64]
+    background: NDArray[np.float64]
+    noise: tuple[float, float]
+
+    @classmethod
+    def of(cls, stacks: _BeadStacks, used: list[int], scan: BeadScan, noise) -> _BeadEvidence:
+        bg = scan.background if scan.background is not None else np.zeros(scan.zplanes.size)
+        rois = [stacks.rois[i] for i in used]
+        # the voxels the average left out of a bead (another's light) are no error of the model
+        return cls(rois, stacks.kept_in_rois(used), scan.zplanes, bg, tuple(noise))
+
+    def shifts(self, model: PSFModel) -> list[NDArray[np.float64]]:
+        """Each bead's x, y, z (nm) against ``model`` (:func:`_fit_shift`)."""
+        return [_fit_shift(model, roi, self.zplanes)[0] for roi in self.rois]
+
+    def model_error(self, model: PSFModel, influence: float = 0.0, shifts=None):
+        """``model``'s error on these beads
+        (:func:`~sparseloc.calibrate_error.bead_model_error`), with the beads' ``shifts``
+        against it where already fitted."""
+        shifts = self.shifts(model) if shifts is None else shifts
+        args = (self.zplanes, self.background, self.masks, self.noise, influence)
+        return bead_model_error(model, self.rois, shifts, *args)
+
+
 def _model_error(
     psf: SplinePSF,
-    stacks: _BeadStacks,
-    used: list[int],
+    evidence: _BeadEvidence,
     scan: BeadScan,
-    noise: tuple[float, float] = (1.0, 0.0),
     rebuild: Callable[[list[NDArray[np.float64]]], SplinePSF] | None = None,
 ):
     """The finished model's error on its beads (:mod:`sparseloc.calibrate_error`) beyond the
-    camera's ``noise`` (:func:`photon_noise`), overall and as the model's ``error_table``;
-    ``ValueError`` when it is too large to trust. ``rebuild(rois)`` makes the model again
-    from the used beads' ROIs: with two beads or more, how much of each bead's noise the
-    model follows is measured with it (:func:`~sparseloc.calibrate_error.self_influence`)."""
-    bg = scan.background if scan.background is not None else np.zeros(scan.zplanes.size)
-    rois = [stacks.rois[i] for i in used]
-    shifts = [_fit_shift(psf, roi, scan.zplanes)[0] for roi in rois]
-    # the voxels the average left out of a bead (another's light) are no error of the model
-    masks = stacks.kept_in_rois(used)
+    camera's noise, overall and as the model's ``error_table``; ``ValueError`` when it is
+    too large to trust. ``rebuild(rois)`` makes the model again from the used beads' ROIs:
+    with two beads or more, how much of each bead's noise the model follows is measured with
+    it (:func:`~sparseloc.calibrate_error.self_influence`)."""
+    ev = evidence
+    shifts = ev.shifts(psf)
     h = 0.0
-    if rebuild is not None and len(used) > 1:
-        h = self_influence(psf, rebuild, rois, shifts, scan.zplanes, bg, masks, noise)
-    error = bead_model_error(psf, rois, shifts, scan.zplanes, bg, masks, noise, h)
+    if rebuild is not None and len(ev.rois) > 1:
+        args = (ev.zplanes, ev.background, ev.masks, ev.noise)
+        h = self_influence(psf, rebuild, ev.rois, shifts, *args)
+    error = ev.model_error(psf, h, shifts)
     psf.error_table = error.table
     log.info(
         "model error: %.1f %% of the signal per pixel (rms over planes); the model follows "
@@ -724,7 +758,7 @@ def _model_error(
         error.influence,
     )
     if not error.overall <= MAX_MODEL_ERROR:
-        hint = _not_a_scan(scan, rois) or (
+        hint = _not_a_scan(scan, ev.rois) or (
             "check the z step or z file, the camera offset, and that the beads are single and "
             "not drifting"
         )
@@ -1001,7 +1035,7 @@ def _vet_beads(
         counts = {r: reason.count(r) for r in set(reason)}
         detail = ", ".join(f"{v} {k}" for k, v in counts.items())
         hint = (
-            "lower the laser power or exposure"
+            "lower the laser power, the exposure or an EMCCD's EM gain"
             if "saturated" in counts
             else "image a sparser bead sample or pass a smaller --roi-size"
         )
@@ -1565,6 +1599,21 @@ def _fit_pupil_in_frame(cal: Calibration, pupil_options: dict[str, Any] | None) 
         res.psf, res.x0 - xc, res.y0 - yc, res.z0, z_range=(zplanes[0], zplanes[-1])
     )
     return res
+
+
+def _pupil_model_error(cal: Calibration) -> None:
+    """The fitted pupil's own error on the beads (its ``model_error`` and ``error_table``, as
+    the spline's): a pupil of few terms misses what the beads show that they do not hold.
+    Not measured (the spline's kept) where the beads were not kept or one bead was used."""
+    fm = getattr(cal.pupil, "frame_model", None)
+    if fm is None or cal.evidence is None or len(cal.evidence.rois) < 2:
+        return
+    fm.pixel_size = cal.pixel_size
+    error = cal.evidence.model_error(fm)
+    cal.pupil.model_error = error.overall
+    cal.pupil.error_table = error.table
+    cal.params["pupil_model_error"] = error.overall
+    log.info("pupil model error: %.1f %% of the signal per pixel", 100 * error.overall)
 
 
 def calibrate_file(

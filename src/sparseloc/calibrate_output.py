@@ -110,7 +110,9 @@ def calibration_summary(
             if abs(a) >= 0.01
         )
         terms = terms or "no term above 0.01 waves"
-        lines.append(f"  pupil fit: residual {cal.pupil.residual_rms:.3f}; {terms}")
+        own = getattr(cal.pupil, "model_error", None)
+        error = "" if own is None else f"; the beads depart from it by {100 * own:.1f} %"
+        lines.append(f"  pupil fit: residual {cal.pupil.residual_rms:.3f}{error}; {terms}")
     return lines
 
 

@@ -107,13 +107,7 @@ def save_calibration(cal: Any, path: str | Path, *, model: str = "spline") -> Pa
         g.create_dataset("z", data=psf.z)
         g.attrs["centre_row"], g.attrs["centre_col"] = psf.centre
         g.attrs["oversample"] = int(getattr(psf, "oversample", 1))
-        table = getattr(psf, "error_table", None)
-        if table is not None:
-            # the model error pixel by pixel (sparseloc.calibrate_error.ModelError.table)
-            t = f.create_group("error_table")
-            t.create_dataset("stack", data=table.stack, compression="gzip")
-            t.create_dataset("z", data=table.z)
-            t.attrs["centre_row"], t.attrs["centre_col"] = table.centre
+        _write_error_table(f, getattr(psf, "error_table", None))
         b = f.create_group("beads")
         for col in cal.beads.columns:
             values = cal.beads[col].to_numpy()
@@ -139,6 +133,11 @@ def save_calibration(cal: Any, path: str | Path, *, model: str = "spline") -> Pa
             g.attrs["offset_x_nm"], g.attrs["offset_y_nm"], g.attrs["offset_z_nm"] = off
             g.attrs["z_min_nm"], g.attrs["z_max_nm"] = (float(v) for v in zr)
             g.attrs["residual_rms"] = float(getattr(cal.pupil, "residual_rms", np.nan))
+            # the pupil's own error on the beads, where measured (else the spline's serves)
+            error = getattr(cal.pupil, "model_error", None)
+            if error is not None:
+                g.attrs["model_error"] = float(error)
+                _write_error_table(g, getattr(cal.pupil, "error_table", None))
             g.create_dataset("phase", data=phase, compression="gzip")
             coefs = getattr(cal.pupil, "coefficients", {}) or {}
             g.create_dataset(
@@ -151,6 +150,17 @@ def save_calibration(cal: Any, path: str | Path, *, model: str = "spline") -> Pa
                 content_hash = _pupil_hash(phase, optics)
         f.attrs["content_hash"] = content_hash
     return dest
+
+
+def _write_error_table(group, table) -> None:
+    """The model error pixel by pixel (:attr:`sparseloc.calibrate_error.ModelError.table`)
+    as ``group``'s "error_table" (nothing for None)."""
+    if table is None:
+        return
+    t = group.create_group("error_table")
+    t.create_dataset("stack", data=table.stack, compression="gzip")
+    t.create_dataset("z", data=table.z)
+    t.attrs["centre_row"], t.attrs["centre_col"] = table.centre
 
 
 def _open(path: str | Path):
@@ -227,19 +237,19 @@ def load_calibration(path: str | Path, model: str | None = None):
         raise ValueError(f"{p.name} is an incomplete calibration file (missing {exc})") from exc
 
 
-def _model_error(f) -> float:
-    """The file's model error (0 for files written before it was measured)."""
-    e = float(f.attrs.get("model_error", 0.0))
+def _model_error(group) -> float:
+    """The model error of the file's or pupil group's model (0 where not measured)."""
+    e = float(group.attrs.get("model_error", 0.0))
     return e if np.isfinite(e) and e > 0 else 0.0
 
 
-def _error_table(f, px: float, name: str):
-    """The file's model-error table (None for files written before it was kept)."""
+def _error_table(group, px: float, name: str):
+    """The model-error table of the file's or pupil group's model (None where not kept)."""
     from ..psf.spline import SplinePSF
 
-    if "error_table" not in f:
+    if "error_table" not in group:
         return None
-    t = f["error_table"]
+    t = group["error_table"]
     centre = (float(t.attrs["centre_row"]), float(t.attrs["centre_col"]))
     return SplinePSF(
         t["stack"][()], px, t["z"][()], centre=centre, normalise=False, name=f"{name} error"
@@ -336,6 +346,9 @@ def _read_model(p: Path, model: str | None):
             out = ShiftedPSF(pupil, dx, dy, dz, z_range=zr)
             out.pixel_size = px
             out.content_hash = str(f.attrs["content_hash"])
-            out.model_error = _model_error(f)
+            # the pupil's own error where the file has it (files before it: the spline's)
+            own = "model_error" in g.attrs
+            out.model_error = _model_error(g if own else f)
+            out.error_table = _error_table(g, px, name) if own else None
             return out
         raise ValueError(f"model must be 'spline' or 'pupil', got {kind!r}")

@@ -289,6 +289,10 @@ class SplinePSF(PSFBase):
             oversample=s,
         )
         out.source = model
+        # a table of a calibrated model errs as that model does on its beads
+        for attr in ("model_error", "error_table"):
+            if getattr(model, attr, None) is not None:
+                setattr(out, attr, getattr(model, attr))
         return out
 
     @property
