@@ -213,3 +213,28 @@ def test_a_narrowed_table_renders_the_same_images_and_refuses_a_range_beyond_its
     )
     with pytest.raises(ValueError, match="within the PSF model's"):
         localize(np.zeros((1, 32, 32)), model, LocalizeParams(pixel_size=PX, z_range=(-5e3, 0.0)))
+
+
+@pytest.mark.parametrize("z_max", [600.0, 200.0])
+def test_the_run_summary_notes_emitters_beyond_the_z_range(capsys, z_max):
+    """A sample deeper than the model's z range leaves its deep emitters' fits stopped at
+    the range's ends (flag z_edge), with no z: the run summary says how many; a sample within
+    the range gets no note."""
+    from sparseloc.cli import _run_notes
+    from sparseloc.simulate import simulate
+
+    model = make_psf("astig-gauss")
+    sim = simulate(model, scene="uniform", n_frames=3, shape=(64, 64), pixel_size=100.0,
+                   density=0.5, photons=(2000.0, 5000.0), background=10.0, seed=0)  # fmt: skip
+    frames = sim.movie.astype(np.float64) - sim.camera.offset
+    p = LocalizeParams(pixel_size=100.0, z_range=(-z_max, z_max))
+    res = localize(frames, model, p)
+    edge = int((res.table["flag"] == "z_edge").sum())
+    ends = res.metadata.get("at_z_ends")
+    _run_notes(res.metadata)
+    out = capsys.readouterr().out
+    if z_max == 600.0:
+        assert ends is None and "z_edge" not in out
+    else:
+        assert ends["count"] == edge > 0.2 * len(res.table)
+        assert f"note: {edge} localizations" in out and "-200 to 200 nm" in out

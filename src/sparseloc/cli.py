@@ -960,6 +960,15 @@ def _run_notes(meta: dict) -> None:
             "false localizations can ring such emitters there; a pupil calibration "
             "(calibrate --fit-pupil --model pupil) models that light"
         )
+    ends = meta.get("at_z_ends")
+    if ends:
+        typer.echo(
+            f"note: {ends['count']} localizations ({100 * ends['fraction']:.0f} %) stopped at an "
+            f"end of the model's z range ({ends['z_min_nm']:.0f} to {ends['z_max_nm']:.0f} nm) "
+            "and are flagged z_edge: emitters beyond the calibrated range, whose z is not "
+            "known (render, drift and evaluate leave them out); a bead scan deeper than the "
+            "sample calibrates them"
+        )
 
 
 def _table_not_truth(locs: Path, truth: Path) -> tuple[Any, Any]:

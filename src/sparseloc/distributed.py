@@ -63,9 +63,8 @@ from .io.atomic import write_text_atomic
 from .io.tables import LOCS_COLUMNS, empty_locs, read_parquet, write_parquet
 from .pipeline import (
     LocalizeParams,
-    beyond_roi,
-    check_model,
     localize,
+    run_checks,
     run_metadata,
     work_model_for,
 )
@@ -525,11 +524,7 @@ def localize_chunked(
     meta = _run_metadata(model, params, source, (start, stop), run_dir, chunk_frames)
     res = _collect(run_dir, chunks, done_before, writer.failed, meta, t0)
     if res.table is not None:
-        check = check_model(res.table, work_model, params, source.shape)
-        res.metadata["model_check"] = check.to_dict()
-        bright = beyond_roi(res.table, work_model, params, read_variance)
-        if bright:
-            res.metadata["beyond_roi"] = bright
+        res.metadata.update(run_checks(res.table, work_model, params, source.shape, read_variance))
     return res
 
 
