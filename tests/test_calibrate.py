@@ -1275,11 +1275,12 @@ def test_a_fine_grid_from_noisy_beads_is_as_sharp_as_their_psf():
         assert got[ring].mean() < 2.0 * want[ring].mean(), (z, got[ring].mean(), want[ring].mean())
 
 
-def test_beads_at_one_sub_pixel_phase_keep_the_pixel_model():
+def test_beads_at_one_sub_pixel_phase_get_the_grid_and_a_warning():
     """Nine beads on a grid of whole pixels (all at one sub-pixel phase) on coarse pixels:
-    the half-pixel grid's nodes between phases are sampled by no bead, its misfit to the
-    beads is small and says nothing of them, and emitters elsewhere fit it badly. The
-    pixel model stays; the same beads at spread phases get the grid."""
+    no bead samples the half-pixel grid's nodes between phases, but its interpolation there
+    still fits emitters better than the pixel model does (calibration_pixel_phase.txt), so
+    the grid stays, and the calibration warns that its model error says nothing of those
+    nodes; the same beads at spread phases get the grid without the warning."""
     from sparseloc.calibrate_oversample import phases_spread
 
     px = 160.0
@@ -1287,14 +1288,18 @@ def test_beads_at_one_sub_pixel_phase_keep_the_pixel_model():
     spread = whole + np.random.default_rng(3).uniform(-0.5, 0.5, whole.shape) * px
     assert not phases_spread(whole / px + 0.01 * np.random.default_rng(4).normal(size=(9, 2)))
     assert phases_spread(spread / px)
-    grids = {}
+    cals = {}
     for name, beads in (("whole", whole), ("spread", spread)):
         stack = simulate(
             make_psf("astig"), scene=bead_scan_truth(beads, ZP, PHOTONS), n_frames=ZP.size,
             shape=(80, 80), pixel_size=px, background=10.0, seed=1,
         )  # fmt: skip
-        grids[name] = calibrate_beads(stack.movie, px, Z_STEP, offset=OFFSET).psf.oversample
-    assert grids == {"whole": 1, "spread": 2}
+        cals[name] = calibrate_beads(stack.movie, px, Z_STEP, offset=OFFSET)
+    assert {k: c.psf.oversample for k, c in cals.items()} == {"whole": 2, "spread": 2}
+    assert "one sub-pixel position" in cals["whole"].params["phase_warning"]
+    assert cals["spread"].params["phase_warning"] == ""
+    summary = "\n".join(calibration_summary(cals["whole"]))
+    assert "warning: the 9 beads used sit at one sub-pixel position" in summary
 
 
 def test_the_model_check_allows_for_the_error_the_calibration_measured(monkeypatch):

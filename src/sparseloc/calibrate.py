@@ -659,6 +659,7 @@ def _calibrate_scan(
         "bead_warning": ONE_BEAD_WARNING if len(used) == 1 else "",
         "mirror_warning": mirror_warning(psf, p),
         "cluster_warning": _cluster_warning(stacks, used, centres),
+        "phase_warning": _phase_warning(stacks, used, psf),
         **origin,
     }
     return Calibration(
@@ -671,6 +672,24 @@ def _calibrate_scan(
         params=params,
         bead_ncc=bead_ncc,
         evidence=evidence,
+    )
+
+
+def _phase_warning(stacks: _BeadStacks, used: list[int], psf: SplinePSF) -> str:
+    """A sentence where the model is on a grid finer than the pixels and the used beads all
+    sit at one sub-pixel phase (:func:`~sparseloc.calibrate_oversample.phases_spread`): no
+    bead samples the grid's nodes between phases, which hold an interpolation (still closer
+    to the PSF than the pixel model's, docs/benchmarks/calibration_pixel_phase.txt), and the
+    model error measured on the beads says nothing of them; "" otherwise."""
+    offsets = np.array([stacks.shifts[i][:2] / stacks.p for i in used])
+    if psf.oversample == 1 or phases_spread(offsets, psf.oversample):
+        return ""
+    return (
+        f"the {len(used)} beads used sit at one sub-pixel position (within a quarter pixel of "
+        "one another, modulo whole pixels): the model between pixel phases is interpolated, "
+        "not measured, and the model error says nothing of it; beads at scattered positions "
+        "measure it (emitters fit it worse than the error suggests: localize's model check "
+        "tells)"
     )
 
 
@@ -1422,12 +1441,7 @@ def _spline_model(
     modelled light) and smoothed along z as the average was; else the average itself."""
     p, step = stacks.p, stacks.step
     cr, cc = centre
-    offsets = np.array([stacks.shifts[i][:2] / p for i in used])
-    if not (
-        worth_oversampling(len(used))
-        and phases_spread(offsets)
-        and undersampled([stacks.rois[i] for i in used])
-    ):
+    if not (worth_oversampling(len(used)) and undersampled([stacks.rois[i] for i in used])):
         return SplinePSF(clean, p, zplanes, centre=(cr, cc), name=name)
     beads = [
         (_shift_stack(stacks.rois[i], np.array([0.0, 0.0, stacks.shifts[i][2]]), p, step)[sl],

@@ -98,6 +98,8 @@ def calibration_summary(
         lines.append(f"  warning: {cal.params['mirror_warning']}")
     if cal.params.get("cluster_warning"):
         lines.append(f"  warning: {cal.params['cluster_warning']}")
+    if cal.params.get("phase_warning"):
+        lines.append(f"  warning: {cal.params['phase_warning']}")
     if cal.params.get("camera_warning"):
         lines.append(f"  warning: {cal.params['camera_warning']}")
     rejected = cal.beads[~cal.beads["used"]]
