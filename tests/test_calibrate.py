@@ -652,9 +652,22 @@ def test_pupil_fit_saved_in_the_calibration_frame(tmp_path):
     assert 0 < own < 0.2 and own != pytest.approx(cal.params["model_error"], rel=1e-3)
     assert model_error_of(spline) == pytest.approx(cal.params["model_error"])
     assert model_error_of(pupil) == pytest.approx(own) and pupil.error_table is not None
-    work = work_model_for(pupil, LocalizeParams(pixel_size=PX))
-    assert work is not pupil and model_error_of(work) == pytest.approx(own)
-    assert work.error_table is pupil.error_table
+    narrowed = LocalizeParams(pixel_size=PX, z_range=(-300.0, 300.0))
+    for work in (
+        work_model_for(pupil, LocalizeParams(pixel_size=PX)),
+        work_model_for(pupil, narrowed),
+    ):
+        assert work is not pupil and model_error_of(work) == pytest.approx(own)
+        assert work.error_table is pupil.error_table
+    # a file written before the pupil's own error was measured: the spline's figure serves
+    import h5py
+
+    with h5py.File(path, "r+") as f:
+        del f["pupil"].attrs["model_error"]
+        del f["pupil/error_table"]
+    older = load_calibration(path)
+    assert model_error_of(older) == pytest.approx(cal.params["model_error"])
+    assert older.error_table is None
     pupil_line = next(x for x in calibration_summary(cal) if "pupil fit" in x)
     assert f"the beads depart from it by {100 * own:.1f} %" in pupil_line
 
@@ -1296,10 +1309,10 @@ def test_beads_at_one_sub_pixel_phase_get_the_grid_and_a_warning():
         )  # fmt: skip
         cals[name] = calibrate_beads(stack.movie, px, Z_STEP, offset=OFFSET)
     assert {k: c.psf.oversample for k, c in cals.items()} == {"whole": 2, "spread": 2}
-    assert "one sub-pixel position" in cals["whole"].params["phase_warning"]
+    assert "nearly one sub-pixel position along x and y" in cals["whole"].params["phase_warning"]
     assert cals["spread"].params["phase_warning"] == ""
     summary = "\n".join(calibration_summary(cals["whole"]))
-    assert "warning: the 9 beads used sit at one sub-pixel position" in summary
+    assert "warning: the 9 beads used sit at nearly one sub-pixel position" in summary
 
 
 def test_the_model_check_allows_for_the_error_the_calibration_measured(monkeypatch):

@@ -220,7 +220,7 @@ def test_the_run_summary_notes_emitters_beyond_the_z_range(capsys, z_max):
     """A sample deeper than the model's z range leaves its deep emitters' fits stopped at
     the range's ends (flag z_edge), with no z: the run summary says how many; a sample within
     the range gets no note."""
-    from sparseloc.cli import _run_notes
+    from sparseloc.cli import _run_notes, _z_ends_note
     from sparseloc.simulate import simulate
 
     model = make_psf("astig-gauss")
@@ -238,3 +238,7 @@ def test_the_run_summary_notes_emitters_beyond_the_z_range(capsys, z_max):
     else:
         assert ends["count"] == edge > 0.2 * len(res.table)
         assert f"note: {edge} localizations" in out and "-200 to 200 nm" in out
+        # the run narrowed the model's range: widening it is the remedy, not a new model
+        assert "widen --z-min / --z-max (the model covers -600 to 600 nm)" in out
+        full = {**ends, "z_min_nm": -600.0, "z_max_nm": 600.0}
+        assert "a model over a deeper range" in _z_ends_note(full)

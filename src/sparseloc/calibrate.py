@@ -363,7 +363,7 @@ def _roi(stack: NDArray[np.float64], r: int, c: int, half: int) -> NDArray[np.fl
 
 
 def _fit_shift(
-    model: SplinePSF, data: NDArray[np.float64], z: NDArray[np.float64]
+    model: PSFModel, data: NDArray[np.float64], z: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], float]:
     """Fit ``data ~ a * model(x0 + dx, y0 + dy, z + dz) + b``; return (dx, dy, dz) nm and a.
 
@@ -682,14 +682,16 @@ def _phase_warning(stacks: _BeadStacks, used: list[int], psf: SplinePSF) -> str:
     to the PSF than the pixel model's, docs/benchmarks/calibration_pixel_phase.txt), and the
     model error measured on the beads says nothing of them; "" otherwise."""
     offsets = np.array([stacks.shifts[i][:2] / stacks.p for i in used])
-    if psf.oversample == 1 or phases_spread(offsets, psf.oversample):
+    o = psf.oversample
+    if o == 1 or phases_spread(offsets, o):
         return ""
+    axes = [a for a, k in (("x", 1), ("y", 0)) if not phases_spread(offsets[:, [k, k]], o)]
     return (
-        f"the {len(used)} beads used sit at one sub-pixel position (within a quarter pixel of "
-        "one another, modulo whole pixels): the model between pixel phases is interpolated, "
-        "not measured, and the model error says nothing of it; beads at scattered positions "
-        "measure it (emitters fit it worse than the error suggests: localize's model check "
-        "tells)"
+        f"the {len(used)} beads used sit at nearly one sub-pixel position along "
+        f"{' and '.join(axes)} (within {0.5 / o:.2g} px of one another, modulo whole pixels): "
+        "the model between pixel phases is interpolated, not measured, and the model error "
+        "says nothing of it; beads at scattered positions measure it (emitters fit it worse "
+        "than the error suggests: localize's model check tells)"
     )
 
 
@@ -1402,10 +1404,9 @@ def _bead_errors(
     """Each used bead's own model error against the current average (see
     :func:`_drop_outliers`)."""
     model = SplinePSF(clean_average(avg), stacks.p, scan.zplanes, name=name)
-    bg = scan.background if scan.background is not None else np.zeros(scan.zplanes.size)
-    rois = [stacks.rois[i] for i in used]
+    ev = _BeadEvidence.of(stacks, used, scan, noise)
     shifts = [stacks.shifts[i] for i in used]
-    errors = bead_errors(model, rois, shifts, scan.zplanes, bg, stacks.kept_in_rois(used), noise)
+    errors = bead_errors(model, ev.rois, shifts, ev.zplanes, ev.background, ev.masks, ev.noise)
     return dict(zip(used, (float(e) for e in errors), strict=True))
 
 
@@ -1624,8 +1625,10 @@ def _pupil_model_error(cal: Calibration) -> None:
         return
     fm.pixel_size = cal.pixel_size
     error = cal.evidence.model_error(fm)
-    cal.pupil.model_error = error.overall
-    cal.pupil.error_table = error.table
+    if error.table is not None:
+        error.table.name = f"{cal.psf.name} pupil error"
+    for holder in (cal.pupil, fm):  # the fit's result, and the model an API user may pass on
+        holder.model_error, holder.error_table = error.overall, error.table
     cal.params["pupil_model_error"] = error.overall
     log.info("pupil model error: %.1f %% of the signal per pixel", 100 * error.overall)
 

@@ -944,7 +944,7 @@ def _info_from(name: str):
 
 
 def _run_notes(meta: dict) -> None:
-    """The run summary's model check."""
+    """The run summary's model check and notes (:func:`sparseloc.pipeline.run_checks`)."""
     from .model_check import ModelCheck
 
     check = meta.get("model_check")
@@ -962,13 +962,24 @@ def _run_notes(meta: dict) -> None:
         )
     ends = meta.get("at_z_ends")
     if ends:
-        typer.echo(
-            f"note: {ends['count']} localizations ({100 * ends['fraction']:.0f} %) stopped at an "
-            f"end of the model's z range ({ends['z_min_nm']:.0f} to {ends['z_max_nm']:.0f} nm) "
-            "and are flagged z_edge: emitters beyond the calibrated range, whose z is not "
-            "known (render, drift and evaluate leave them out); a bead scan deeper than the "
-            "sample calibrates them"
-        )
+        typer.echo(_z_ends_note(ends))
+
+
+def _z_ends_note(ends: dict) -> str:
+    """The note of localizations stopped at the ends of the fits' z range: widen the run's
+    range where it narrowed the model's, else the model's range is short of the sample."""
+    n, (lo, hi) = ends["count"], (ends["z_min_nm"], ends["z_max_nm"])
+    mlo, mhi = ends.get("model_z_min_nm", lo), ends.get("model_z_max_nm", hi)
+    one = n == 1
+    head = (
+        f"note: {n} localization{'' if one else 's'} ({100 * ends['fraction']:.0f} %) stopped "
+        f"at an end of the z range ({lo:.0f} to {hi:.0f} nm) and {'is' if one else 'are'} "
+        "flagged z_edge: emitters beyond it, whose z is not known (render, drift and evaluate "
+        "leave them out); "
+    )
+    if mlo < lo - 0.5 or mhi > hi + 0.5:
+        return head + f"widen --z-min / --z-max (the model covers {mlo:.0f} to {mhi:.0f} nm)"
+    return head + "a model over a deeper range (a bead scan deeper than the sample) finds them"
 
 
 def _table_not_truth(locs: Path, truth: Path) -> tuple[Any, Any]:

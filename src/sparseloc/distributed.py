@@ -524,7 +524,8 @@ def localize_chunked(
     meta = _run_metadata(model, params, source, (start, stop), run_dir, chunk_frames)
     res = _collect(run_dir, chunks, done_before, writer.failed, meta, t0)
     if res.table is not None:
-        res.metadata.update(run_checks(res.table, work_model, params, source.shape, read_variance))
+        checks = run_checks(res.table, model, work_model, params, source.shape, read_variance)
+        res.metadata.update(checks)
     return res
 
 

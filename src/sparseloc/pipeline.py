@@ -779,12 +779,13 @@ def localize(
     meta = run_metadata(model, params, (start, stop), shape, read_variance)
     table = _table(parts)
     if check:
-        meta.update(run_checks(table, work_args[0], params, shape, read_variance))
+        meta.update(run_checks(table, model, work_args[0], params, shape, read_variance))
     return LocalizeResult(table, stop - start, n_windows, seconds, meta)
 
 
 def run_checks(
     table: pd.DataFrame,
+    model: PSFModel,
     work: PSFModel,
     params: LocalizeParams,
     shape: tuple[int, int],
@@ -792,13 +793,14 @@ def run_checks(
 ) -> dict:
     """The run summary's checks of a finished table, as metadata entries: the model check
     (:func:`check_model`), the localizations too bright for a bead calibration's ROI
-    (:func:`beyond_roi`) and those stopped at the ends of the z range (:func:`at_z_ends`),
-    the last two only where they occur."""
+    (:func:`beyond_roi`) and those stopped at the ends of the z range (:func:`at_z_ends`;
+    the fits' bound is ``work``'s range, the run's model ``model``'s may be wider), the last
+    two only where they occur."""
     out = {"model_check": check_model(table, work, params, shape).to_dict()}
     bright = beyond_roi(table, work, params, read_variance)
     if bright:
         out["beyond_roi"] = bright
-    ends = at_z_ends(table, params.z_range or work.z_range)
+    ends = at_z_ends(table, work.z_range, model.z_range)
     if ends:
         out["at_z_ends"] = ends
     return out
@@ -810,18 +812,28 @@ def run_checks(
 Z_ENDS_NOTE = 0.05
 
 
-def at_z_ends(table: pd.DataFrame, z_range: tuple[float, float]) -> dict | None:
+def at_z_ends(
+    table: pd.DataFrame, z_range: tuple[float, float], model_range: tuple[float, float]
+) -> dict | None:
     """Where at least :data:`Z_ENDS_NOTE` of the localizations are flagged "z_edge" (their
-    fits stopped at an end of the model's z range, ``z_range`` nm: emitters beyond it, whose
-    z is not known), a dict with their ``count``, ``fraction`` and the range (``z_min_nm``,
-    ``z_max_nm``); else None."""
+    fits stopped at an end of the fits' z range ``z_range`` (nm): emitters beyond it, whose
+    z is not known), a dict with their ``count``, ``fraction``, the range (``z_min_nm``,
+    ``z_max_nm``) and the model's own (``model_z_min_nm``, ``model_z_max_nm``: wider where
+    the run narrowed it); else None."""
     if not len(table) or "flag" not in table:
         return None
     n = int((table["flag"] == "z_edge").sum())
     if n < Z_ENDS_NOTE * len(table):
         return None
-    lo, hi = (float(v) for v in z_range)
-    return {"count": n, "fraction": n / len(table), "z_min_nm": lo, "z_max_nm": hi}
+    (lo, hi), (mlo, mhi) = ((float(a), float(b)) for a, b in (z_range, model_range))
+    return {
+        "count": n,
+        "fraction": n / len(table),
+        "z_min_nm": lo,
+        "z_max_nm": hi,
+        "model_z_min_nm": mlo,
+        "model_z_max_nm": mhi,
+    }
 
 
 def beyond_roi(

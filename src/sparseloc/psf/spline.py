@@ -243,7 +243,9 @@ class SplinePSF(PSFBase):
         normalisation), so photon counts keep their meaning. Rendering a pupil model's table
         takes seconds: it is logged, and the table is kept in a disk cache keyed by the
         model's content hash and the table's parameters (:mod:`sparseloc.psf.cache`), from
-        which later calls read it.
+        which later calls read it. The table keeps the model as its ``source`` (its light
+        beyond the table: :mod:`sparseloc.solvers.halo`) and the model's ``model_error`` and
+        ``error_table`` where it has them (a calibrated pupil's error on its beads).
 
         Parameters
         ----------
@@ -289,7 +291,8 @@ class SplinePSF(PSFBase):
             oversample=s,
         )
         out.source = model
-        # a table of a calibrated model errs as that model does on its beads
+        # a table of a calibrated model errs as that model does on its beads (its
+        # ``model_error`` and ``error_table``, where it has them)
         for attr in ("model_error", "error_table"):
             if getattr(model, attr, None) is not None:
                 setattr(out, attr, getattr(model, attr))
