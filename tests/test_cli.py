@@ -319,3 +319,26 @@ def test_version_and_the_camera_defaults_in_help():
     wide = runner.invoke(app, ["calibrate", "--help"], env={"COLUMNS": "200"})
     assert "(fraction of the brightest). [default: 0.2]" in " ".join(wide.output.split())
     assert "work: auto (default:" in text
+
+
+def test_a_shells_alphabetical_file_order_is_refused_not_read(tmp_path):
+    """Single-frame files numbered without padding, as a shell expands an unquoted pattern
+    (plain_0, plain_1, plain_10, plain_11, plain_2, ...): read in that order the movie's
+    frames are shuffled and every table from it wrong, so the command refuses and says to
+    quote the pattern; the quoted pattern reads them in their numbers' order."""
+    from cli_checks import refused
+    from sparseloc.io.movie import Movie
+    from sparseloc.io.tiff import write_tiff
+
+    for k in range(12):
+        write_tiff(tmp_path / f"plain_{k}.tif", np.full((16, 16), 100 + k, np.uint16))
+    shell = sorted(str(p) for p in tmp_path.glob("plain_*.tif"))
+    out = tmp_path / "l.parquet"
+    res = run("localize", *shell, "--psf", "astig-gauss", "--pixel-size", 100, "-o", out)
+    refused(res, "quote the pattern", "'plain_10.tif' before 'plain_2.tif'")
+    assert not out.exists()
+    with Movie.open(str(tmp_path / "plain_*.tif")) as mov:
+        assert mov.frames()[:, 0, 0].tolist() == list(range(100, 112))
+    numbered = sorted(shell, key=lambda s: int(s.rsplit("_", 1)[1].split(".")[0]))
+    res = run("camera", *numbered, "--frames", "12")
+    assert "quote the pattern" not in res.output

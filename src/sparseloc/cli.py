@@ -1590,7 +1590,16 @@ def _table_output(path: Path, *, overwrite: bool, inputs: Any) -> Path:
 def _open_movie(paths: list[Path], hint: str) -> Any:
     """The movie of ``paths`` (one file or a series), refusing an HDF5 file (a calibration or
     a Picasso table given where the movie belongs) in one sentence with ``hint``."""
-    from .io.movie import Movie
+    from .io.movie import Movie, out_of_number_order
+
+    backwards = out_of_number_order(paths)
+    if backwards:
+        _fail(
+            f"the {len(paths)} movie files come in alphabetical order, which puts "
+            f"{Path(backwards[0]).name!r} before {Path(backwards[1]).name!r} (a shell's "
+            "expansion of an unquoted pattern): quote the pattern (e.g. 'frame_*.tif') so "
+            "that sparseloc orders them by their numbers, or name them with padded numbers"
+        )
 
     for path in paths:
         try:

@@ -104,6 +104,21 @@ def _natural_key(path: str) -> list[Any]:
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path)]
 
 
+def out_of_number_order(paths: Sequence[PathLike]) -> tuple[str, str] | None:
+    """Two of ``paths`` (a series' files in the order given) whose numbers run backwards
+    where the order is the alphabetical one (``run_10`` before ``run_2``: a shell's expansion
+    of an unquoted pattern over unpadded numbers), the later-numbered first; None where the
+    order is the names' natural order, or not alphabetical (a deliberate order)."""
+    names = [os.fspath(x) for x in paths]
+    if len(names) < 2 or names != sorted(names):
+        return None
+    natural = sorted(names, key=_natural_key)
+    if natural == names:
+        return None
+    i = next(k for k in range(len(names)) if names[k] != natural[k])
+    return names[i], natural[i]
+
+
 def _expand_paths(paths: PathLike | Sequence[PathLike]) -> list[Path]:
     if isinstance(paths, (str, os.PathLike)):
         text = os.fspath(paths)
