@@ -421,3 +421,20 @@ def test_the_plot_of_a_drift_whose_z_was_rejected_shows_no_z_points(tmp_path, mo
     z_lines = [ln for ln in ax.get_lines() if ln.get_color() == "C2"]
     assert len(z_lines) == 1 and np.all(z_lines[0].get_ydata() == 0.0)
     assert "dz (not corrected: unreliable)" in [ln.get_label() for ln in z_lines]
+
+
+def test_the_range_names_a_z_the_estimate_left_alone():
+    """A z that the estimate did not correct (its pairs unreliable, or a 2D table) is named
+    so in the range the drift command and the report print, not read as a measured 0 nm."""
+    from sparseloc.drift_common import DriftResult
+
+    frames = np.arange(10)
+    drift = np.column_stack([np.linspace(0, 40, 10), np.linspace(0, -30, 10), np.zeros(10)])
+    kept = DriftResult(frames, drift, "rcc", details={"z_estimated": True})
+    assert kept.range_text() == "x 40.0 nm, y 30.0 nm, z 0.0 nm"
+    dropped = DriftResult(
+        frames, drift, "rcc", details={"z_estimated": False, "z_dropped": ["z: ..."]}
+    )
+    assert dropped.range_text(0) == "x 40 nm, y 30 nm, z not corrected (unreliable)"
+    flat = DriftResult(frames, drift, "fiducial", details={"z_estimated": False})
+    assert flat.range_text().endswith("z not estimated")

@@ -1820,10 +1820,7 @@ def drift(
         typer.echo(f"wrote {plot}")
     for w in est.warnings:
         typer.echo(f"warning: {w}", err=True)
-    span = np.ptp(est.drift, axis=0)
-    typer.echo(
-        f"drift ({est.method}): range x {span[0]:.1f} nm, y {span[1]:.1f} nm, z {span[2]:.1f} nm"
-    )
+    typer.echo(f"drift ({est.method}): range {est.range_text()}")
     caution = no_drift_caution(est)
     if caution:
         typer.echo(f"caution: {caution}; it was applied (compare with --plot)")

@@ -104,6 +104,18 @@ class DriftResult:
         # np.interp holds the end values outside the range: the clamping we want.
         return np.stack([np.interp(f, ref, self.drift[:, k]) for k in range(3)], axis=1)
 
+    def range_text(self, digits: int = 1) -> str:
+        """The estimate's range over the movie per axis, e.g. "x 41.7 nm, y 31.3 nm, z 14.9
+        nm"; a z the estimate left alone is named so, not read as a measured zero ("z not
+        corrected (unreliable)" where it was estimated and dropped, else "z not
+        estimated")."""
+        span = np.ptp(self.drift, axis=0)
+        text = f"x {span[0]:.{digits}f} nm, y {span[1]:.{digits}f} nm"
+        if self.details.get("z_estimated", True):
+            return f"{text}, z {span[2]:.{digits}f} nm"
+        dropped = self.details.get("z_dropped")
+        return f"{text}, z {'not corrected (unreliable)' if dropped else 'not estimated'}"
+
 
 @dataclass
 class DriftLocs:

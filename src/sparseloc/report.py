@@ -134,8 +134,7 @@ def _drift_section(
         return f"{done}{what}: {html.escape(str(exc))}", None
     with tempfile.TemporaryDirectory() as tmp:
         figure = _png_file(plot_drift(d, Path(tmp) / "drift.png"))
-    span = np.ptp(d.drift, axis=0)
-    ranges = f"x {span[0]:.0f} nm, y {span[1]:.0f} nm, z {span[2]:.0f} nm over the movie"
+    ranges = f"{d.range_text(0)} over the movie"
     if done:
         text = (
             f"{done}Redundant cross-correlation of the corrected table, the residual drift: "
@@ -153,7 +152,8 @@ def _drift_section(
     caution = no_drift_caution(d)
     if caution:
         text += (
-            " The residual shifts vary like noise, not like a drift: the correction left none."
+            " The residual shifts vary like noise, not like a drift: the correction left none"
+            + ("." if d.details.get("z_estimated") else " in x and y (z not estimated).")
             if done
             else " <b>Caution:</b> " + html.escape(caution) + "."
         )
