@@ -1447,3 +1447,21 @@ def test_a_model_cut_to_its_light_renders_the_same_light_inside(oversample):
     )
     assert np.abs(whole[:7]).sum() > 1e-3  # (the whole model has light there; the cut, none)
     assert np.abs(part[:7]).max() < 1e-4 and np.abs(part[:, :7]).max() < 1e-4
+
+
+def test_a_saturated_bead_does_not_hide_the_usable_ones():
+    """The detection keeps maxima above a fraction of the brightest bead; a saturated bead
+    (unusable, and far brighter than any other) would set that scale and hide every usable
+    bead. Its pixels' neighbourhood does not set it: the dimmer beads are found, the
+    saturated one too (for the vetting to reject by name)."""
+    from sparseloc.calibrate import find_beads
+
+    rows, cols = np.indices((80, 80))
+    spots = [(20, 20, 1e6), (20, 60, 3e4), (60, 20, 3e4), (60, 60, 3e4)]
+    img = sum(a * np.exp(-((rows - r) ** 2 + (cols - c) ** 2) / 8.0) for r, c, a in spots)
+    img = img + np.random.default_rng(0).normal(0.0, 1.0, img.shape)
+    assert len(find_beads(img)) == 1
+    saturated = np.zeros(img.shape, bool)
+    saturated[19:22, 19:22] = True
+    found = find_beads(img, saturated=saturated)
+    assert len(found) == 4 and np.allclose(found[0], (20, 20), atol=0.5)

@@ -194,6 +194,7 @@ def find_beads(
     sigma: float = 3.0,
     threshold: float = 0.2,
     merge_radius: float = 6.0,
+    saturated: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.float64]:
     """Bead centres (row, col in pixels) on a z-averaged, background-subtracted frame.
 
@@ -209,6 +210,10 @@ def find_beads(
         deviations of the smoothed frame's noise.
     merge_radius : float
         Maxima closer than this (px) are one bead.
+    saturated : ndarray of bool, shape (H, W), optional
+        Pixels saturated in some frame: a maximum within ``merge_radius`` of one is found
+        but does not set the brightness the threshold is a fraction of (a saturated bead,
+        unusable and brighter than any, would hide every usable one).
 
     Returns
     -------
@@ -223,7 +228,13 @@ def find_beads(
     if rr.size == 0:
         return np.zeros((0, 2))
     vals = sm[rr, cc]
-    keep = vals >= threshold * vals.max()
+    scale = vals
+    if saturated is not None and saturated.any():
+        from scipy.ndimage import distance_transform_edt
+
+        near = distance_transform_edt(~saturated)[rr, cc] <= merge_radius
+        scale = vals[~near] if (~near).any() else vals
+    keep = vals >= threshold * scale.max()
     rr, cc, vals = rr[keep], cc[keep], vals[keep]
     order = np.argsort(-vals)
     centres: list[tuple[float, float]] = []
@@ -560,7 +571,7 @@ def _calibrate_scan(
     """Find the beads, vet them, register and average them, and build the spline model;
     ``tick()`` between the steps."""
     p, step = scan.pixel_size, scan.step
-    centres = _detect(scan.projection, detect_sigma, threshold, roi_size)
+    centres = _detect(scan, detect_sigma, threshold, roi_size)
     listed = None
     if known is not None:
         centres, listed = _listed_beads(
@@ -806,11 +817,18 @@ def detection_sigma(pixel_size: float) -> float:
 
 
 def _detect(
-    projection: NDArray[np.float64], detect_sigma: float, threshold: float, roi_size: int | None
+    scan: BeadScan, detect_sigma: float, threshold: float, roi_size: int | None
 ) -> NDArray[np.float64]:
-    """Bead centres (row, col; px) on the z-averaged frame; ``ValueError`` when none."""
+    """Bead centres (row, col; px) on the scan's z-averaged frame, the threshold a fraction
+    of the brightest bead that saturates no pixel; ``ValueError`` when none."""
     merge = _merge_radius(detect_sigma, roi_size)
-    centres = find_beads(projection, sigma=detect_sigma, threshold=threshold, merge_radius=merge)
+    saturated = None
+    if scan.saturation is not None:
+        saturated = np.any(scan.sat_frames >= scan.saturation, axis=0)
+    centres = find_beads(
+        scan.projection, sigma=detect_sigma, threshold=threshold, merge_radius=merge,
+        saturated=saturated,
+    )  # fmt: skip
     if centres.shape[0] == 0:
         raise ValueError(
             "no beads found in the stack; check the offset, use a lower --threshold, or "
@@ -1055,12 +1073,15 @@ def _vet_beads(
     if not used:
         counts = {r: reason.count(r) for r in set(reason)}
         detail = ", ".join(f"{v} {k}" for k, v in counts.items())
-        hint = (
-            "lower the laser power, the exposure or an EMCCD's EM gain"
-            if "saturated" in counts
-            else "image a sparser bead sample or pass a smaller --roi-size"
-        )
-        hint = _not_a_scan(scan, _whole_rois(scan, centres, half)) or hint
+        sparser = "image a sparser bead sample or pass a smaller --roi-size"
+        remedies = {
+            "saturated": "lower the laser power, the exposure or an EMCCD's EM gain",
+            "edge": f"pass a --roi-size below {2 * half + 1} px (beads lie closer to the "
+            "frame's edge than half of it)",
+            "too close to another bead": sparser,
+        }
+        hint = "; ".join(dict.fromkeys(v for k, v in remedies.items() if k in counts))
+        hint = _not_a_scan(scan, _whole_rois(scan, centres, half)) or hint or remedies["edge"]
         raise ValueError(f"found {nb} bead(s) but none is usable ({detail}); {hint}")
     return reason, used
 
