@@ -1465,3 +1465,18 @@ def test_a_saturated_bead_does_not_hide_the_usable_ones():
     saturated[19:22, 19:22] = True
     found = find_beads(img, saturated=saturated)
     assert len(found) == 4 and np.allclose(found[0], (20, 20), atol=0.5)
+
+
+def test_the_saturation_mask_must_be_the_frames():
+    """A saturation mask of another shape is refused in one sentence; an integer mask works
+    as a boolean one."""
+    from sparseloc.calibrate import find_beads
+
+    rows, cols = np.indices((40, 40))
+    img = 1e6 * np.exp(-((rows - 10) ** 2 + (cols - 10) ** 2) / 8.0)
+    img = img + 3e4 * np.exp(-((rows - 30) ** 2 + (cols - 30) ** 2) / 8.0)
+    mask = np.zeros((40, 40), np.uint8)
+    mask[9:12, 9:12] = 1
+    assert len(find_beads(img, saturated=mask)) == 2
+    with pytest.raises(ValueError, match="saturation mask"):
+        find_beads(img, saturated=np.zeros((30, 30), bool))

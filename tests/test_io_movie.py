@@ -568,3 +568,23 @@ def test_photon_frames_apply_maps_per_pixel(tmp_path, data, maps):
     assert got.dtype == np.float64 and got.shape == (4, *SHAPE[1:])
     np.testing.assert_allclose(got, expected, rtol=1e-12)
     np.testing.assert_allclose(whole, to_photons(data, cam), rtol=1e-12)
+
+
+def test_file_lists_whose_numbers_run_backwards():
+    """A list in an alphabetical order (a shell's, by character codes or by a UTF-8 locale's
+    collation, which ignores punctuation) whose names' numbers run another way is named; a
+    list in the numbers' order, a name without a number before the numbered ones, and a
+    deliberate order are not."""
+    from sparseloc.io.movie import out_of_number_order
+
+    codes = [f"plain_{k}.tif" for k in (0, 1, 10, 11, 2, 3)]
+    locale = [f"plain_{k}.tif" for k in (0, 10, 11, 1, 2, 3)]
+    assert out_of_number_order(codes) == ("plain_10.tif", "plain_2.tif")
+    assert out_of_number_order(locale) == ("plain_10.tif", "plain_1.tif")
+    assert out_of_number_order([f"plain_{k}.tif" for k in range(12)]) is None
+    assert out_of_number_order(["movie.tif", "movie1.tif", "movie2.tif"]) is None
+    assert out_of_number_order(["b_2.tif", "a_10.tif"]) is None  # not alphabetical: chosen
+    assert out_of_number_order(["run10/movie.tif", "run2/movie.tif"]) == (
+        "run10/movie.tif",
+        "run2/movie.tif",
+    )

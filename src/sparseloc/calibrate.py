@@ -188,6 +188,32 @@ def _centroid(img: NDArray[np.float64], r: float, c: float, radius: float) -> tu
     return float(r), float(c)
 
 
+def _brightness_scale(
+    sm: NDArray[np.float64],
+    sigma: float,
+    radius: float,
+    saturated: NDArray[np.bool_] | None = None,
+) -> float:
+    """The brightness the bead detection's threshold is a fraction of: the brightest maximum
+    of the smoothed frame ``sm`` (smoothed by ``sigma`` px) farther than ``radius`` px from
+    every ``saturated`` pixel (a saturated bead, unusable and brighter than any, would hide
+    every usable one); the brightest maximum where none is saturated or every one is near."""
+    from scipy.ndimage import distance_transform_edt, maximum_filter
+
+    peaks = sm == maximum_filter(sm, size=int(2 * np.ceil(sigma) + 1))
+    vals = sm[peaks]
+    if saturated is not None:
+        mask = np.asarray(saturated, dtype=bool)
+        if mask.shape != sm.shape:
+            raise ValueError(
+                f"the saturation mask's shape {mask.shape} is not the frame's {sm.shape}"
+            )
+        if mask.any():
+            far = distance_transform_edt(~mask)[peaks] > radius
+            vals = vals[far] if far.any() else vals
+    return float(vals.max()) if vals.size else 0.0
+
+
 def find_beads(
     projection: NDArray[np.float64],
     *,
@@ -206,8 +232,9 @@ def find_beads(
         Gaussian smoothing (px) before looking for maxima: at the scale of the PSF, so a
         double helix's ring of lobe positions becomes one hill.
     threshold : float
-        Keep maxima above this fraction of the brightest one, and above 6 robust standard
-        deviations of the smoothed frame's noise.
+        Keep maxima above this fraction of the brightest one that is not a saturated bead's
+        (:func:`_brightness_scale`), and above 6 robust standard deviations of the smoothed
+        frame's noise.
     merge_radius : float
         Maxima closer than this (px) are one bead.
     saturated : ndarray of bool, shape (H, W), optional
@@ -228,13 +255,7 @@ def find_beads(
     if rr.size == 0:
         return np.zeros((0, 2))
     vals = sm[rr, cc]
-    scale = vals
-    if saturated is not None and saturated.any():
-        from scipy.ndimage import distance_transform_edt
-
-        near = distance_transform_edt(~saturated)[rr, cc] <= merge_radius
-        scale = vals[~near] if (~near).any() else vals
-    keep = vals >= threshold * scale.max()
+    keep = vals >= threshold * _brightness_scale(sm, sigma, merge_radius, saturated)
     rr, cc, vals = rr[keep], cc[keep], vals[keep]
     order = np.argsort(-vals)
     centres: list[tuple[float, float]] = []
@@ -274,6 +295,7 @@ def _listed_beads(
     detect_sigma: float,
     threshold: float,
     roi_size: int | None,
+    saturated: NDArray[np.bool_] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
     """The beads where their positions are known: each listed position's bead, then the beads
     found that no position lists.
@@ -317,7 +339,7 @@ def _listed_beads(
     claims = (d <= merge).sum(axis=0)  # positions within the merge radius of each bead found
     tol = _match_tolerance(d, claims, merge)
     sm, floor = _smoothed_light(projection, detect_sigma)
-    bar = max(floor, threshold * float(sm.max()))
+    bar = max(floor, threshold * _brightness_scale(sm, detect_sigma, merge, saturated))
     centres: list[NDArray[np.float64]] = []
     index = np.full(len(xy), -1)
     taken: set[int] = set()
@@ -476,7 +498,7 @@ def calibrate_beads(
     saturation : float, optional
         ADU at which the camera saturates; default the integer type's maximum.
     threshold : float
-        Bead detection threshold, a fraction of the brightest bead.
+        Bead detection threshold, a fraction of the brightest bead that is not saturated.
     detect_sigma : float, optional
         Smoothing (px) for bead detection; default :func:`detection_sigma` of the pixel
         size (the scale of a PSF, so a double helix's ring of lobe positions is one bead).
@@ -571,11 +593,12 @@ def _calibrate_scan(
     """Find the beads, vet them, register and average them, and build the spline model;
     ``tick()`` between the steps."""
     p, step = scan.pixel_size, scan.step
-    centres = _detect(scan, detect_sigma, threshold, roi_size)
+    saturated = _saturated_pixels(scan)
+    centres = _detect(scan.projection, detect_sigma, threshold, roi_size, saturated)
     listed = None
     if known is not None:
         centres, listed = _listed_beads(
-            centres, known, scan.projection, p, detect_sigma, threshold, roi_size
+            centres, known, scan.projection, p, detect_sigma, threshold, roi_size, saturated
         )
     tick()
     camera = CameraNoise(*noise, scan.background)
@@ -816,17 +839,26 @@ def detection_sigma(pixel_size: float) -> float:
     return max(DETECTION_SIGMA_PX, DETECTION_SIGMA_NM / float(pixel_size))
 
 
+def _saturated_pixels(scan: BeadScan) -> NDArray[np.bool_] | None:
+    """The pixels (H, W) saturated in some frame of the scan; None where the camera's
+    saturation is not known."""
+    if scan.saturation is None:
+        return None
+    return np.asarray(scan.sat_frames.max(axis=0) >= scan.saturation)
+
+
 def _detect(
-    scan: BeadScan, detect_sigma: float, threshold: float, roi_size: int | None
+    projection: NDArray[np.float64],
+    detect_sigma: float,
+    threshold: float,
+    roi_size: int | None,
+    saturated: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.float64]:
-    """Bead centres (row, col; px) on the scan's z-averaged frame, the threshold a fraction
-    of the brightest bead that saturates no pixel; ``ValueError`` when none."""
+    """Bead centres (row, col; px) on the z-averaged frame, the threshold a fraction of the
+    brightest bead that is not ``saturated``'s; ``ValueError`` when none."""
     merge = _merge_radius(detect_sigma, roi_size)
-    saturated = None
-    if scan.saturation is not None:
-        saturated = np.any(scan.sat_frames >= scan.saturation, axis=0)
     centres = find_beads(
-        scan.projection, sigma=detect_sigma, threshold=threshold, merge_radius=merge,
+        projection, sigma=detect_sigma, threshold=threshold, merge_radius=merge,
         saturated=saturated,
     )  # fmt: skip
     if centres.shape[0] == 0:
@@ -1074,14 +1106,16 @@ def _vet_beads(
         counts = {r: reason.count(r) for r in set(reason)}
         detail = ", ".join(f"{v} {k}" for k, v in counts.items())
         sparser = "image a sparser bead sample or pass a smaller --roi-size"
+        edge = "image the beads farther from the frame's edge"
+        if half > ROI_HALF[0]:
+            edge += f" or pass a --roi-size below {2 * half + 1} px"
         remedies = {
             "saturated": "lower the laser power, the exposure or an EMCCD's EM gain",
-            "edge": f"pass a --roi-size below {2 * half + 1} px (beads lie closer to the "
-            "frame's edge than half of it)",
+            "edge": edge,
             "too close to another bead": sparser,
         }
         hint = "; ".join(dict.fromkeys(v for k, v in remedies.items() if k in counts))
-        hint = _not_a_scan(scan, _whole_rois(scan, centres, half)) or hint or remedies["edge"]
+        hint = _not_a_scan(scan, _whole_rois(scan, centres, half)) or hint
         raise ValueError(f"found {nb} bead(s) but none is usable ({detail}); {hint}")
     return reason, used
 

@@ -1191,7 +1191,8 @@ def calibrate(
         int | None, typer.Option(help="ROI side (px); default from the PSF's extent.")
     ] = None,
     threshold: Annotated[
-        float, typer.Option(help="Bead detection threshold (fraction of the brightest).")
+        float,
+        typer.Option(help="Bead detection threshold (fraction of the brightest unsaturated bead)."),
     ] = 0.2,
     saturation: Annotated[
         float | None, typer.Option(help="Saturation level (ADU); default the type's maximum.")
@@ -1587,6 +1588,17 @@ def _table_output(path: Path, *, overwrite: bool, inputs: Any) -> Path:
     )
 
 
+def _differing(first: str, second: str) -> str:
+    """The text "'A' before 'B'" for two paths: their names where those differ, else in
+    full."""
+    a, b = Path(first), Path(second)
+    if a.name == b.name:
+        a, b = first, second
+    else:
+        a, b = a.name, b.name
+    return f"{str(a)!r} before {str(b)!r}"
+
+
 def _open_movie(paths: list[Path], hint: str) -> Any:
     """The movie of ``paths`` (one file or a series), refusing an HDF5 file (a calibration or
     a Picasso table given where the movie belongs) in one sentence with ``hint``."""
@@ -1596,7 +1608,7 @@ def _open_movie(paths: list[Path], hint: str) -> Any:
     if backwards:
         _fail(
             f"the {len(paths)} movie files come in alphabetical order, which puts "
-            f"{Path(backwards[0]).name!r} before {Path(backwards[1]).name!r} (a shell's "
+            f"{_differing(*backwards)} (a shell's "
             "expansion of an unquoted pattern): quote the pattern (e.g. 'frame_*.tif') so "
             "that sparseloc orders them by their numbers, or name them with padded numbers"
         )

@@ -99,18 +99,27 @@ def _q(path: Path) -> str:
     return repr(str(path))
 
 
-def _natural_key(path: str) -> list[Any]:
-    """Sort key that orders ``run_2`` before ``run_10``."""
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path)]
+def _natural_key(path: str) -> tuple[list[Any], str]:
+    """Sort key that orders ``run_2`` before ``run_10``, and ``movie.tif`` before
+    ``movie1.tif`` (the name without its suffix first)."""
+    stem, suffix = os.path.splitext(path)
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", stem)], suffix
+
+
+def _collated(name: str) -> str:
+    """A locale's collation key, roughly: case and punctuation ignored (how a shell with a
+    UTF-8 locale orders an expanded pattern: ``plain_10`` before ``plain_1``)."""
+    return re.sub(r"[^0-9a-z]", "", name.lower())
 
 
 def out_of_number_order(paths: Sequence[PathLike]) -> tuple[str, str] | None:
     """Two of ``paths`` (a series' files in the order given) whose numbers run backwards
-    where the order is the alphabetical one (``run_10`` before ``run_2``: a shell's expansion
-    of an unquoted pattern over unpadded numbers), the later-numbered first; None where the
-    order is the names' natural order, or not alphabetical (a deliberate order)."""
+    where the order is an alphabetical one (``run_10`` before ``run_2``: a shell's expansion
+    of an unquoted pattern over unpadded numbers, by character codes or by a locale's
+    collation), the later-numbered first; None where the order is the names' natural order,
+    or not alphabetical (a deliberate order)."""
     names = [os.fspath(x) for x in paths]
-    if len(names) < 2 or names != sorted(names):
+    if len(names) < 2 or names not in (sorted(names), sorted(names, key=_collated)):
         return None
     natural = sorted(names, key=_natural_key)
     if natural == names:
