@@ -317,7 +317,8 @@ def test_version_and_the_camera_defaults_in_help():
     assert "ideal, emccd or scmos (default ideal)" in text
     assert "auto (default: temporal from 50 frames)" in text
     wide = runner.invoke(app, ["calibrate", "--help"], env={"COLUMNS": "200"})
-    assert "(fraction of the brightest). [default: 0.2]" in " ".join(wide.output.split())
+    flat = " ".join(wide.output.split())
+    assert "(fraction of the brightest unsaturated bead). [default: 0.2]" in flat
     assert "work: auto (default:" in text
 
 
