@@ -75,7 +75,8 @@ def test_each_command_says_it_left_the_flagged_rows_out(table, tmp_path, command
     taken = runner.invoke(app, [*args, "--all-flags", *(["--overwrite"] * (args[0] != "evaluate"))])
     assert taken.exit_code == 0, taken.output
     assert "flagged" not in taken.stderr
-    if args[0] == "evaluate":  # what it scored, not only what it said
+    if args[0] == "evaluate":  # what it scored, not only what it said, and said above it
+        assert left_out.output.index(NOTE) < left_out.output.index("Jaccard"), left_out.output
         assert re.search(rf"localizations\s+{3000 - FLAGGED}\b", left_out.stdout), left_out.stdout
         assert re.search(r"localizations\s+3000\b", taken.stdout), taken.stdout
 
