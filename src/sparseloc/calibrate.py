@@ -188,19 +188,27 @@ def _centroid(img: NDArray[np.float64], r: float, c: float, radius: float) -> tu
     return float(r), float(c)
 
 
+def _maxima(sm: NDArray[np.float64], sigma: float) -> NDArray[np.bool_]:
+    """The local maxima (bool, ``sm``'s shape) of a frame smoothed by ``sigma`` px, over a
+    neighbourhood of that smoothing's width."""
+    from scipy.ndimage import maximum_filter
+
+    return sm == maximum_filter(sm, size=int(2 * np.ceil(sigma) + 1))
+
+
 def _brightness_scale(
     sm: NDArray[np.float64],
-    sigma: float,
+    peaks: NDArray[np.bool_],
     radius: float,
     saturated: NDArray[np.bool_] | None = None,
 ) -> float:
-    """The brightness the bead detection's threshold is a fraction of: the brightest maximum
-    of the smoothed frame ``sm`` (smoothed by ``sigma`` px) farther than ``radius`` px from
-    every ``saturated`` pixel (a saturated bead, unusable and brighter than any, would hide
-    every usable one); the brightest maximum where none is saturated or every one is near."""
-    from scipy.ndimage import distance_transform_edt, maximum_filter
+    """The brightness the bead detection's threshold is a fraction of: the brightest of the
+    smoothed frame ``sm``'s maxima ``peaks`` (:func:`_maxima`) farther than ``radius`` px
+    from every ``saturated`` pixel (a saturated bead, unusable and brighter than any, would
+    hide every usable one); the brightest maximum where none is saturated or every one is
+    near."""
+    from scipy.ndimage import distance_transform_edt
 
-    peaks = sm == maximum_filter(sm, size=int(2 * np.ceil(sigma) + 1))
     vals = sm[peaks]
     if saturated is not None:
         mask = np.asarray(saturated, dtype=bool)
@@ -247,15 +255,13 @@ def find_beads(
     ndarray, shape (n, 2)
         Centroids (row, col), brightest first.
     """
-    from scipy.ndimage import maximum_filter
-
     sm, floor = _smoothed_light(projection, sigma)
-    peaks = (sm == maximum_filter(sm, size=int(2 * np.ceil(sigma) + 1))) & (sm > floor)
-    rr, cc = np.nonzero(peaks)
+    maxima = _maxima(sm, sigma)
+    rr, cc = np.nonzero(maxima & (sm > floor))
     if rr.size == 0:
         return np.zeros((0, 2))
     vals = sm[rr, cc]
-    keep = vals >= threshold * _brightness_scale(sm, sigma, merge_radius, saturated)
+    keep = vals >= threshold * _brightness_scale(sm, maxima, merge_radius, saturated)
     rr, cc, vals = rr[keep], cc[keep], vals[keep]
     order = np.argsort(-vals)
     centres: list[tuple[float, float]] = []
@@ -339,7 +345,8 @@ def _listed_beads(
     claims = (d <= merge).sum(axis=0)  # positions within the merge radius of each bead found
     tol = _match_tolerance(d, claims, merge)
     sm, floor = _smoothed_light(projection, detect_sigma)
-    bar = max(floor, threshold * _brightness_scale(sm, detect_sigma, merge, saturated))
+    scale = _brightness_scale(sm, _maxima(sm, detect_sigma), merge, saturated)
+    bar = max(floor, threshold * scale)
     centres: list[NDArray[np.float64]] = []
     index = np.full(len(xy), -1)
     taken: set[int] = set()
