@@ -970,12 +970,18 @@ def _light_profile(
     return light_profile(data, tuple(centres[i]), others, rad, variance)
 
 
-#: Most rounds of removing the neighbours' modelled light and registering again; fewer when
-#: a round moves no bead by :data:`NEIGHBOUR_TOLERANCE` (nm) or more. Each round removes part
-#: of the light the model still holds of the beads' neighbours, so its origin settles slowly
-#: where every bead sees a neighbour (docs/benchmarks/calibration_layouts.txt).
-NEIGHBOUR_ROUNDS = 8
+#: Most rounds of removing the neighbours' modelled light and registering again; fewer once a
+#: round moves no bead and not the model's origin by :data:`NEIGHBOUR_TOLERANCE` (nm). Each
+#: round removes part of the light the model still holds of the beads' neighbours, so where
+#: every bead sees a neighbour the model's light, and its centroid, settle over many rounds,
+#: well after the beads' positions (docs/benchmarks/crowded_bead_origin.txt).
+NEIGHBOUR_ROUNDS = 30
 NEIGHBOUR_TOLERANCE = 1.0
+#: Weight of a round's new estimate of the light to remove from a bead's ROI against the last
+#: round's. Each round's model holds what the last round left of the neighbours' light, and
+#: where neighbours are close and bright undamped rounds swing ever wider (a model error of
+#: 284 % after 30 rounds of four beads 3.5 um apart, docs/benchmarks/crowded_bead_origin.txt).
+DAMPING = 0.5
 
 
 def _held(profile: LightProfile | None, half: int) -> list[float] | None:
@@ -1016,14 +1022,34 @@ def _neighbour_rounds(
     used: list[int],
     avg: NDArray[np.float64],
 ) -> NDArray[np.float64]:
-    """Rounds of :func:`_without_neighbours` until no bead moves by
-    :data:`NEIGHBOUR_TOLERANCE` (at most :data:`NEIGHBOUR_ROUNDS`); the registered average."""
+    """Rounds of :func:`_without_neighbours` until, two rounds running, no bead and not the
+    average's light centroid moves by :data:`NEIGHBOUR_TOLERANCE` (the damped rounds can
+    move little once and more again; at most :data:`NEIGHBOUR_ROUNDS`); the registered
+    average."""
+    before, still = None, 0
     for _ in range(NEIGHBOUR_ROUNDS if neighbours else 0):
-        before = stacks.positions(used, centres)
         avg = _without_neighbours(stacks, scan, centres, used, neighbours, avg, iterations, name)
-        if np.abs(stacks.positions(used, centres) - before).max() < NEIGHBOUR_TOLERANCE:
+        now = _round_state(stacks, centres, used, avg)
+        moved = before is None or np.abs(now - before).max() >= NEIGHBOUR_TOLERANCE
+        still = 0 if moved else still + 1
+        if still == 2:
             break
+        before = now
     return avg
+
+
+def _round_state(
+    stacks: _BeadStacks, centres: NDArray[np.float64], used: list[int], avg: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """What a round of neighbour removal moves (nm): the beads' positions about their mean,
+    and the light centroid of the average's z projection (the model's origin) in the frame.
+    The average's frame may drift with all the beads' shifts at once, which moves nothing."""
+    h = stacks.half
+    row, col = _centroid(clean_average(avg).mean(axis=0), h, h, h)
+    pos = stacks.positions(used, centres)
+    mean = pos.mean(axis=0)
+    origin = [col * stacks.p + mean[0], row * stacks.p + mean[1]]
+    return np.concatenate([(pos - mean).ravel(), origin])
 
 
 def _without_neighbours(
@@ -1037,24 +1063,17 @@ def _without_neighbours(
     name: str,
 ) -> NDArray[np.float64]:
     """Clean each usable bead's ROI of its neighbours' light, modelled with the current
-    average at their fitted positions and brightness, and register the beads again."""
+    average at their fitted positions and brightness, and of the frame's residual background
+    (what every bead's modelled light leaves of each plane, :func:`_residual_background`),
+    and register the beads again; the registered average.
+
+    The neighbours' model is the average as it is, each plane scaled to one photon: the
+    border's median, which a model subtracts as background (:func:`clean_average`), is light
+    of a wide PSF's halo, and a neighbour's halo is most of what it shines into the ROI."""
     p, half = stacks.p, stacks.half
-    model = SplinePSF(clean_average(avg), p, scan.zplanes, name=name)
-    placed: dict[int, tuple[float, float, float, NDArray[np.float64]]] = {}
-    for j in sorted({j for near in neighbours.values() for j in near}):
-        ri, ci = (int(v) for v in np.round(centres[j]))
-        if j in stacks.shifts:  # a used bead (an outlier's shift is dropped)
-            roi, shift = stacks.rois[j], stacks.shifts[j]
-        else:  # a bead that is not used still shines on its neighbours
-            # at the frame's edge, fitted in the largest ROI around it inside the frame
-            h, w = scan.projection.shape
-            inner = min(half, ri, ci, h - 1 - ri, w - 1 - ci)
-            if inner < EDGE_FIT_HALF:
-                continue
-            roi = _roi(scan.data, ri, ci, inner)
-            shift = _fit_shift(model, roi, scan.zplanes)[0]
-        photons = plane_photons(model, roi, shift, scan.zplanes)
-        placed[j] = ((ci + 0.5) * p + shift[0], (ri + 0.5) * p + shift[1], shift[2], photons)
+    model = _halo_model(avg, p, scan.zplanes, name)
+    placed = _placed_beads(stacks, scan, centres, model)
+    residual = _residual_background(scan, model, list(placed.values()), half)
     h, w = scan.projection.shape
     for i in used:
         _recentre(stacks, centres, i, (h, w))
@@ -1065,9 +1084,66 @@ def _without_neighbours(
             [placed[j] for j in neighbours.get(i, []) if j in placed],
             scan.zplanes,
         )
-        stacks.rois[i] = _roi(scan.data, ri, ci, half) - light
+        removed = light + residual[:, None, None]
+        last = stacks.removed.get(i)
+        if last is not None and last[0] == (ri, ci):
+            removed = DAMPING * removed + (1.0 - DAMPING) * last[1]
+        stacks.removed[i] = ((ri, ci), removed)
+        stacks.rois[i] = _roi(scan.data, ri, ci, half) - removed
     # the shifts are already close: one round against the current average refines them
     return stacks.register(used, scan.zplanes, 1, name, reference=avg)
+
+
+def _halo_model(
+    avg: NDArray[np.float64], p: float, zplanes: NDArray[np.float64], name: str
+) -> SplinePSF:
+    """The average ``avg`` (Nz, R, R) as a model of a bead's light, each plane scaled to one
+    photon, neither clipped nor cut by a border background (:func:`_without_neighbours`)."""
+    light = np.nan_to_num(avg)
+    total = light.sum(axis=(1, 2), keepdims=True)
+    light = np.where(total > 0, light / np.where(total > 0, total, 1.0), 0.0)
+    return SplinePSF(light, p, zplanes, normalise=False, name=name)
+
+
+def _placed_beads(
+    stacks: _BeadStacks, scan: BeadScan, centres: NDArray[np.float64], model: SplinePSF
+) -> dict[int, tuple[float, float, float, NDArray[np.float64]]]:
+    """Every bead's position (x, y nm in the frame), z shift (nm) and photons per plane under
+    ``model``: a used bead's from its registration, another's (rejected, or at the frame's
+    edge, fitted in the largest ROI around it inside the frame) from a fit; a bead nearer the
+    edge than :data:`EDGE_FIT_HALF` is left out."""
+    p, half = stacks.p, stacks.half
+    h, w = scan.projection.shape
+    placed: dict[int, tuple[float, float, float, NDArray[np.float64]]] = {}
+    for j in range(len(centres)):
+        ri, ci = (int(v) for v in np.round(centres[j]))
+        if j in stacks.shifts:  # a used bead (an outlier's shift is dropped)
+            roi, shift = stacks.rois[j], stacks.shifts[j]
+        else:  # a bead that is not used still shines on its neighbours
+            inner = min(half, ri, ci, h - 1 - ri, w - 1 - ci)
+            if inner < EDGE_FIT_HALF:
+                continue
+            roi = _roi(scan.data, ri, ci, inner)
+            shift = _fit_shift(model, roi, scan.zplanes)[0]
+        photons = plane_photons(model, roi, shift, scan.zplanes)
+        placed[j] = ((ci + 0.5) * p + shift[0], (ri + 0.5) * p + shift[1], shift[2], photons)
+    return placed
+
+
+def _residual_background(
+    scan: BeadScan,
+    model: SplinePSF,
+    placed: list[tuple[float, float, float, NDArray[np.float64]]],
+    half: int,
+) -> NDArray[np.float64]:
+    """Each plane's background left in the scan (photons/pixel, (Nz,)): the median of the
+    frame less every placed bead's modelled light. The scan's own background is each frame's
+    median, which in a crowded field holds the beads' halos."""
+    h, w = scan.projection.shape
+    side = max(h, w) + 2 * half
+    light = neighbour_light(model, (-half, -half, side), placed, scan.zplanes)
+    left = scan.data - light[:, half : half + h, half : half + w]
+    return np.median(left.reshape(left.shape[0], -1), axis=1)
 
 
 def _recentre(
@@ -1240,6 +1316,8 @@ class _BeadStacks:
         # beads whose ROI holds another bead's light: their voxels may disagree with the PSF
         self.crowded: set[int] = set()
         self.noise: CameraNoise | None = None  # the robust average's noise floor
+        # the light last removed from each bead's ROI: its first row and column, the light
+        self.removed: dict[int, tuple[tuple[int, int], NDArray[np.float64]]] = {}
 
     def positions(self, ids: list[int], centres: NDArray[np.float64]) -> NDArray[np.float64]:
         """Beads ``ids``' x, y, z (nm; frame x, y from the ROIs' centre pixels ``centres``
