@@ -1140,10 +1140,18 @@ def _residual_background(
     frame less every placed bead's modelled light. The scan's own background is each frame's
     median, which in a crowded field holds the beads' halos."""
     h, w = scan.projection.shape
-    side = max(h, w) + 2 * half
-    light = neighbour_light(model, (-half, -half, side), placed, scan.zplanes)
-    left = scan.data - light[:, half : half + h, half : half + w]
-    return np.median(left.reshape(left.shape[0], -1), axis=1)
+    p, side = model.pixel_size, 2 * half + 1
+    windows = []  # each bead's light in the ROI around its pixel: (first row, first col, light)
+    for bead in placed:
+        r0, c0 = int(bead[1] // p) - half, int(bead[0] // p) - half
+        windows.append((r0, c0, neighbour_light(model, (r0, c0, side), [bead], scan.zplanes)))
+    out = np.zeros(scan.zplanes.size)
+    for k in range(out.size):  # a plane at a time: the frame can be large
+        light = np.zeros((h + 2 * side, w + 2 * side))
+        for r0, c0, img in windows:
+            light[r0 + side : r0 + 2 * side, c0 + side : c0 + 2 * side] += img[k]
+        out[k] = np.median(scan.data[k] - light[side : side + h, side : side + w])
+    return out
 
 
 def _recentre(
