@@ -1041,12 +1041,14 @@ def _neighbour_rounds(
 def _round_state(
     stacks: _BeadStacks, centres: NDArray[np.float64], used: list[int], avg: NDArray[np.float64]
 ) -> NDArray[np.float64]:
-    """What a round of neighbour removal moves (nm): the beads' positions about their mean,
-    and the light centroid of the average's z projection (the model's origin) in the frame.
-    The average's frame may drift with all the beads' shifts at once, which moves nothing."""
+    """What a round of neighbour removal moves (nm): the beads' lateral positions about their
+    mean, and the light centroid of the average's z projection (the model's origin) in the
+    frame. The average's frame may drift with all the beads' shifts at once, which moves
+    nothing; the beads' z shifts wander by a few nm from round to round on real beads
+    (registration noise on 10 nm steps) and move no origin."""
     h = stacks.half
     row, col = _centroid(clean_average(avg).mean(axis=0), h, h, h)
-    pos = stacks.positions(used, centres)
+    pos = stacks.positions(used, centres)[:, :2]
     mean = pos.mean(axis=0)
     origin = [col * stacks.p + mean[0], row * stacks.p + mean[1]]
     return np.concatenate([(pos - mean).ravel(), origin])
