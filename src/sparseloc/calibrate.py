@@ -970,8 +970,9 @@ def _light_profile(
     return light_profile(data, tuple(centres[i]), others, rad, variance)
 
 
-#: Most rounds of removing the neighbours' modelled light and registering again; fewer once a
-#: round moves no bead and not the model's origin by :data:`NEIGHBOUR_TOLERANCE` (nm). Each
+#: Most rounds of removing the neighbours' modelled light and registering again; fewer once
+#: two rounds running move no bead and not the model's origin by :data:`NEIGHBOUR_TOLERANCE`
+#: (nm); the origin may still creep by a few nm in all (crowded_bead_origin.txt). Each
 #: round removes part of the light the model still holds of the beads' neighbours, so where
 #: every bead sees a neighbour the model's light, and its centroid, settle over many rounds,
 #: well after the beads' positions (docs/benchmarks/crowded_bead_origin.txt).
@@ -1067,7 +1068,8 @@ def _without_neighbours(
     """Clean each usable bead's ROI of its neighbours' light, modelled with the current
     average at their fitted positions and brightness, and of the frame's residual background
     (what every bead's modelled light leaves of each plane, :func:`_residual_background`),
-    and register the beads again; the registered average.
+    and register the beads again; the registered average. The light removed is the mean of
+    this round's estimate and the last round's (:data:`DAMPING`) where the ROI has not moved.
 
     The neighbours' model is the average as it is, each plane scaled to one photon: the
     border's median, which a model subtracts as background (:func:`clean_average`), is light
@@ -1146,9 +1148,10 @@ def _residual_background(
     windows = []  # each bead's light in the ROI around its pixel: (first row, first col, light)
     for bead in placed:
         r0, c0 = int(bead[1] // p) - half, int(bead[0] // p) - half
-        windows.append((r0, c0, neighbour_light(model, (r0, c0, side), [bead], scan.zplanes)))
+        if -side <= r0 <= h and -side <= c0 <= w:  # else no pixel of it lies in the frame
+            windows.append((r0, c0, neighbour_light(model, (r0, c0, side), [bead], scan.zplanes)))
     out = np.zeros(scan.zplanes.size)
-    for k in range(out.size):  # a plane at a time: the frame can be large
+    for k in range(out.size):  # a frame of light a plane at a time, not a second scan
         light = np.zeros((h + 2 * side, w + 2 * side))
         for r0, c0, img in windows:
             light[r0 + side : r0 + 2 * side, c0 + side : c0 + 2 * side] += img[k]
@@ -1169,7 +1172,10 @@ def _recentre(
     r, c = ri + dr, ci + dc
     if (dr or dc) and half <= r < shape[0] - half and half <= c < shape[1] - half:
         centres[i] = (r, c)
-        stacks.shifts[i] = stacks.shifts[i] - np.array([dc * p, dr * p, 0.0])
+        moved = np.array([dc * p, dr * p, 0.0])
+        stacks.shifts[i] = stacks.shifts[i] - moved
+        # a registration started afresh (after outliers are dropped) starts from this ROI
+        stacks.init_shift[i] = stacks.init_shift[i] - moved
 
 
 def _vet_beads(
