@@ -980,8 +980,8 @@ NEIGHBOUR_ROUNDS = 30
 NEIGHBOUR_TOLERANCE = 1.0
 #: Weight of a round's new estimate of the light to remove from a bead's ROI against the last
 #: round's. Each round's model holds what the last round left of the neighbours' light, and
-#: where neighbours are close and bright undamped rounds swing ever wider (a model error of
-#: 284 % after 30 rounds of four beads 3.5 um apart, docs/benchmarks/crowded_bead_origin.txt).
+#: where neighbours are close and bright undamped rounds swing ever wider until the model
+#: fails (docs/benchmarks/crowded_bead_origin.txt).
 DAMPING = 0.5
 
 
@@ -1046,7 +1046,7 @@ def _round_state(
     mean, and the light centroid of the average's z projection (the model's origin) in the
     frame. The average's frame may drift with all the beads' shifts at once, which moves
     nothing; the beads' z shifts wander by a few nm from round to round on real beads
-    (registration noise on 10 nm steps) and move no origin."""
+    (registration noise) and move no origin."""
     h = stacks.half
     row, col = _centroid(clean_average(avg).mean(axis=0), h, h, h)
     pos = stacks.positions(used, centres)[:, :2]
