@@ -62,7 +62,13 @@ from .calibrate_oversample import (
     undersampled,
     worth_oversampling,
 )
-from .calibrate_scan import BeadScan, read_bead_positions, read_scan, read_z_file
+from .calibrate_scan import (
+    BeadScan,
+    frame_background,
+    read_bead_positions,
+    read_scan,
+    read_z_file,
+)
 from .calibrate_zsmooth import (
     choose_window,
     clean_average,
@@ -1155,7 +1161,8 @@ def _residual_background(
         light = np.zeros((h + 2 * side, w + 2 * side))
         for r0, c0, img in windows:
             light[r0 + side : r0 + 2 * side, c0 + side : c0 + 2 * side] += img[k]
-        out[k] = np.median(scan.data[k] - light[side : side + h, side : side + w])
+        left = scan.data[k] - light[side : side + h, side : side + w]
+        out[k] = frame_background(left[None])[0]  # the scan's own rule for a frame's background
     return out
 
 

@@ -21,7 +21,14 @@ from .camera import Camera, camera_from_options, to_photons
 from .defects import defective_pixels, replace_defects
 from .units import check_pixel_size, check_z_step
 
-__all__ = ["BeadScan", "read_bead_positions", "read_scan", "read_z_file", "scan_conversion"]
+__all__ = [
+    "BeadScan",
+    "frame_background",
+    "read_bead_positions",
+    "read_scan",
+    "read_z_file",
+    "scan_conversion",
+]
 
 # Messages keep the logger of sparseloc.calibrate, where the calibration has always logged.
 log = logging.getLogger("sparseloc.calibrate")
@@ -213,7 +220,7 @@ def read_scan(
         photons = replace_defects(photons, defects)
         # a pixel stuck at the camera's maximum is no bead's saturation
         sat_frames = np.where(defects, 0, sat_frames)
-    bg = _frame_background(photons)
+    bg = frame_background(photons)
     if np.median(bg) < 0 and offset > 0:
         raise ValueError(f"the offset {offset:g} ADU is above most pixel values; check --offset")
     data = photons - bg[:, None, None]
@@ -317,6 +324,7 @@ def _even_planes(
     return photons, raw, zplanes, step
 
 
-def _frame_background(photons: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Median of each frame (beads cover a small fraction of the field)."""
+def frame_background(photons: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Each frame's background (photons/px, (Nz,)): the median of ``photons`` (Nz, H, W) over
+    the frame, where beads cover a small fraction of the field or their light is removed."""
     return np.median(photons.reshape(photons.shape[0], -1), axis=1)
