@@ -87,6 +87,20 @@ def calibration_summary(
             "bead's data covers, "
             f"z {cal.z[0]:.0f}..{cal.z[-1]:.0f} nm of the scan's {scan[0]:.0f}..{scan[-1]:.0f}"
         )
+    trend, level = cal.params.get("background_trend", 0.0), cal.params.get("background", 0.0)
+    if trend > 0:
+        lines.append(
+            f"  the background changes by {trend:.1f} photons/px across the field (median "
+            f"{level:.1f}): its smooth trend was subtracted from each plane"
+        )
+    if cal.params.get("clipped_values"):
+        top = cal.params["clipped_adu"]
+        lines.append(
+            f"  warning: {cal.params['clipped_values']} pixel values sit at exactly {top:g} ADU, "
+            "the stack's largest: a camera that clips there flattens the beads' brightest "
+            f"pixels in the model; give --saturation {top:g} to leave such beads out, or "
+            "image the beads dimmer"
+        )
     if cal.params.get("defective_pixels"):
         lines.append(
             f"  {cal.params['defective_pixels']} defective (hot or stuck) pixel(s) replaced by "

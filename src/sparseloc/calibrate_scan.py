@@ -19,10 +19,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from .camera import Camera, camera_from_options, to_photons
 from .defects import defective_pixels, replace_defects
+from .detect import background_trend
 from .units import check_pixel_size, check_z_step
 
 __all__ = [
     "BeadScan",
+    "clipping",
     "frame_background",
     "read_bead_positions",
     "read_scan",
@@ -177,6 +179,8 @@ class BeadScan:
     gain: float  # photons per ADU: the camera's gain (e-/ADU) / EM gain / QE (scan_conversion)
     background: NDArray[np.float64] | None = None  # (Nz,) each frame's background (photons/px)
     defects: int = 0  # defective (hot or stuck) pixels replaced by their neighbours
+    trend: float = 0.0  # photons/px: the range across the field of the trend subtracted
+    clipped: tuple[float, int] | None = None  # (ADU, values) where the stack's top is clipped
 
 
 def read_scan(
@@ -195,7 +199,9 @@ def read_scan(
     """Check the stack, place its planes in z, convert it to photons, replace defective
     (hot or stuck) pixels by their neighbours (:mod:`sparseloc.defects`; ``noise``: the
     camera's variance per photon and read variance, photons^2) and subtract each frame's
-    background (its median: beads cover a small fraction of the field). Where ``camera`` has
+    background: its smooth change across the field
+    (:func:`~sparseloc.detect.background_trend`), then its median level (beads cover a small
+    fraction of the field). Where ``camera`` has
     sCMOS maps, they convert the stack (``offset`` and ``gain`` are then their medians,
     :func:`scan_conversion`)."""
     if z is not None and z0_slice is not None:
@@ -220,14 +226,34 @@ def read_scan(
         photons = replace_defects(photons, defects)
         # a pixel stuck at the camera's maximum is no bead's saturation
         sat_frames = np.where(defects, 0, sat_frames)
+    # a background that changes across the field (illumination) would leave a ramp in every
+    # bead's image, moving its light's centroid: each frame's trend is subtracted first
+    trend = background_trend(photons, noise_factor=noise[0], read_variance=noise[1])
+    photons = photons - trend
     bg = frame_background(photons)
     if np.median(bg) < 0 and offset > 0:
         raise ValueError(f"the offset {offset:g} ADU is above most pixel values; check --offset")
     data = photons - bg[:, None, None]
     return BeadScan(
         data, data.mean(axis=0), zplanes, step, p, saturation, sat_frames, offset, gain, bg,
-        int(defects.sum()),
+        int(defects.sum()), float(np.ptp(trend.mean(axis=0))), clipping(raw, saturation),
     )  # fmt: skip
+
+
+#: A stack whose largest value this many of its pixel values share was clipped there: counts
+#: of light spread over many values, and their maximum is seldom shared by more than a few.
+CLIP_TIES = 10
+
+
+def clipping(raw: NDArray, saturation: float | None) -> tuple[float, int] | None:
+    """Where a stack (ADU) looks clipped below the saturation given (or its integer type's
+    maximum): its largest value and how many pixel values sit there, at least
+    :data:`CLIP_TIES` (a 12-bit camera written to 16-bit files clips at 4095); else None."""
+    top = float(raw.max())
+    if saturation is not None and top >= saturation:
+        return None  # the saturation given (or the type's maximum) names these pixels
+    ties = int(np.count_nonzero(raw == top))
+    return (top, ties) if ties >= CLIP_TIES else None
 
 
 def _checked_stack(

@@ -28,6 +28,7 @@ from .psf.base import PSFModel
 
 __all__ = [
     "Tile",
+    "background_trend",
     "capped_bumps",
     "circular_shape",
     "detect_candidates",
@@ -200,6 +201,151 @@ def spatial_background(
     lam = _mean_below_percentile(q, percentile, noise_factor, rv)
     bg = _block_interpolated(lam, arr.shape)[0]
     return ndi.gaussian_filter(bg, smooth) if smooth > 0 else bg
+
+
+#: Blocks per side of a frame over which :func:`background_trend` reads the background.
+TREND_BLOCKS = 8
+#: A block whose light, averaged over the frames, lies this many of its standard deviations
+#: above the trend holds light of the sample (a bead, its halo) and is left out of the trend.
+TREND_OUTLIER = 3.0
+#: Fits of the trend, each without the blocks the one before found lit.
+TREND_ROUNDS = 6
+
+
+def background_trend(
+    frames: NDArray,
+    *,
+    percentile: float = 20.0,
+    noise_factor: float = 1.0,
+    read_variance: float | NDArray = 0.0,
+) -> NDArray[np.float64]:
+    """The smooth change of each frame's background across the field, less its mean: an
+    illumination profile or a tilt under a bead scan, which a single level per frame leaves
+    in every bead's image as a ramp that moves its light's centroid.
+
+    Each frame's background is read per block (:data:`TREND_BLOCKS` a side; the
+    ``percentile`` of its pixels, corrected for the camera's spread as in
+    :func:`spatial_background`). A quadratic surface (a plane on fewer than 4 blocks a side,
+    nothing on fewer than 2; each only where an F test says the blocks call for it, so a
+    flat background gives no trend) is fitted to the blocks' mean over the frames, and
+    blocks above it by more than :data:`TREND_OUTLIER` of their standard deviations (from
+    the camera's noise) are left out and the surface fitted again (:data:`TREND_ROUNDS` at
+    most): light of the sample does not enter the trend, which it would bend towards it.
+    Each frame's trend is then fitted on the blocks left. Where too few blocks are left (a
+    field full of light) there is no trend to read.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (K, rows, cols)
+        Frames in photons.
+    percentile, noise_factor, read_variance
+        As in :func:`spatial_background` (a read-variance map is averaged over each block).
+
+    Returns
+    -------
+    ndarray, shape (K, rows, cols)
+        The trend of each frame (photons/pixel), zero mean over the frame.
+    """
+    arr = np.asarray(frames, dtype=np.float64)
+    if arr.ndim != 3:
+        raise ValueError(f"frames must be (n, rows, cols), got shape {arr.shape}")
+    k, rows, cols = arr.shape
+    nb = min(TREND_BLOCKS, rows // 4, cols // 4)
+    if nb < 2:
+        return np.zeros_like(arr)
+    block = max(rows, cols) / nb
+    q = _block_statistic(arr, block, np.percentile, percentile)
+    rv = np.asarray(read_variance, dtype=np.float64)
+    if rv.ndim:
+        rv = _block_statistic(np.broadcast_to(rv, arr.shape[1:])[None], block, np.mean)
+    lam = _mean_below_percentile(q, percentile, noise_factor, rv)
+    redges, cedges = _block_edges(rows, block), _block_edges(cols, block)
+    u = (0.5 * (redges[:-1] + redges[1:]) - rows / 2) / rows
+    v = (0.5 * (cedges[:-1] + cedges[1:]) - cols / 2) / cols
+    degree = 2 if min(u.size, v.size) >= 4 else 1
+    basis = _surface_basis(u[:, None], v[None, :], degree).reshape(-1, u.size * v.size).T
+    # a block's percentile varies about 1.4x as much as its mean (a normal's 20th percentile)
+    pixels = np.outer(np.diff(redges), np.diff(cedges)).ravel()
+    mean = lam.mean(axis=0).ravel()
+    var = noise_factor * np.maximum(mean, 1e-3) + np.broadcast_to(rv, lam.shape[1:]).ravel()
+    sd = 1.4 * np.sqrt(var / (pixels * k))
+    keep, terms = _unlit_blocks(basis, mean, sd)
+    if terms == 1:
+        return np.zeros_like(arr)
+    basis = basis[:, :terms]
+    coef = np.linalg.lstsq(basis[keep], lam.reshape(k, -1)[:, keep].T, rcond=None)[0]
+    pix = _surface_basis(
+        ((np.arange(rows) + 0.5 - rows / 2) / rows)[:, None],
+        ((np.arange(cols) + 0.5 - cols / 2) / cols)[None, :],
+        degree,
+    )
+    out = np.tensordot(coef.T, pix[:terms], axes=1)  # (K, rows, cols)
+    return out - out.mean(axis=(1, 2), keepdims=True)
+
+
+def _surface_basis(u: NDArray, v: NDArray, degree: int) -> NDArray[np.float64]:
+    """The polynomial terms of ``degree`` (1 or 2) in row and column coordinates ``u``, ``v``
+    (broadcast together): shape (terms, *broadcast shape)."""
+    u, v = np.broadcast_arrays(u, v)
+    terms = [np.ones_like(u), u, v]
+    if degree == 2:
+        terms += [u * u, u * v, v * v]
+    return np.stack(terms)
+
+
+#: The false-alarm rate of the F test that admits a tilt, then a curvature, into the trend:
+#: a trend found in a flat scan changes its model for nothing.
+TREND_ALPHA = 1e-4
+
+
+def _significant_terms(basis: NDArray, values: NDArray) -> int:
+    """How many of the surface's terms (1: a constant, 3: a plane, 6: a quadratic) the blocks'
+    ``values`` (N,) call for: each larger surface where an F test at :data:`TREND_ALPHA`
+    finds it explains them better than the one before (a faint halo far from the beads, or
+    the noise of blocks on one side of the field, is no tilt to extrapolate across it)."""
+    from scipy.stats import f as f_dist
+
+    n = len(values)
+    rss = {}
+    for p in (1, 3, 6):
+        if p <= basis.shape[1] and n > p:
+            resid = values - basis[:, :p] @ np.linalg.lstsq(basis[:, :p], values, rcond=None)[0]
+            rss[p] = float(resid @ resid)
+    chosen = 1
+    for p in (3, 6):
+        if p not in rss:
+            break
+        stat = (rss[chosen] - rss[p]) / (p - chosen) / max(rss[p] / (n - p), 1e-300)
+        if stat <= f_dist.isf(TREND_ALPHA, p - chosen, n - p):
+            break
+        chosen = p
+    return chosen
+
+
+def _unlit_blocks(basis: NDArray, values: NDArray, sd: NDArray) -> tuple[NDArray, int]:
+    """The blocks (of ``values`` (N,), standard deviations ``sd``) that hold no light of
+    the sample, and how many terms of ``basis`` (N, terms; a constant and a plane first)
+    the trend through them needs (:func:`_significant_terms`). From the blocks' median on,
+    rounds of planes fitted to the blocks the last fit left unlit (not
+    :data:`TREND_OUTLIER` standard deviations above it): a first fit through every block
+    would bend towards the sample's light and leave its fainter parts (a wide PSF's halo)
+    in, and a curved one would swing where the unlit blocks leave gaps. A constant where
+    fewer than twice the plane's terms would be left: light fills the field, and its trend
+    cannot be told from the sample's."""
+    plane = basis[:, :3]
+    fit = np.full(len(values), np.median(values))
+    keep = np.zeros(len(values), dtype=bool)
+    for _ in range(TREND_ROUNDS):
+        unlit = values - fit <= TREND_OUTLIER * sd
+        if unlit.sum() < 2 * plane.shape[1]:
+            return np.ones(len(values), dtype=bool), 1  # too little background to read
+        if np.array_equal(unlit, keep):
+            break
+        keep = unlit
+        fit = plane @ np.linalg.lstsq(plane[keep], values[keep], rcond=None)[0]
+    if keep.sum() < 2 * basis.shape[1]:
+        basis = plane  # too few blocks for a curvature
+    return keep, _significant_terms(basis[keep], values[keep])
 
 
 def _block_edges(n: int, block: int) -> NDArray[np.int64]:

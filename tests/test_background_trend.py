@@ -1,0 +1,39 @@
+"""The smooth trend of a frame's background across the field (detect.background_trend)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sparseloc.detect import background_trend
+
+
+def _frames(level, spots=(), n=20, shape=(96, 96), seed=0):
+    """Poisson frames of a background ``level`` (H, W) with Gaussian spots (row, col, photons)."""
+    rows, cols = np.indices(shape)
+    mean = np.broadcast_to(level, shape).astype(float).copy()
+    for r, c, a in spots:
+        mean += a * np.exp(-((rows - r) ** 2 + (cols - c) ** 2) / (2 * 3.0**2)) / (2 * np.pi * 9)
+    return np.random.default_rng(seed).poisson(mean, (n, *shape)).astype(float)
+
+
+def test_a_tilt_under_bright_spots_is_found():
+    cols = np.arange(96)[None, :] * np.ones((96, 1))
+    tilt = 10.0 + 15.0 * cols / 95
+    spots = [(24, 24, 2e5), (24, 72, 2e5), (72, 24, 2e5), (72, 72, 2e5)]
+    trend = background_trend(_frames(tilt, spots))
+    truth = tilt - tilt.mean()
+    assert np.abs(trend - truth).max() < 1.0, np.abs(trend - truth).max()
+
+
+def test_a_flat_background_has_no_trend_whatever_lies_on_it():
+    spots = [(20, 15, 3e5), (50, 18, 3e5), (80, 12, 3e5)]  # all on the left
+    assert not background_trend(_frames(np.full((96, 96), 10.0), spots)).any()
+
+
+def test_light_over_the_whole_field_leaves_no_trend_to_read():
+    spots = [(r, c, 2e5) for r in range(8, 96, 16) for c in range(8, 96, 16)]
+    assert not background_trend(_frames(np.full((96, 96), 10.0), spots)).any()
+
+
+def test_frames_too_small_for_blocks_have_no_trend():
+    assert not background_trend(np.ones((3, 6, 6))).any()
