@@ -1066,8 +1066,11 @@ def offset_mismatch(frames: ArrayLike, camera: Camera, est: CameraEstimate | Non
     The mean-variance line places the offset no lower than where the variance would reach
     zero (:func:`estimate_camera` without an offset: a lower bound, low by the read
     variance over the slope). An offset given below that bound by more than three of its
-    standard errors and more than one electron cannot be the camera's: a forgotten
-    ``--offset`` leaves the dark level in every photon count.
+    standard errors, and by more electrons than one and than a pixel's noise at the
+    stack's background (a bead stack is not quite steady, and its line's offset is off by
+    an ADU or two more than its standard error says; a dark level below that noise changes
+    no fit), cannot be the camera's: a forgotten ``--offset`` leaves the dark level in every
+    photon count.
 
     Parameters
     ----------
@@ -1089,7 +1092,9 @@ def offset_mismatch(frames: ArrayLike, camera: Camera, est: CameraEstimate | Non
         return ""
     given = float(np.mean(camera.offset))
     gap = est.offset - given
-    if gap <= 3.0 * est.offset_error or gap * est.gain <= 1.0:
+    # the dark level left matters once it stands above a pixel's noise at the background
+    background = max(float(np.median(np.asarray(frames))) - est.offset, 0.0) * est.gain
+    if gap <= 3.0 * est.offset_error or gap * est.gain <= max(1.0, np.sqrt(background)):
         return ""
     return (
         f"the stack's noise says the camera's offset is at least {est.offset:.1f} ADU (as "
