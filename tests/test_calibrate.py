@@ -1544,7 +1544,7 @@ def test_a_stack_clipped_below_its_type_maximum_is_named():
     """A 12-bit camera written to 16-bit files clips at 4095, far below the type's maximum
     (the default saturation): 142 pixel values at exactly 4095 in a rehearsal's stack went
     unremarked. The summary names the value and the --saturation that would use it."""
-    from sparseloc.calibrate_scan import clipping
+    from sparseloc.camera import clipping
 
     planes = np.arange(-600.0, 600.1, 50.0)
     xy = np.array([(2400.0, 2400.0), (7200.0, 2400.0), (2400.0, 7200.0), (7200.0, 7200.0)])

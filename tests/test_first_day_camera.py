@@ -904,3 +904,26 @@ def test_a_stack_of_one_bead_on_a_wide_field_gives_the_gain():
     assert est.method == "temporal"
     assert est.gain == pytest.approx(1.0, rel=0.25)
     assert camera_mismatch(movie, cam) == ""
+
+
+def test_localize_names_a_movie_clipped_below_its_type_maximum(tmp_path):
+    """A rehearsal's 12-bit movie in 16-bit files (261 pixel values at 4095): the fits took
+    the flat peaks at face value (axial RMSE 5.7 -> 19.4 nm) and only the generic misfit
+    warning spoke. localize now names the value; an unclipped movie gets no such note."""
+    from sparseloc.io.tiff import write_tiff
+    from sparseloc.psf import make_psf
+    from sparseloc.simulate import simulate
+
+    sim = simulate(make_psf("astig"), n_frames=3, shape=(48, 48), pixel_size=100.0,
+                   density=0.5, photons=(20000.0, 40000.0), seed=2)  # fmt: skip
+    top = int(np.percentile(sim.movie, 99.8))
+    for name, movie, noted in (
+        ("clip", np.minimum(sim.movie, top), True),
+        ("raw", sim.movie, False),
+    ):
+        tif = write_tiff(tmp_path / f"{name}.tif", movie.astype(np.uint16), pixel_size=100.0)
+        res = run("localize", tif, "-o", tmp_path / f"{name}.parquet", "--psf", "astig",
+                  "--offset", 100, "--frames", "0:1", "--workers", 1)  # fmt: skip
+        assert res.exit_code == 0, res.output
+        said = f"pixel values of the movie sit at exactly {top} ADU" in res.output
+        assert said is noted, res.output

@@ -17,14 +17,13 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
-from .camera import Camera, camera_from_options, to_photons
+from .camera import Camera, camera_from_options, clipping, to_photons
 from .defects import defective_pixels, replace_defects
 from .detect import background_trend
 from .units import check_pixel_size, check_z_step
 
 __all__ = [
     "BeadScan",
-    "clipping",
     "frame_background",
     "read_bead_positions",
     "read_scan",
@@ -238,22 +237,6 @@ def read_scan(
         data, data.mean(axis=0), zplanes, step, p, saturation, sat_frames, offset, gain, bg,
         int(defects.sum()), float(np.ptp(trend.mean(axis=0))), clipping(raw, saturation),
     )  # fmt: skip
-
-
-#: A stack whose largest value this many of its pixel values share was clipped there: counts
-#: of light spread over many values, and their maximum is seldom shared by more than a few.
-CLIP_TIES = 10
-
-
-def clipping(raw: NDArray, saturation: float | None) -> tuple[float, int] | None:
-    """Where a stack (ADU) looks clipped below the saturation given (or its integer type's
-    maximum): its largest value and how many pixel values sit there, at least
-    :data:`CLIP_TIES` (a 12-bit camera written to 16-bit files clips at 4095); else None."""
-    top = float(raw.max())
-    if saturation is not None and top >= saturation:
-        return None  # the saturation given (or the type's maximum) names these pixels
-    ties = int(np.count_nonzero(raw == top))
-    return (top, ties) if ties >= CLIP_TIES else None
 
 
 def _checked_stack(

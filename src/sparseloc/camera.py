@@ -41,6 +41,7 @@ __all__ = [
     "apply_noise",
     "camera_from_options",
     "camera_mismatch",
+    "clipping",
     "estimate_camera",
     "gain_mismatch",
     "noise_variance",
@@ -1045,6 +1046,23 @@ def _steady_line(frames: ArrayLike, camera: Camera) -> CameraEstimate | None:
     if not est.offset_is_bound or not (np.isfinite(est.gain) and est.gain > 0):
         return None
     return est
+
+
+#: Frames whose largest value this many of their pixel values share were clipped there: counts
+#: of light spread over many values, and their maximum is seldom shared by more than a few.
+CLIP_TIES = 10
+
+
+def clipping(raw: NDArray, saturation: float | None) -> tuple[float, int] | None:
+    """Where frames (ADU; a bead stack, a movie's sample) look clipped below the saturation
+    given (or their integer type's maximum): their largest value and how many pixel values
+    sit there, at least :data:`CLIP_TIES` (a 12-bit camera written to 16-bit files clips at
+    4095); else None."""
+    top = float(raw.max())
+    if saturation is not None and top >= saturation:
+        return None  # the saturation given (or the type's maximum) names these pixels
+    ties = int(np.count_nonzero(raw == top))
+    return (top, ties) if ties >= CLIP_TIES else None
 
 
 def photon_noise(camera: Camera | None) -> tuple[float, float]:

@@ -886,6 +886,15 @@ def localize(
                 "median of its neighbours",
                 err=True,
             )
+        if job.clipped is not None:
+            top, ties = job.clipped
+            typer.echo(
+                f"note: {ties} pixel values of the movie sit at exactly {top:g} ADU, its "
+                "largest: a camera that clips there (a 12-bit camera clips at 4095) leaves the "
+                "brightest emitters' peaks flat, and their fits misplace them, in z most; lower "
+                "the gain, EM gain or exposure where this is not what you expect",
+                err=True,
+            )
         wide = _wide_window_note(job.params)
         if wide:  # said before the work: it is the work that takes long
             typer.echo(f"note: {wide}", err=True)

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .camera import Camera, camera_from_options, noise_variance
+from .camera import Camera, camera_from_options, clipping, noise_variance
 from .engine import check_engine
 from .options import LOCALIZE_DEFAULTS, check_options
 from .psf import make_psf
@@ -328,6 +328,9 @@ class LocalizeJob:
     #: Defective (hot or stuck) pixels, replaced by their neighbours in every frame
     #: (:func:`find_defects`), or None where the movie shows none.
     defects: NDArray[np.bool_] | None = None
+    #: (ADU, values) where the movie's largest value looks clipped below its type's maximum
+    #: (:func:`~sparseloc.camera.clipping`), else None.
+    clipped: tuple[float, int] | None = None
 
 
 #: Built-in pupil models (:data:`sparseloc.psf.PSF_NAMES`), which take the pupil's optics.
@@ -415,21 +418,30 @@ DEFECT_FRAMES = 50
 DEFECT_PIXELS = 20_000_000
 
 
-def find_defects(movie: Any, camera: Camera, pixel_size: float) -> NDArray[np.bool_] | None:
+def spread_frames(movie: Any) -> NDArray:
+    """Up to :data:`DEFECT_FRAMES` frames (ADU) spread over the whole movie, whatever the
+    run's range: what the movie's checks read (a run of one frame finds what the whole
+    does)."""
+    n = len(movie)
+    per_frame = int(np.prod(movie.frames(0, 1).shape[-2:]))
+    count = max(1, min(DEFECT_FRAMES, n, DEFECT_PIXELS // per_frame))
+    picks = np.unique(np.linspace(0, n - 1, count).astype(int))
+    return np.concatenate([movie.frames(int(i), int(i) + 1) for i in picks])
+
+
+def find_defects(
+    movie: Any, camera: Camera, pixel_size: float, frames: NDArray | None = None
+) -> NDArray[np.bool_] | None:
     """The movie's defective (hot or stuck) pixels (:func:`~sparseloc.defects.defective_pixels`
-    of up to :data:`DEFECT_FRAMES` frames spread over the whole movie, whatever the run's
-    range: a run of one frame finds the same ones), or None where there are none."""
+    of its :func:`spread_frames`, or of ``frames`` where already read), or None where there
+    are none."""
     from .camera import photon_noise, to_photons
     from .defects import defective_pixels
 
-    n = len(movie)
-    first = movie.frames(0, 1)
-    per_frame = int(np.prod(first.shape[-2:]))
-    count = max(1, min(DEFECT_FRAMES, n, DEFECT_PIXELS // per_frame))
-    picks = np.unique(np.linspace(0, n - 1, count).astype(int))
-    photons = np.concatenate([to_photons(movie.frames(int(i), int(i) + 1), camera) for i in picks])
+    raw = spread_frames(movie) if frames is None else frames
+    photons = np.concatenate([to_photons(f[None], camera) for f in raw])
     factor, _ = photon_noise(camera)
-    read_var = read_variance_photons(camera, first.shape[-2:])
+    read_var = read_variance_photons(camera, raw.shape[-2:])
     mask = defective_pixels(photons, pixel_size, factor, read_var)
     return mask if mask.any() else None
 
@@ -562,7 +574,16 @@ def build_job(
         regrow=opts["regrow"],
         haze=opts["haze"],
     )
+    clipped = None
     if isinstance(defects, str):
-        defects = find_defects(movie, cam, px)
+        sample = spread_frames(movie)
+        defects = find_defects(movie, cam, px, sample)
+        clipped = clipping(sample, _type_maximum(sample))
     read_map = read_var if read_var.ndim == 2 else None
-    return LocalizeJob(model, cam, params, start, stop, read_map, defects)
+    return LocalizeJob(model, cam, params, start, stop, read_map, defects, clipped)
+
+
+def _type_maximum(frames: NDArray) -> float | None:
+    """The largest value an integer movie's type holds (its camera's saturation, unless it
+    clips below it), None for a float movie."""
+    return float(np.iinfo(frames.dtype).max) if frames.dtype.kind in "ui" else None
