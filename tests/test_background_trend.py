@@ -31,8 +31,22 @@ def test_a_flat_background_has_no_trend_whatever_lies_on_it():
 
 
 def test_light_over_the_whole_field_leaves_no_trend_to_read():
-    spots = [(r, c, 2e5) for r in range(8, 96, 16) for c in range(8, 96, 16)]
-    assert not background_trend(_frames(np.full((96, 96), 10.0), spots)).any()
+    """Beads every 12 px leave fewer than 6 blocks dark: the tilt beneath them is not read
+    (a fit through their blocks would read their light as one)."""
+    tilt = 10.0 + 15.0 * np.arange(96)[None, :] / 95 * np.ones((96, 1))
+    spots = [(r, c, 2e5) for r in range(6, 96, 12) for c in range(6, 96, 12)]
+    assert not background_trend(_frames(tilt, spots)).any()
+
+
+def test_a_read_variance_map_and_a_narrow_frame():
+    """An sCMOS read-variance map (photons^2 per pixel) is averaged per block; a frame 24 px
+    wide gets 6 blocks across, and its tilt along that side is read."""
+    tilt = 10.0 + 12.0 * np.arange(24)[None, :] / 23 * np.ones((96, 1))
+    frames = _frames(tilt, shape=(96, 24))
+    rv = np.full((96, 24), 2.0)
+    trend = background_trend(frames, read_variance=rv)
+    truth = tilt - tilt.mean()
+    assert np.abs(trend - truth).max() < 1.0, np.abs(trend - truth).max()
 
 
 def test_frames_too_small_for_blocks_have_no_trend():

@@ -1560,3 +1560,8 @@ def test_a_stack_clipped_below_its_type_maximum_is_named():
     cal = calibrate_beads(clipped, PX, 50.0, offset=OFFSET)
     text = "\n".join(calibration_summary(cal))
     assert "sit at exactly 4095 ADU" in text and "--saturation 4095" in text, text
+    # a pixel stuck at one value in every plane is a defect, not a clipped camera
+    stuck = sim.movie.copy()
+    stuck[:, 5, 80] = 65000
+    cal = calibrate_beads(stuck, PX, 50.0, offset=OFFSET)
+    assert cal.params["defective_pixels"] >= 1 and cal.params["clipped_values"] == 0

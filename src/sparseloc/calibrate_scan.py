@@ -235,7 +235,7 @@ def read_scan(
     data = photons - bg[:, None, None]
     return BeadScan(
         data, data.mean(axis=0), zplanes, step, p, saturation, sat_frames, offset, gain, bg,
-        int(defects.sum()), float(np.ptp(trend.mean(axis=0))), clipping(raw, saturation),
+        int(defects.sum()), float(np.ptp(trend.mean(axis=0))), clipping(sat_frames, saturation),
     )  # fmt: skip
 
 

@@ -578,7 +578,9 @@ def build_job(
     if isinstance(defects, str):
         sample = spread_frames(movie)
         defects = find_defects(movie, cam, px, sample)
-        clipped = clipping(sample, _type_maximum(sample))
+        # a pixel stuck at one value is a defect, not a clipped camera
+        unstuck = sample if defects is None else np.where(defects, sample.min(), sample)
+        clipped = clipping(unstuck, _type_maximum(sample))
     read_map = read_var if read_var.ndim == 2 else None
     return LocalizeJob(model, cam, params, start, stop, read_map, defects, clipped)
 

@@ -219,20 +219,21 @@ def background_trend(
     noise_factor: float = 1.0,
     read_variance: float | NDArray = 0.0,
 ) -> NDArray[np.float64]:
-    """The smooth change of each frame's background across the field, less its mean: an
-    illumination profile or a tilt under a bead scan, which a single level per frame leaves
-    in every bead's image as a ramp that moves its light's centroid.
+    """The smooth change of each frame's background across the field, less its mean: a tilt
+    under a bead scan, which a single level per frame leaves in every bead's image as a ramp
+    that moves its light's centroid.
 
-    Each frame's background is read per block (:data:`TREND_BLOCKS` a side; the
-    ``percentile`` of its pixels, corrected for the camera's spread as in
-    :func:`spatial_background`). A quadratic surface (a plane on fewer than 4 blocks a side,
-    nothing on fewer than 2; each only where an F test says the blocks call for it, so a
-    flat background gives no trend) is fitted to the blocks' mean over the frames, and
-    blocks above it by more than :data:`TREND_OUTLIER` of their standard deviations (from
-    the camera's noise) are left out and the surface fitted again (:data:`TREND_ROUNDS` at
-    most): light of the sample does not enter the trend, which it would bend towards it.
-    Each frame's trend is then fitted on the blocks left. Where too few blocks are left (a
-    field full of light) there is no trend to read.
+    Each frame's background is read per block (up to :data:`TREND_BLOCKS` a side, 4 pixels
+    at least; the ``percentile`` of its pixels, corrected for the camera's spread as in
+    :func:`spatial_background`). The blocks that hold the sample's light are found on the
+    blocks' mean over the frames by :func:`_unlit_blocks` (rounds of planes from the
+    blocks' median on, each leaving out the blocks :data:`TREND_OUTLIER` of their noise's
+    standard deviations above it); a plane, then a quadratic (4 blocks a side or more), is
+    admitted where an F test on the unlit blocks calls for it (:func:`_significant_terms`),
+    so a flat background gives no trend; and each frame's trend is fitted on those blocks.
+    Nothing on fewer than 2 blocks a side, or where fewer than 6 blocks are left unlit (a
+    field full of light). A background curved more than a noise's worth off a plane (an
+    illumination profile) leaves too few blocks unlit to read: no trend then.
 
     Parameters
     ----------
@@ -250,16 +251,15 @@ def background_trend(
     if arr.ndim != 3:
         raise ValueError(f"frames must be (n, rows, cols), got shape {arr.shape}")
     k, rows, cols = arr.shape
-    nb = min(TREND_BLOCKS, rows // 4, cols // 4)
-    if nb < 2:
+    nbr, nbc = min(TREND_BLOCKS, rows // 4), min(TREND_BLOCKS, cols // 4)
+    if min(nbr, nbc) < 2:
         return np.zeros_like(arr)
-    block = max(rows, cols) / nb
-    q = _block_statistic(arr, block, np.percentile, percentile)
+    redges, cedges = _edges(rows, nbr), _edges(cols, nbc)
+    q = _edge_statistic(arr, redges, cedges, np.percentile, percentile)
     rv = np.asarray(read_variance, dtype=np.float64)
     if rv.ndim:
-        rv = _block_statistic(np.broadcast_to(rv, arr.shape[1:])[None], block, np.mean)
+        rv = _edge_statistic(np.broadcast_to(rv, arr.shape[1:])[None], redges, cedges, np.mean)[0]
     lam = _mean_below_percentile(q, percentile, noise_factor, rv)
-    redges, cedges = _block_edges(rows, block), _block_edges(cols, block)
     u = (0.5 * (redges[:-1] + redges[1:]) - rows / 2) / rows
     v = (0.5 * (cedges[:-1] + cedges[1:]) - cols / 2) / cols
     degree = 2 if min(u.size, v.size) >= 4 else 1
@@ -362,6 +362,12 @@ def _block_statistic(arr: NDArray, block: int, statistic, *args) -> NDArray[np.f
     """``statistic(values, *args, axis=(1, 2))`` of each block of ``block`` pixels of each
     image of ``arr`` (K, rows, cols): shape (K, row blocks, column blocks)."""
     redges, cedges = _block_edges(arr.shape[1], block), _block_edges(arr.shape[2], block)
+    return _edge_statistic(arr, redges, cedges, statistic, *args)
+
+
+def _edge_statistic(arr: NDArray, redges, cedges, statistic, *args) -> NDArray[np.float64]:
+    """:func:`_block_statistic` of the blocks between row edges ``redges`` and column edges
+    ``cedges``."""
     q = np.empty((len(arr), len(redges) - 1, len(cedges) - 1))
     for i in range(q.shape[1]):
         for j in range(q.shape[2]):
