@@ -418,7 +418,7 @@ DEFECT_FRAMES = 50
 DEFECT_PIXELS = 20_000_000
 
 
-def spread_frames(movie: Any) -> NDArray:
+def _spread_frames(movie: Any) -> NDArray:
     """Up to :data:`DEFECT_FRAMES` frames (ADU) spread over the whole movie, whatever the
     run's range: what the movie's checks read (a run of one frame finds what the whole
     does)."""
@@ -433,12 +433,12 @@ def find_defects(
     movie: Any, camera: Camera, pixel_size: float, frames: NDArray | None = None
 ) -> NDArray[np.bool_] | None:
     """The movie's defective (hot or stuck) pixels (:func:`~sparseloc.defects.defective_pixels`
-    of its :func:`spread_frames`, or of ``frames`` where already read), or None where there
+    of its :func:`_spread_frames`, or of ``frames`` where already read), or None where there
     are none."""
     from .camera import photon_noise, to_photons
     from .defects import defective_pixels
 
-    raw = spread_frames(movie) if frames is None else frames
+    raw = _spread_frames(movie) if frames is None else frames
     photons = np.concatenate([to_photons(f[None], camera) for f in raw])
     factor, _ = photon_noise(camera)
     read_var = read_variance_photons(camera, raw.shape[-2:])
@@ -576,7 +576,7 @@ def build_job(
     )
     clipped = None
     if isinstance(defects, str):
-        sample = spread_frames(movie)
+        sample = _spread_frames(movie)
         defects = find_defects(movie, cam, px, sample)
         # a pixel stuck at one value is a defect, not a clipped camera
         unstuck = sample if defects is None else np.where(defects, sample.min(), sample)
