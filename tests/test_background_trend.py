@@ -47,7 +47,3 @@ def test_a_read_variance_map_and_a_narrow_frame():
     trend = background_trend(frames, read_variance=rv)
     truth = tilt - tilt.mean()
     assert np.abs(trend - truth).max() < 1.0, np.abs(trend - truth).max()
-
-
-def test_frames_too_small_for_blocks_have_no_trend():
-    assert not background_trend(np.ones((3, 6, 6))).any()

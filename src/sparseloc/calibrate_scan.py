@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
-from .camera import Camera, camera_from_options, clipping, to_photons
+from .camera import Camera, camera_from_options, clipping, to_photons, type_saturation
 from .defects import defective_pixels, replace_defects
 from .detect import background_trend
 from .units import check_pixel_size, check_z_step
@@ -233,9 +233,10 @@ def read_scan(
     if np.median(bg) < 0 and offset > 0:
         raise ValueError(f"the offset {offset:g} ADU is above most pixel values; check --offset")
     data = photons - bg[:, None, None]
+    clipped = clipping(sat_frames, saturation, defects)
     return BeadScan(
         data, data.mean(axis=0), zplanes, step, p, saturation, sat_frames, offset, gain, bg,
-        int(defects.sum()), float(np.ptp(trend.mean(axis=0))), clipping(sat_frames, saturation),
+        int(defects.sum()), float(np.ptp(trend.mean(axis=0))), clipped,
     )  # fmt: skip
 
 
@@ -260,8 +261,8 @@ def _checked_stack(
     p = check_pixel_size(pixel_size)
     if gain <= 0:
         raise ValueError(f"gain must be > 0 photons per ADU, got {gain}")
-    if saturation is None and raw.dtype.kind in "ui":
-        saturation = float(np.iinfo(raw.dtype).max)
+    if saturation is None:
+        saturation = type_saturation(raw)
     return raw, p, saturation
 
 

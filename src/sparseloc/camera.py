@@ -49,6 +49,7 @@ __all__ = [
     "photon_noise",
     "photon_transfer",
     "to_photons",
+    "type_saturation",
 ]
 
 #: Allowed values of :attr:`Camera.kind`.
@@ -1053,11 +1054,26 @@ def _steady_line(frames: ArrayLike, camera: Camera) -> CameraEstimate | None:
 CLIP_TIES = 10
 
 
-def clipping(raw: NDArray, saturation: float | None) -> tuple[float, int] | None:
-    """Where frames (ADU; a bead stack, a movie's sample) look clipped below the saturation
-    given (or their integer type's maximum): their largest value and how many pixel values
-    sit there, at least :data:`CLIP_TIES` (a 12-bit camera written to 16-bit files clips at
-    4095); else None."""
+def type_saturation(frames: NDArray) -> float | None:
+    """The saturation (ADU) that frames' integer type implies, its largest value; None for
+    floating-point frames."""
+    return float(np.iinfo(frames.dtype).max) if frames.dtype.kind in "ui" else None
+
+
+def clipping(
+    raw: NDArray, saturation: float | None = None, ignore: NDArray | None = None
+) -> tuple[float, int] | None:
+    """Where frames (ADU; a bead stack, a movie's sample) look clipped below ``saturation``
+    (default :func:`type_saturation`): their largest value and how many pixel values sit
+    there, at least :data:`CLIP_TIES` (a 12-bit camera written to 16-bit files clips at
+    4095); else None. Pixels ``ignore`` (H, W; defective ones: a pixel stuck at one value
+    is no clipped camera) are left out."""
+    if saturation is None:
+        saturation = type_saturation(raw)
+    if ignore is not None:
+        raw = raw[:, ~np.asarray(ignore, dtype=bool)]
+    if raw.size == 0:
+        return None
     top = float(raw.max())
     if saturation is not None and top >= saturation:
         return None  # the saturation given (or the type's maximum) names these pixels

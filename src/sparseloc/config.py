@@ -578,14 +578,6 @@ def build_job(
     if isinstance(defects, str):
         sample = _spread_frames(movie)
         defects = find_defects(movie, cam, px, sample)
-        # a pixel stuck at one value is a defect, not a clipped camera
-        unstuck = sample if defects is None else np.where(defects, sample.min(), sample)
-        clipped = clipping(unstuck, _type_maximum(sample))
+        clipped = clipping(sample, ignore=defects)
     read_map = read_var if read_var.ndim == 2 else None
     return LocalizeJob(model, cam, params, start, stop, read_map, defects, clipped)
-
-
-def _type_maximum(frames: NDArray) -> float | None:
-    """The largest value an integer movie's type holds (its camera's saturation, unless it
-    clips below it), None for a float movie."""
-    return float(np.iinfo(frames.dtype).max) if frames.dtype.kind in "ui" else None
