@@ -47,3 +47,48 @@ def test_a_read_variance_map_and_a_narrow_frame():
     trend = background_trend(frames, read_variance=rv)
     truth = tilt - tilt.mean()
     assert np.abs(trend - truth).max() < 1.0, np.abs(trend - truth).max()
+
+
+def _defocusing(level, spots, n=30, shape=(128, 128), seed=0):
+    """Poisson frames of a background ``level`` (H, W) with spots (row, col, photons) that
+    widen away from the middle frame, as beads defocus through a scan."""
+    rows, cols = np.indices(shape)
+    rng = np.random.default_rng(seed)
+    out = np.empty((n, *shape))
+    for k in range(n):
+        s = 1.5 + 4.0 * abs(k - (n - 1) / 2) / ((n - 1) / 2)
+        mean = np.broadcast_to(level, shape).astype(float).copy()
+        for r, c, a in spots:
+            mean += (
+                a * np.exp(-((rows - r) ** 2 + (cols - c) ** 2) / (2 * s * s)) / (2 * np.pi * s * s)
+            )
+        out[k] = rng.poisson(mean)
+    return out
+
+
+_GRID = [(r, c, 2e4) for r in (22, 64, 106) for c in (22, 64, 106)]
+
+
+def test_an_illumination_profile_no_plane_follows_is_read_from_the_steady_blocks():
+    """A Gaussian illumination (5 -> 40 photons/px) leaves too few blocks under any plane;
+    the blocks whose light stays through the scan (the beads' changes) carry its shape."""
+    rows, cols = np.indices((128, 128))
+    light = 5.0 + 35.0 * np.exp(-((rows - 64) ** 2 + (cols - 84) ** 2) / (2 * 60.0**2))
+    trend = background_trend(_defocusing(light, _GRID))
+    err = trend - (light - light.mean())
+    assert np.abs(err).max() < 2.5, np.abs(err).max()
+    assert np.sqrt(np.mean(err**2)) < 0.5
+
+
+def test_defocusing_beads_on_a_flat_background_read_no_profile():
+    assert not background_trend(_defocusing(np.full((128, 128), 10.0), _GRID, seed=1)).any()
+
+
+def test_the_steady_halos_of_a_crowded_flat_scan_are_no_illumination_profile(shared_data):
+    """storm-analysis's astigmatic bead scan (18 beads on a flat 10 photons/px): too little
+    of it is unlit for a plane, and the beads' halos that stay through the scan make its
+    steady blocks differ by 1-2 photons/px, bead by bead, not across the field."""
+    import tifffile
+
+    stack = tifffile.imread(shared_data / "storm_analysis_sim" / "astig" / "beads_zscan.tif")
+    assert not background_trend(stack.astype(float) - 100.0).any()

@@ -231,9 +231,10 @@ def background_trend(
     standard deviations above it); a plane, then a quadratic (4 blocks a side or more), is
     admitted where an F test on the unlit blocks calls for it (:func:`_significant_terms`),
     so a flat background gives no trend; and each frame's trend is fitted on those blocks.
-    Nothing on fewer than 2 blocks a side, or where fewer than 6 blocks are left unlit (a
-    field full of light). A background curved more than a noise's worth off a plane (an
-    illumination profile) leaves too few blocks unlit to read: no trend then.
+    Nothing on fewer than 2 blocks a side. Where fewer than 6 blocks are left unlit (a
+    background curved far off any plane, an illumination profile, or a field full of
+    light), the profile is read from the blocks whose light stays through the scan
+    (:func:`_curved_trend`), and is none where they show no broad one.
 
     Parameters
     ----------
@@ -270,6 +271,8 @@ def background_trend(
     var = noise_factor * np.maximum(mean, 1e-3) + np.broadcast_to(rv, lam.shape[1:]).ravel()
     sd = 1.4 * np.sqrt(var / (pixels * k))
     keep, terms = _unlit_blocks(basis, mean, sd)
+    if keep is None:  # the planes leave too little unlit: a curved profile, or light everywhere
+        return _curved_trend(arr, noise_factor, read_variance)
     if terms == 1:
         return np.zeros_like(arr)
     basis = basis[:, :terms]
@@ -322,7 +325,7 @@ def _significant_terms(basis: NDArray, values: NDArray) -> int:
     return chosen
 
 
-def _unlit_blocks(basis: NDArray, values: NDArray, sd: NDArray) -> tuple[NDArray, int]:
+def _unlit_blocks(basis: NDArray, values: NDArray, sd: NDArray) -> tuple[NDArray | None, int]:
     """The blocks (of ``values`` (N,), standard deviations ``sd``) that hold no light of
     the sample, and how many terms of ``basis`` (N, terms; a constant and a plane first)
     the trend through them needs (:func:`_significant_terms`). From the blocks' median on,
@@ -331,14 +334,14 @@ def _unlit_blocks(basis: NDArray, values: NDArray, sd: NDArray) -> tuple[NDArray
     would bend towards the sample's light and leave its fainter parts (a wide PSF's halo)
     in, and a curved one would swing where the unlit blocks leave gaps. A constant where
     fewer than twice the plane's terms would be left: light fills the field, and its trend
-    cannot be told from the sample's."""
+    cannot be told from the sample's: None then."""
     plane = basis[:, :3]
     fit = np.full(len(values), np.median(values))
     keep = np.zeros(len(values), dtype=bool)
     for _ in range(TREND_ROUNDS):
         unlit = values - fit <= TREND_OUTLIER * sd
         if unlit.sum() < 2 * plane.shape[1]:
-            return np.ones(len(values), dtype=bool), 1  # too little background to read
+            return None, 1  # too little background to read with planes
         if np.array_equal(unlit, keep):
             break
         keep = unlit
@@ -346,6 +349,80 @@ def _unlit_blocks(basis: NDArray, values: NDArray, sd: NDArray) -> tuple[NDArray
     if keep.sum() < 2 * basis.shape[1]:
         basis = plane  # too few blocks for a curvature
     return keep, _significant_terms(basis[keep], values[keep])
+
+
+#: Block side (pixels) over which :func:`_curved_trend` reads an illumination profile, and
+#: the most blocks a side (larger blocks on larger frames keep the spline's solve small).
+PROFILE_BLOCK, PROFILE_BLOCKS = 8, 32
+
+#: A profile is read only where a quadratic across the field holds this fraction of the
+#: steady blocks' spread: an illumination is broad, while the halos of beads that stay
+#: through a scan rise and fall from bead to bead (measured: 0.89-0.99 under illumination
+#: profiles, 0.20-0.53 on flat crowded scans; docs/benchmarks/background_trend.txt).
+PROFILE_BROAD = 0.8
+
+
+def _curved_trend(
+    arr: NDArray, noise_factor: float, read_variance: float | NDArray
+) -> NDArray[np.float64]:
+    """The trend of frames ``arr`` (K, rows, cols) whose background no plane follows (an
+    illumination profile), zero mean over each frame.
+
+    A bead's light changes through a scan (its image defocuses) while the illumination
+    stays: the blocks of :data:`PROFILE_BLOCK` pixels (at most :data:`PROFILE_BLOCKS` a
+    side) whose light is steady
+    (:func:`_steady_blocks`) hold the illumination, and the halos of beads that stay too.
+    Where at least 6 are steady, their levels differ more than their noise allows (a
+    chi-square test at :data:`TREND_ALPHA`) and a quadratic across the field holds
+    :data:`PROFILE_BROAD` of their spread, a smooth surface (a thin-plate spline) through
+    them is every frame's trend; else none (also where the illumination bleaches: its
+    blocks change with the frames).
+    """
+    from scipy.interpolate import RBFInterpolator
+    from scipy.stats import chi2
+
+    k, rows, cols = arr.shape
+    nbr, nbc = (int(np.clip(n // PROFILE_BLOCK, 2, PROFILE_BLOCKS)) for n in (rows, cols))
+    redges, cedges = _edges(rows, nbr), _edges(cols, nbc)
+    means = _edge_statistic(arr, redges, cedges, np.mean).reshape(k, -1)
+    pixels = np.outer(np.diff(redges), np.diff(cedges)).ravel()
+    rv = np.asarray(read_variance, dtype=np.float64)
+    if rv.ndim:
+        rv = _edge_statistic(np.broadcast_to(rv, arr.shape[1:])[None], redges, cedges, np.mean)
+        rv = rv.ravel()
+    var = (noise_factor * np.maximum(means, 1e-3) + rv) / pixels  # of each block mean
+    steady = _steady_blocks(means, var)
+    n = int(steady.sum())
+    values, spread = means.mean(axis=0)[steady], var[:, steady].mean(axis=0) / k
+    mean = np.average(values, weights=1.0 / spread) if n else 0.0
+    if n < 6 or np.sum((values - mean) ** 2 / spread) <= chi2.isf(TREND_ALPHA, n - 1):
+        return np.zeros_like(arr)
+    u = np.repeat(0.5 * (redges[:-1] + redges[1:]), nbc)[steady] / rows - 0.5
+    v = np.tile(0.5 * (cedges[:-1] + cedges[1:]), nbr)[steady] / cols - 0.5
+    quadratic = _surface_basis(u, v, 2).T
+    rest = values - quadratic @ np.linalg.lstsq(quadratic, values, rcond=None)[0]
+    if rest.var() > (1.0 - PROFILE_BROAD) * values.var():
+        return np.zeros_like(arr)
+    surface = RBFInterpolator(
+        np.column_stack([u, v]), values, kernel="thin_plate_spline", smoothing=1e-3 * n
+    )
+    r, c = np.indices((rows, cols))
+    grid = np.column_stack([(r.ravel() + 0.5) / rows - 0.5, (c.ravel() + 0.5) / cols - 0.5])
+    shape = surface(grid).reshape(rows, cols)
+    return np.broadcast_to(shape - shape.mean(), arr.shape).copy()
+
+
+def _steady_blocks(means: NDArray, var: NDArray) -> NDArray[np.bool_]:
+    """The blocks whose means ``means`` (K frames, N blocks; variances ``var``) stay at their
+    mean over the frames, less each frame's median change over the blocks (a background
+    level that rises or falls with the frames), within the noise: a chi-square test at
+    :data:`TREND_ALPHA`. Returns a mask (N,)."""
+    from scipy.stats import chi2
+
+    level = means.mean(axis=0)
+    shift = np.median(means - level, axis=1, keepdims=True)
+    change = ((means - level - shift) ** 2 / var).sum(axis=0)
+    return change < chi2.isf(TREND_ALPHA, len(means) - 1)
 
 
 def _block_edges(n: int, block: int) -> NDArray[np.int64]:
