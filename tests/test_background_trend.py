@@ -81,7 +81,19 @@ def test_an_illumination_profile_no_plane_follows_is_read_from_the_steady_blocks
 
 
 def test_defocusing_beads_on_a_flat_background_read_no_profile():
-    assert not background_trend(_defocusing(np.full((128, 128), 10.0), _GRID, seed=1)).any()
+    """Beads every 16 px leave no plane enough unlit blocks; the steady blocks between them
+    are flat."""
+    spots = [(r, c, 2e4) for r in range(8, 128, 16) for c in range(8, 128, 16)]
+    assert not background_trend(_defocusing(np.full((128, 128), 10.0), spots, seed=1)).any()
+
+
+def test_steady_blocks_on_one_side_of_the_field_draw_no_profile():
+    """Beads over the right 60 % of the field leave the steady blocks on its left: a spline
+    through them would extrapolate the profile across the beads (worse than none)."""
+    rows, cols = np.indices((128, 128))
+    light = 5.0 + 35.0 * np.exp(-((rows - 64) ** 2 + (cols - 40) ** 2) / (2 * 40.0**2))
+    spots = [(r, c, 2e4) for r in range(8, 128, 16) for c in range(56, 128, 12)]
+    assert not background_trend(_defocusing(light, spots)).any()
 
 
 def test_the_steady_halos_of_a_crowded_flat_scan_are_no_illumination_profile(shared_data):

@@ -233,8 +233,8 @@ def background_trend(
     so a flat background gives no trend; and each frame's trend is fitted on those blocks.
     Nothing on fewer than 2 blocks a side. Where fewer than 6 blocks are left unlit (a
     background curved far off any plane, an illumination profile, or a field full of
-    light), the profile is read from the blocks whose light stays through the scan
-    (:func:`_curved_trend`), and is none where they show no broad one.
+    light), one profile for every frame is read from the blocks whose light stays through
+    the scan (:func:`_curved_trend`), and none where they show no broad one.
 
     Parameters
     ----------
@@ -332,9 +332,9 @@ def _unlit_blocks(basis: NDArray, values: NDArray, sd: NDArray) -> tuple[NDArray
     rounds of planes fitted to the blocks the last fit left unlit (not
     :data:`TREND_OUTLIER` standard deviations above it): a first fit through every block
     would bend towards the sample's light and leave its fainter parts (a wide PSF's halo)
-    in, and a curved one would swing where the unlit blocks leave gaps. A constant where
-    fewer than twice the plane's terms would be left: light fills the field, and its trend
-    cannot be told from the sample's: None then."""
+    in, and a curved one would swing where the unlit blocks leave gaps. None (and 1) where
+    fewer than twice the plane's terms would be left: light fills the field, or no plane
+    follows the background."""
     plane = basis[:, :3]
     fit = np.full(len(values), np.median(values))
     keep = np.zeros(len(values), dtype=bool)
@@ -372,11 +372,12 @@ def _curved_trend(
     stays: the blocks of :data:`PROFILE_BLOCK` pixels (at most :data:`PROFILE_BLOCKS` a
     side) whose light is steady
     (:func:`_steady_blocks`) hold the illumination, and the halos of beads that stay too.
-    Where at least 6 are steady, their levels differ more than their noise allows (a
-    chi-square test at :data:`TREND_ALPHA`) and a quadratic across the field holds
-    :data:`PROFILE_BROAD` of their spread, a smooth surface (a thin-plate spline) through
-    them is every frame's trend; else none (also where the illumination bleaches: its
-    blocks change with the frames).
+    Where at least 12 are steady, in every quarter of the field, their levels differ more
+    than their noise allows (a chi-square test at :data:`TREND_ALPHA`) and a quadratic
+    across the field holds :data:`PROFILE_BROAD` of their spread (per degree of freedom), a
+    smooth surface (a thin-plate spline) through them is every frame's trend; else none.
+    An illumination that bleaches through the scan leaves only its dim blocks steady and is
+    read in part, the same for every frame.
     """
     from scipy.interpolate import RBFInterpolator
     from scipy.stats import chi2
@@ -393,22 +394,34 @@ def _curved_trend(
     var = (noise_factor * np.maximum(means, 1e-3) + rv) / pixels  # of each block mean
     steady = _steady_blocks(means, var)
     n = int(steady.sum())
-    values, spread = means.mean(axis=0)[steady], var[:, steady].mean(axis=0) / k
-    mean = np.average(values, weights=1.0 / spread) if n else 0.0
-    if n < 6 or np.sum((values - mean) ** 2 / spread) <= chi2.isf(TREND_ALPHA, n - 1):
-        return np.zeros_like(arr)
     u = np.repeat(0.5 * (redges[:-1] + redges[1:]), nbc)[steady] / rows - 0.5
     v = np.tile(0.5 * (cedges[:-1] + cedges[1:]), nbr)[steady] / cols - 0.5
+    # every quarter of the field holds steady blocks: the spline interpolates, not extrapolates
+    if n < 12 or len({(a > 0, b > 0) for a, b in zip(u, v, strict=True)}) < 4:
+        return np.zeros_like(arr)
+    values, spread = means.mean(axis=0)[steady], var[:, steady].mean(axis=0) / k
+    mean = np.average(values, weights=1.0 / spread)
+    if np.sum((values - mean) ** 2 / spread) <= chi2.isf(TREND_ALPHA, n - 1):
+        return np.zeros_like(arr)
     quadratic = _surface_basis(u, v, 2).T
     rest = values - quadratic @ np.linalg.lstsq(quadratic, values, rcond=None)[0]
-    if rest.var() > (1.0 - PROFILE_BROAD) * values.var():
+    if np.sum(rest**2) / (n - 6) > (1.0 - PROFILE_BROAD) * np.sum((values - values.mean()) ** 2) / (
+        n - 1
+    ):
         return np.zeros_like(arr)
-    surface = RBFInterpolator(
-        np.column_stack([u, v]), values, kernel="thin_plate_spline", smoothing=1e-3 * n
+    try:
+        surface = RBFInterpolator(
+            np.column_stack([u, v]), values, kernel="thin_plate_spline", smoothing=1e-3 * n
+        )
+    except np.linalg.LinAlgError:  # steady blocks on one line: no surface to draw
+        return np.zeros_like(arr)
+    # the surface at the centres of 4-pixel blocks, bilinear between them
+    fr, fc = _edges(rows, max(1, rows // 4)), _edges(cols, max(1, cols // 4))
+    cu, cv = np.meshgrid(
+        0.5 * (fr[:-1] + fr[1:]) / rows - 0.5, 0.5 * (fc[:-1] + fc[1:]) / cols - 0.5, indexing="ij"
     )
-    r, c = np.indices((rows, cols))
-    grid = np.column_stack([(r.ravel() + 0.5) / rows - 0.5, (c.ravel() + 0.5) / cols - 0.5])
-    shape = surface(grid).reshape(rows, cols)
+    fine = surface(np.column_stack([cu.ravel(), cv.ravel()])).reshape(1, *cu.shape)
+    shape = _block_interpolated(fine, (rows, cols))[0]
     return np.broadcast_to(shape - shape.mean(), arr.shape).copy()
 
 
