@@ -356,9 +356,10 @@ def _unlit_blocks(basis: NDArray, values: NDArray, sd: NDArray) -> tuple[NDArray
 PROFILE_BLOCK, PROFILE_BLOCKS = 8, 32
 
 #: A profile is read only where a quadratic across the field holds this fraction of the
-#: steady blocks' spread: an illumination is broad, while the halos of beads that stay
-#: through a scan rise and fall from bead to bead (measured: 0.89-0.99 under illumination
-#: profiles, 0.20-0.53 on flat crowded scans; docs/benchmarks/background_trend.txt).
+#: steady blocks' spread (per degree of freedom): an illumination is broad, while the halos
+#: of beads that stay through a scan rise and fall from bead to bead (measured: 0.83-0.99
+#: under illumination profiles, -0.09-0.41 on flat crowded scans;
+#: docs/benchmarks/background_trend.txt).
 PROFILE_BROAD = 0.8
 
 
