@@ -1533,8 +1533,8 @@ def test_a_background_tilted_across_the_scan_does_not_move_the_model_origin():
 
 def test_a_curved_illumination_profile_under_the_scan_is_read_and_subtracted():
     """A Gaussian illumination (5 -> 40 photons/px, sigma 8 um) under 9 beads: no plane
-    follows it, and without its trend 1 bead of 9 was used (the bump read as the beads'
-    light, an ROI of 59 px) and a movie localized with that model scored 2 %."""
+    follows it, and without its trend 2 beads of 9 were used (the bump read as the beads'
+    light, an ROI of 47 px) and the model's origin lay 231 nm off the beads."""
     rows, cols = np.indices((128, 128))
     r2 = ((cols + 0.5) * PX - 8400.0) ** 2 + ((rows + 0.5) * PX - 6400.0) ** 2
     light = 5.0 + 35.0 * np.exp(-r2 / (2 * 8000.0**2))
