@@ -451,6 +451,21 @@ def _fit_shift(
     return shift, float(a)
 
 
+#: Planes added at each end of a stack before it is shifted along z: the cubic spline's
+#: boundary condition reaches in by a factor 0.27 a plane, so six leave about 1e-4 of a
+#: plane's change at the ends.
+Z_PAD = 6
+
+
+def _z_extended(stack: NDArray[np.float64], n: int) -> NDArray[np.float64]:
+    """``stack`` (Z, H, W) with ``n`` planes added at each end, continued linearly from its
+    two end planes; (Z + 2n, H, W)."""
+    k = np.arange(1, n + 1, dtype=np.float64)[:, None, None]
+    below = stack[0] + k[::-1] * (stack[0] - stack[1])
+    above = stack[-1] + k * (stack[-1] - stack[-2])
+    return np.concatenate([below, stack, above])
+
+
 def _shift_stack(
     stack: NDArray[np.float64], shift_nm: NDArray[np.float64], pixel_size: float, z_step: float
 ) -> NDArray[np.float64]:
@@ -460,7 +475,13 @@ def _shift_stack(
     # data[k, r, c] ~ model(x0 + dx, y0 + dy, z_k + dz): an image displaced by +dx and seen
     # dz further along z. Aligned[k, r, c] = data[k - dz/step, r + dy/p, c + dx/p].
     s = (-shift_nm[2] / z_step, shift_nm[1] / pixel_size, shift_nm[0] / pixel_size)
-    return nd_shift(stack, [-v for v in s], order=3, mode="nearest")
+    if stack.shape[0] < 2:
+        return nd_shift(stack, [-v for v in s], order=3, mode="nearest")
+    # Beyond its first and last planes a bead's stack continues along its end slopes, so an
+    # end plane moved by a fraction of a step is extrapolated rather than repeated.
+    n = Z_PAD
+    moved = nd_shift(_z_extended(stack, n), [-v for v in s], order=3, mode="nearest")
+    return moved[n:-n]
 
 
 def calibrate_beads(
@@ -1626,12 +1647,20 @@ def _spline_model(
     return SplinePSF(grid, p, zplanes, centre=(cr * o, cc * o), name=name, oversample=o)
 
 
+#: How far (steps) a bead's stack may be extrapolated past its end planes (:func:`_z_extended`)
+#: for the model to keep them: there the linear extrapolation's error, d (d + step) f'' / 2
+#: at a distance d, is at most that of linear interpolation half-way between planes,
+#: step^2 f'' / 8.
+EXTRAPOLATE_STEPS = (np.sqrt(2.0) - 1.0) / 2.0
+
+
 def _model_planes(
     zplanes: NDArray[np.float64], max_dz: float, step: float
 ) -> tuple[slice, NDArray[np.float64]]:
     """The planes of the average the model keeps: those no bead's z shift pushed beyond its
-    data (all where too few would be left), and their z."""
-    trim = int(np.ceil(max_dz / step - 1e-6))
+    data by more than :data:`EXTRAPOLATE_STEPS` of a step (all where too few would be left),
+    and their z."""
+    trim = max(int(np.ceil(max_dz / step - EXTRAPOLATE_STEPS - 1e-6)), 0)
     if zplanes.size - 2 * trim < 4:
         trim = 0
     sl = slice(trim, zplanes.size - trim)
