@@ -54,7 +54,13 @@ from .calibrate_crowd import (
     plane_photons,
     repeated_light,
 )
-from .calibrate_error import MAX_MODEL_ERROR, bead_errors, bead_model_error, self_influence
+from .calibrate_error import (
+    EXTRAPOLATE_STEPS,
+    MAX_MODEL_ERROR,
+    bead_errors,
+    bead_model_error,
+    self_influence,
+)
 from .calibrate_oversample import (
     OVERSAMPLE,
     oversampled_model,
@@ -1647,19 +1653,13 @@ def _spline_model(
     return SplinePSF(grid, p, zplanes, centre=(cr * o, cc * o), name=name, oversample=o)
 
 
-#: How far (steps) a bead's stack may be extrapolated past its end planes (:func:`_z_extended`)
-#: for the model to keep them: there the linear extrapolation's error, d (d + step) f'' / 2
-#: at a distance d, is at most that of linear interpolation half-way between planes,
-#: step^2 f'' / 8.
-EXTRAPOLATE_STEPS = (np.sqrt(2.0) - 1.0) / 2.0
-
-
 def _model_planes(
     zplanes: NDArray[np.float64], max_dz: float, step: float
 ) -> tuple[slice, NDArray[np.float64]]:
     """The planes of the average the model keeps: those no bead's z shift pushed beyond its
-    data by more than :data:`EXTRAPOLATE_STEPS` of a step (all where too few would be left),
-    and their z."""
+    data (extrapolated along its end slopes, :func:`_z_extended`) by more than
+    :data:`~sparseloc.calibrate_error.EXTRAPOLATE_STEPS` of a step (all where too few would
+    be left), and their z."""
     trim = max(int(np.ceil(max_dz / step - EXTRAPOLATE_STEPS - 1e-6)), 0)
     if zplanes.size - 2 * trim < 4:
         trim = 0

@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import maximum_filter
 
-from .calibrate_error import plane_fits
+from .calibrate_error import plane_fits, served_planes
 from .psf.spline import SplinePSF
 
 __all__ = [
@@ -240,14 +240,12 @@ def neighbour_light(
     r0, c0, side = window
     p = model.pixel_size
     out = np.zeros((zplanes.size, side, side))
-    lo, hi = model.z_range
     for x, y, dz, photons in neighbours:
-        z = zplanes + dz
-        ok = (z >= lo) & (z <= hi)
-        if not ok.any():
+        ok, z = served_planes(zplanes + dz, model.z_range, zplanes)
+        if not ok.size:
             continue
-        n = int(ok.sum())
-        imgs = model.images(np.full(n, x - c0 * p), np.full(n, y - r0 * p), z[ok], (side, side), p)
+        n = ok.size
+        imgs = model.images(np.full(n, x - c0 * p), np.full(n, y - r0 * p), z, (side, side), p)
         out[ok] += imgs * photons[ok, None, None]
     return out
 

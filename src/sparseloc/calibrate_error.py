@@ -32,12 +32,14 @@ from scipy.ndimage import gaussian_filter
 from .psf.spline import SplinePSF
 
 __all__ = [
+    "EXTRAPOLATE_STEPS",
     "MAX_MODEL_ERROR",
     "ModelError",
     "bead_errors",
     "bead_model_error",
     "plane_fits",
     "self_influence",
+    "served_planes",
 ]
 
 #: A calibration whose model error exceeds this fraction of the signal is refused: its model
@@ -236,6 +238,28 @@ def _plane_model(
     return idx, scale[:, None, None] * imgs + offset[:, None, None]
 
 
+#: How far (steps) a bead's stack may be extrapolated past its end planes for the model to
+#: keep them (:func:`sparseloc.calibrate._model_planes`), and so how far beyond its range the
+#: model's end plane stands for a plane: there the linear extrapolation's error,
+#: d (d + step) f'' / 2 at a distance d, is at most that of linear interpolation half-way
+#: between planes, step^2 f'' / 8.
+EXTRAPOLATE_STEPS = (np.sqrt(2.0) - 1.0) / 2.0
+
+
+def served_planes(
+    z: NDArray[np.float64], z_range: tuple[float, float], zplanes: NDArray[np.float64]
+) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """The planes whose z (nm; a bead's planes ``zplanes`` moved by its z shift) a model of
+    ``z_range`` serves, and their z clipped into it: those inside the range, and those at
+    most :data:`EXTRAPOLATE_STEPS` of the planes' step beyond it, for which its end plane
+    stands (a bead whose height differs from the beads' mean by a fraction of a step)."""
+    lo, hi = z_range
+    step = float(np.median(np.diff(zplanes))) if zplanes.size > 1 else 0.0
+    reach = EXTRAPOLATE_STEPS * abs(step) + 1e-9
+    idx = np.flatnonzero((z >= lo - reach) & (z <= hi + reach))
+    return idx, np.clip(z[idx], lo, hi)
+
+
 def plane_fits(
     psf: SplinePSF,
     roi: NDArray[np.float64],
@@ -248,7 +272,8 @@ def plane_fits(
     Returns
     -------
     idx : ndarray of int
-        The planes of ``roi`` (Nz, R, R) whose shifted z lies in the model's range.
+        The planes of ``roi`` (Nz, R, R) whose shifted z the model serves
+        (:func:`served_planes`).
     images : ndarray, shape (len(idx), R, R)
         The model's unit-photon images on those planes.
     scale, offset : ndarray, shape (len(idx),)
@@ -256,15 +281,13 @@ def plane_fits(
     """
     _, h, w = roi.shape
     p = psf.pixel_size
-    z = zplanes + shift[2]
-    lo, hi = psf.z_range
-    idx = np.flatnonzero((z >= lo) & (z <= hi))
+    idx, z = served_planes(zplanes + shift[2], psf.z_range, zplanes)
     if idx.size == 0:
         return idx, np.zeros((0, h, w)), np.zeros(0), np.zeros(0)
     imgs = psf.images(
         np.full(idx.size, w * p / 2 + shift[0]),
         np.full(idx.size, h * p / 2 + shift[1]),
-        z[idx],
+        z,
         (h, w),
         p,
     )
