@@ -429,6 +429,7 @@ def _fit_shift(
     a = 1.0
     for _ in range(20):
         zz = z + shift[2]
+        # only planes inside the range: beyond it the model's z derivative says nothing
         ok = (zz >= zlo) & (zz <= zhi)
         if ok.sum() < 4:
             break
@@ -473,15 +474,20 @@ def _z_extended(stack: NDArray[np.float64], n: int) -> NDArray[np.float64]:
 
 
 def _shift_stack(
-    stack: NDArray[np.float64], shift_nm: NDArray[np.float64], pixel_size: float, z_step: float
+    stack: NDArray[np.float64],
+    shift_nm: NDArray[np.float64],
+    pixel_size: float,
+    z_step: float,
+    extend: bool = True,
 ) -> NDArray[np.float64]:
-    """Resample a bead stack so that its bead moves by ``-shift`` (x, y, z in nm)."""
+    """Resample a bead stack so that its bead moves by ``-shift`` (x, y, z in nm); beyond its
+    end planes continued along its end slopes (``extend``; a mask repeats its end planes)."""
     from scipy.ndimage import shift as nd_shift
 
     # data[k, r, c] ~ model(x0 + dx, y0 + dy, z_k + dz): an image displaced by +dx and seen
     # dz further along z. Aligned[k, r, c] = data[k - dz/step, r + dy/p, c + dx/p].
     s = (-shift_nm[2] / z_step, shift_nm[1] / pixel_size, shift_nm[0] / pixel_size)
-    if stack.shape[0] < 2:
+    if stack.shape[0] < 2 or not extend:
         return nd_shift(stack, [-v for v in s], order=3, mode="nearest")
     # Beyond its first and last planes a bead's stack continues along its end slopes, so an
     # end plane moved by a fraction of a step is extrapolated rather than repeated.
@@ -1396,7 +1402,7 @@ class _BeadStacks:
         out = []
         for i, k in zip(ids, keep, strict=True):
             s = self.shifts[i]
-            back = _shift_stack(k.astype(np.float64), -np.asarray(s), self.p, self.step)
+            back = _shift_stack(k.astype(np.float64), -np.asarray(s), self.p, self.step, False)
             out.append(back > 0.5)
         return out
 

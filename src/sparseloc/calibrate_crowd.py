@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import maximum_filter
 
-from .calibrate_error import plane_fits, served_planes
+from .calibrate_error import plane_fits, served_images, served_planes
 from .psf.spline import SplinePSF
 
 __all__ = [
@@ -241,11 +241,13 @@ def neighbour_light(
     p = model.pixel_size
     out = np.zeros((zplanes.size, side, side))
     for x, y, dz, photons in neighbours:
-        ok, z = served_planes(zplanes + dz, model.z_range, zplanes)
+        z = zplanes + dz
+        ok = served_planes(z, model.z_range, zplanes)
         if not ok.size:
             continue
         n = ok.size
-        imgs = model.images(np.full(n, x - c0 * p), np.full(n, y - r0 * p), z, (side, side), p)
+        xs, ys = np.full(n, x - c0 * p), np.full(n, y - r0 * p)
+        imgs = served_images(model, xs, ys, z[ok], (side, side))
         out[ok] += imgs * photons[ok, None, None]
     return out
 

@@ -39,6 +39,7 @@ __all__ = [
     "bead_model_error",
     "plane_fits",
     "self_influence",
+    "served_images",
     "served_planes",
 ]
 
@@ -94,7 +95,8 @@ def bead_model_error(
     shifts : list of ndarray, each shape (3,)
         Each bead's x, y, z (nm) relative to its ROI's centre and the planes' z.
     zplanes : ndarray, shape (Nz,)
-        The z (nm) of the ROI stacks' planes; only those inside the model's range are used.
+        The z (nm) of the ROI stacks' planes; only those the model serves are used
+        (:func:`served_planes`).
     background : ndarray, shape (Nz,)
         Each plane's frame background (photons/pixel), part of the noise variance.
     masks : list of ndarray of bool, each shape (Nz, R, R), optional
@@ -240,24 +242,55 @@ def _plane_model(
 
 #: How far (steps) a bead's stack may be extrapolated past its end planes for the model to
 #: keep them (:func:`sparseloc.calibrate._model_planes`), and so how far beyond its range the
-#: model's end plane stands for a plane: there the linear extrapolation's error,
-#: d (d + step) f'' / 2 at a distance d, is at most that of linear interpolation half-way
-#: between planes, step^2 f'' / 8.
+#: model serves a plane (:func:`served_planes`), both continued linearly from the two end
+#: planes: there the linear extrapolation's error, d (d + step) f'' / 2 at a distance d, is
+#: at most that of linear interpolation half-way between planes, step^2 f'' / 8 (the
+#: model's cubic interpolation inside its range errs less).
 EXTRAPOLATE_STEPS = (np.sqrt(2.0) - 1.0) / 2.0
 
 
 def served_planes(
     z: NDArray[np.float64], z_range: tuple[float, float], zplanes: NDArray[np.float64]
-) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+) -> NDArray[np.intp]:
     """The planes whose z (nm; a bead's planes ``zplanes`` moved by its z shift) a model of
-    ``z_range`` serves, and their z clipped into it: those inside the range, and those at
-    most :data:`EXTRAPOLATE_STEPS` of the planes' step beyond it, for which its end plane
-    stands (a bead whose height differs from the beads' mean by a fraction of a step)."""
+    ``z_range`` serves: those inside the range, and those at most :data:`EXTRAPOLATE_STEPS`
+    of the planes' step beyond it (a bead whose height differs from the beads' mean by a
+    fraction of a step), drawn by :func:`served_images`."""
     lo, hi = z_range
-    step = float(np.median(np.diff(zplanes))) if zplanes.size > 1 else 0.0
-    reach = EXTRAPOLATE_STEPS * abs(step) + 1e-9
-    idx = np.flatnonzero((z >= lo - reach) & (z <= hi + reach))
-    return idx, np.clip(z[idx], lo, hi)
+    reach = EXTRAPOLATE_STEPS * _step(zplanes) + 1e-9
+    return np.flatnonzero((z >= lo - reach) & (z <= hi + reach))
+
+
+def served_images(
+    psf: SplinePSF,
+    x: NDArray[np.float64],
+    y: NDArray[np.float64],
+    z: NDArray[np.float64],
+    shape: tuple[int, int],
+) -> NDArray[np.float64]:
+    """``psf.images`` of emitters at ``x``, ``y``, ``z`` (nm, (n,); z of
+    :func:`served_planes`) on ``shape`` pixels, continued linearly beyond the model's range
+    from its two end planes (as a bead's stack is, :func:`sparseloc.calibrate._z_extended`):
+    (n, rows, cols)."""
+    lo, hi = psf.z_range
+    p = psf.pixel_size
+    zc = np.clip(z, lo, hi)
+    imgs = psf.images(x, y, zc, shape, p)
+    past = np.flatnonzero(zc != z)
+    step = float(getattr(psf, "z_step", 0.0) or 0.0)
+    if past.size == 0 or step <= 0:
+        return imgs
+    inner = np.clip(zc[past] - np.sign(z[past] - zc[past]) * step, lo, hi)
+    gap = np.abs(zc[past] - inner)
+    t = np.where(gap > 0, np.abs(z[past] - zc[past]) / np.where(gap > 0, gap, 1.0), 0.0)
+    t = t[:, None, None]
+    imgs[past] = (1.0 + t) * imgs[past] - t * psf.images(x[past], y[past], inner, shape, p)
+    return imgs
+
+
+def _step(zplanes: NDArray[np.float64]) -> float:
+    """The planes' step (nm; 0 for one plane)."""
+    return abs(float(np.median(np.diff(zplanes)))) if zplanes.size > 1 else 0.0
 
 
 def plane_fits(
@@ -281,15 +314,16 @@ def plane_fits(
     """
     _, h, w = roi.shape
     p = psf.pixel_size
-    idx, z = served_planes(zplanes + shift[2], psf.z_range, zplanes)
+    z = zplanes + shift[2]
+    idx = served_planes(z, psf.z_range, zplanes)
     if idx.size == 0:
         return idx, np.zeros((0, h, w)), np.zeros(0), np.zeros(0)
-    imgs = psf.images(
+    imgs = served_images(
+        psf,
         np.full(idx.size, w * p / 2 + shift[0]),
         np.full(idx.size, h * p / 2 + shift[1]),
-        z,
+        z[idx],
         (h, w),
-        p,
     )
     scale, offset = np.zeros(idx.size), np.zeros(idx.size)
     for j, (k, m) in enumerate(zip(idx, imgs, strict=True)):
