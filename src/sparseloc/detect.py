@@ -194,10 +194,9 @@ def spatial_background(
     arr = np.asarray(frame, dtype=np.float64)
     if arr.ndim != 2:
         raise ValueError(f"frame must be 2-D, got shape {arr.shape}")
-    q = _block_statistic(arr[None], block, np.percentile, percentile)
-    rv = np.asarray(read_variance, dtype=np.float64)
-    if rv.ndim:
-        rv = _block_statistic(np.broadcast_to(rv, arr.shape)[None], block, np.mean)
+    redges, cedges = _block_edges(arr.shape[0], block), _block_edges(arr.shape[1], block)
+    q = _edge_statistic(arr[None], redges, cedges, np.percentile, percentile)
+    rv = _block_read_variance(read_variance, arr.shape, redges, cedges)
     lam = _mean_below_percentile(q, percentile, noise_factor, rv)
     bg = _block_interpolated(lam, arr.shape)[0]
     return ndi.gaussian_filter(bg, smooth) if smooth > 0 else bg
@@ -257,9 +256,7 @@ def background_trend(
         return np.zeros_like(arr)
     redges, cedges = _edges(rows, nbr), _edges(cols, nbc)
     q = _edge_statistic(arr, redges, cedges, np.percentile, percentile)
-    rv = np.asarray(read_variance, dtype=np.float64)
-    if rv.ndim:
-        rv = _edge_statistic(np.broadcast_to(rv, arr.shape[1:])[None], redges, cedges, np.mean)[0]
+    rv = _block_read_variance(read_variance, arr.shape[1:], redges, cedges)
     lam = _mean_below_percentile(q, percentile, noise_factor, rv)
     u = (0.5 * (redges[:-1] + redges[1:]) - rows / 2) / rows
     v = (0.5 * (cedges[:-1] + cedges[1:]) - cols / 2) / cols
@@ -388,10 +385,7 @@ def _curved_trend(
     redges, cedges = _edges(rows, nbr), _edges(cols, nbc)
     means = _edge_statistic(arr, redges, cedges, np.mean).reshape(k, -1)
     pixels = np.outer(np.diff(redges), np.diff(cedges)).ravel()
-    rv = np.asarray(read_variance, dtype=np.float64)
-    if rv.ndim:
-        rv = _edge_statistic(np.broadcast_to(rv, arr.shape[1:])[None], redges, cedges, np.mean)
-        rv = rv.ravel()
+    rv = np.ravel(_block_read_variance(read_variance, arr.shape[1:], redges, cedges))
     var = (noise_factor * np.maximum(means, 1e-3) + rv) / pixels  # of each block mean
     steady = _steady_blocks(means, var)
     n = int(steady.sum())
@@ -465,6 +459,18 @@ def _edge_statistic(arr: NDArray, redges, cedges, statistic, *args) -> NDArray[n
             part = arr[:, redges[i] : redges[i + 1], cedges[j] : cedges[j + 1]]
             q[:, i, j] = statistic(part, *args, axis=(1, 2))
     return q
+
+
+def _block_read_variance(
+    read_variance: float | NDArray, shape: tuple[int, int], redges: NDArray, cedges: NDArray
+) -> NDArray[np.float64]:
+    """A read-variance map (photons^2; a scalar or broadcast to ``shape``) averaged over each
+    block between row edges ``redges`` and column edges ``cedges``: (row blocks, column
+    blocks), or the scalar as given."""
+    rv = np.asarray(read_variance, dtype=np.float64)
+    if not rv.ndim:
+        return rv
+    return _edge_statistic(np.broadcast_to(rv, shape)[None], redges, cedges, np.mean)[0]
 
 
 def _interpolation_matrix(n: int, nb: int) -> NDArray[np.float64]:
