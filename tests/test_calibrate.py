@@ -215,6 +215,9 @@ def test_model_keeps_every_plane_of_beads_at_one_height(model):
     spread = cal.params["bead_height_spread_nm"]
     assert 0 < spread < 0.2 * Z_STEP, spread  # measured 0.48 nm
     assert cal.z[0] == ZP[0] and cal.z[-1] == ZP[-1]
+    from sparseloc.calibrate_output import calibration_summary
+
+    assert "mean height" not in "\n".join(calibration_summary(cal))  # no plane was dropped
     # the three planes at each end against the true model (measured min NCC 0.9998)
     rows = cal.average.shape[1]
     ends = np.r_[cal.z[:3], cal.z[-3:]]

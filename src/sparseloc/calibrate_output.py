@@ -80,11 +80,11 @@ def calibration_summary(
         )
     scan = cal.params.get("scan_z_range_nm")
     spread = cal.params.get("bead_height_spread_nm", 0.0)
-    if scan is not None and spread >= cal.params["z_step_nm"]:
+    if scan is not None and (cal.z[0] > scan[0] + 1e-6 or cal.z[-1] < scan[-1] - 1e-6):
         lines.append(
             f"  the beads lie up to {spread:.0f} nm above or below "
             "their mean height (a tilted or uneven slide): the model keeps the planes every "
-            "bead's data covers, "
+            "bead's data covers to within a fifth of a step, "
             f"z {cal.z[0]:.0f}..{cal.z[-1]:.0f} nm of the scan's {scan[0]:.0f}..{scan[-1]:.0f}"
         )
     trend, level = cal.params.get("background_trend", 0.0), cal.params.get("background", 0.0)
