@@ -19,6 +19,10 @@ Usage::
     python benchmarks/calibration_layouts.py optics --psfs astig,dh --work /tmp/opt
     python benchmarks/calibration_layouts.py optics --psfs dh --pixel-sizes 100 \
         --cameras ideal --bead-photons 2000 --work /tmp/dim
+    python benchmarks/calibration_layouts.py optics --psfs astig,dh --pixel-sizes 100 \
+        --cameras ideal --bead-margin 0 --bead-step 50 --work /tmp/ends
+
+(the last: a scan no deeper than the movie's emitters, whose model must keep its end planes)
 """
 
 from __future__ import annotations
@@ -195,9 +199,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument(
         "--bead-photons", type=float, default=BEAD_PHOTONS, help="optics: each bead's photons"
     )
+    ap.add_argument(
+        "--bead-margin", type=float, default=BEAD_MARGIN, help="nm the scan reaches past the PSF's"
+    )
+    ap.add_argument("--bead-step", type=float, default=BEAD_STEP, help="the scan's step (nm)")
     ap.add_argument("--work", type=Path, required=True, help="folder for stacks and movies")
     ap.add_argument("--out", type=Path, default=None, help="JSON (default: WORK/SWEEP.json)")
     args = ap.parse_args(argv)
+    global BEAD_MARGIN, BEAD_STEP  # the scan's shape, read by bead_stack and case
+    BEAD_MARGIN, BEAD_STEP = args.bead_margin, args.bead_step
     args.work.mkdir(parents=True, exist_ok=True)
     rows = sweep_layouts(args) if args.sweep == "layouts" else sweep_optics(args)
     table = pd.DataFrame(rows)
