@@ -189,6 +189,7 @@ def sweep_optics(args) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
+    global BEAD_MARGIN, BEAD_STEP  # the scan's shape, read by bead_stack and case
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("sweep", choices=["layouts", "optics"])
     ap.add_argument("--psf", default="dh", help="layouts: the PSF (dh, astig)")
@@ -206,7 +207,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--work", type=Path, required=True, help="folder for stacks and movies")
     ap.add_argument("--out", type=Path, default=None, help="JSON (default: WORK/SWEEP.json)")
     args = ap.parse_args(argv)
-    global BEAD_MARGIN, BEAD_STEP  # the scan's shape, read by bead_stack and case
     BEAD_MARGIN, BEAD_STEP = args.bead_margin, args.bead_step
     args.work.mkdir(parents=True, exist_ok=True)
     rows = sweep_layouts(args) if args.sweep == "layouts" else sweep_optics(args)
