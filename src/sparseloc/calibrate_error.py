@@ -270,8 +270,8 @@ def served_images(
 ) -> NDArray[np.float64]:
     """``psf.images`` of emitters at ``x``, ``y``, ``z`` (nm, (n,); z of
     :func:`served_planes`) on ``shape`` pixels, continued linearly beyond the model's range
-    from its two end planes (as a bead's stack is, :func:`sparseloc.calibrate._z_extended`):
-    (n, rows, cols)."""
+    from its two end planes (as a bead's stack is, :func:`sparseloc.calibrate._z_extended`;
+    a model without planes, a fitted pupil, repeats its end plane): (n, rows, cols)."""
     lo, hi = psf.z_range
     p = psf.pixel_size
     zc = np.clip(z, lo, hi)
