@@ -121,8 +121,8 @@ def _install_timers(acc: collections.Counter, inner: collections.Counter, fits: 
         dt = time.perf_counter() - t
         inner["compiled loop"] += dt
         inner["compiled fits"] += 1
-        # lm_fit(coef, geo, y, v, base, bg_basis, weight, theta0, k, ...) -> (..., n_iter)
-        fits.append((int(out[5]), int(a[2].size), int(a[8]), dt))
+        # lm_fit(coef, geo, y, v, keep, base, bg_basis, weight, theta0, k, ...) -> (..., n_iter)
+        fits.append((int(out[5]), int(a[2].size), int(a[9]), dt))
         return out
 
     _fit_numba.lm_fit = timed_loop

@@ -909,7 +909,10 @@ def test_a_stack_of_one_bead_on_a_wide_field_gives_the_gain():
 def test_localize_names_a_movie_clipped_below_its_type_maximum(tmp_path):
     """A rehearsal's 12-bit movie in 16-bit files (261 pixel values at 4095): the fits took
     the flat peaks at face value (axial RMSE 5.7 -> 19.4 nm) and only the generic misfit
-    warning spoke. localize now names the value; an unclipped movie gets no such note."""
+    warning spoke. localize now names the value; an unclipped movie gets no such note. The
+    fits leave out pixels at the clipping level (unclipped: at the type's maximum), or at
+    the level --saturation gives."""
+    from sparseloc.io.tables import read_table_and_metadata
     from sparseloc.io.tiff import write_tiff
     from sparseloc.psf import make_psf
     from sparseloc.simulate import simulate
@@ -927,3 +930,14 @@ def test_localize_names_a_movie_clipped_below_its_type_maximum(tmp_path):
         assert res.exit_code == 0, res.output
         said = f"pixel values of the movie sit at exactly {top} ADU" in res.output
         assert said is noted, res.output
+        _, meta = read_table_and_metadata(tmp_path / f"{name}.parquet")
+        # offset 100 ADU, gain 1 e-/ADU: the level in photons
+        assert meta["params"]["saturation"] == (top if noted else 65535) - 100.0
+    res = run("localize", tmp_path / "raw.tif", "-o", tmp_path / "given.parquet", "--psf", "astig",
+              "--offset", 100, "--frames", "0:1", "--workers", 1, "--saturation", 3000)  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert read_table_and_metadata(tmp_path / "given.parquet")[1]["params"]["saturation"] == 2900.0
+    res = run("localize", tmp_path / "raw.tif", "-o", tmp_path / "bad.parquet", "--psf", "astig",
+              "--offset", 100, "--saturation", -5)  # fmt: skip
+    assert res.exit_code != 0 and "--saturation must be a positive number" in res.output
+    assert not (tmp_path / "bad.parquet").exists()

@@ -793,7 +793,7 @@ def test_groups_left_empty_by_removals_are_not_counted(monkeypatch):
     )
     work = _FrameWork.__new__(_FrameWork)
     work.p = LocalizeParams(pixel_size=PX, method="frame")
-    work.solver = lambda frame, bg, start: fit
+    work.solver = lambda frame, bg, start, censored: fit
     rows, n_groups = work(0, np.zeros((8, 8)), np.zeros((8, 8)))
     assert n_groups == 2 and list(rows[0]["window_id"]) == [0, 1, 1]
     res = LocalizeResult(pd.DataFrame({"x_nm": np.zeros(k)}), 1, n_groups, 1.0)

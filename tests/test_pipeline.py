@@ -242,3 +242,36 @@ def test_the_run_summary_notes_emitters_beyond_the_z_range(capsys, z_max):
         assert "widen --z-min / --z-max (the model covers -600 to 600 nm)" in out
         full = {**ends, "z_min_nm": -600.0, "z_max_nm": 600.0}
         assert "a model over a deeper range" in _z_ends_note(full)
+
+
+def test_a_clipped_movie_is_localized_from_its_unclipped_pixels():
+    # Bright emitters whose peaks a camera clips: taken at face value the flat peaks give a
+    # false emitter and misplaced ones (measured: Jaccard 83.3 %, RMSE 10.7 / 10.8 nm);
+    # with the saturation given, the clipped pixels leave the fits and the table is the
+    # unclipped movie's (90.9 %, 2.0 / 4.4 nm against 2.0 / 4.6 nm).
+    from dataclasses import replace
+
+    from sparseloc.simulate import simulate
+
+    px = 100.0
+    model = make_psf("astig-gauss")
+    sim = simulate(model, scene="uniform", n_frames=2, shape=(40, 40), pixel_size=px,
+                   density=0.25, photons=(20000.0, 40000.0), background=10.0,
+                   seed=4)  # fmt: skip
+    frames = sim.movie.astype(float) - sim.camera.offset
+    clip = 1500.0
+    clipped = np.minimum(frames, clip)
+    assert np.count_nonzero(frames >= clip) >= 20
+    p = LocalizeParams(pixel_size=px)
+    runs = {
+        "whole": localize(frames, model, p, check=False),
+        "face value": localize(clipped, model, p, check=False),
+        "censored": localize(clipped, model, replace(p, saturation=clip), check=False),
+    }
+    ev = {k: evaluate(r.table, sim.truth) for k, r in runs.items()}
+    assert abs(ev["censored"].rmse_lateral - ev["whole"].rmse_lateral) < 1.0
+    assert abs(ev["censored"].rmse_axial - ev["whole"].rmse_axial) < 1.0
+    assert ev["censored"].jaccard == ev["whole"].jaccard
+    assert ev["face value"].rmse_lateral > 3 * ev["whole"].rmse_lateral
+    assert ev["censored"].jaccard > ev["face value"].jaccard
+    assert runs["censored"].metadata["params"]["saturation"] == clip

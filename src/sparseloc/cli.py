@@ -721,6 +721,14 @@ def localize(
             "(default off).",
         ),
     ] = None,
+    saturation: Annotated[
+        float | None,
+        typer.Option(
+            help="ADU at which the camera saturates: pixels at it are left out of the fits "
+            "(default: the level the movie looks clipped at, else its integer type's largest "
+            "value).",
+        ),
+    ] = None,
     relocate: Annotated[
         int | None,
         typer.Option(
@@ -837,6 +845,7 @@ def localize(
         "second_start": second_start,
         "regrow": regrow,
         "haze": haze,
+        "saturation": saturation,
         "relocate": relocate,
         "frame_schedule": frame_schedule,
         "background": background,
@@ -890,9 +899,10 @@ def localize(
             top, ties = job.clipped
             typer.echo(
                 f"note: {ties} pixel values of the movie sit at exactly {top:g} ADU, its "
-                "largest: a camera that clips there (a 12-bit camera clips at 4095) leaves the "
-                "brightest emitters' peaks flat, and their fits misplace them, in z most; lower "
-                "the gain, EM gain or exposure where this is not what you expect",
+                "largest: a camera that clips there (a 12-bit camera clips at 4095); the fits "
+                "leave such pixels out (--saturation sets the level), so the brightest emitters "
+                "are localized from their unclipped pixels, less precisely; lower the gain, EM "
+                "gain or exposure where this is not what you expect",
                 err=True,
             )
         wide = _wide_window_note(job.params)

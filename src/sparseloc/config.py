@@ -13,14 +13,21 @@ writes; the Python API builds :class:`LocalizeParams` directly.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .camera import Camera, camera_from_options, clipping, noise_variance
+from .camera import (
+    Camera,
+    camera_from_options,
+    clipping,
+    noise_variance,
+    to_photons,
+    type_saturation,
+)
 from .engine import check_engine
 from .options import LOCALIZE_DEFAULTS, check_options
 from .psf import make_psf
@@ -41,6 +48,7 @@ __all__ = [
     "frame_range",
     "noise_model",
     "read_variance_photons",
+    "saturation_photons",
     "window_for",
 ]
 
@@ -160,6 +168,12 @@ class LocalizeParams:
         lacks (a calibration's halo in dense frames) the data choose it too, which costs up
         to 1.5 points of Jaccard on some dense sets and gains on others, and each window with a
         slope along the shape is fitted twice (``docs/benchmarks/haze.txt``).
+    saturation : float or None
+        Photons at which a pixel reaches the camera's saturation (the lowest over the pixels
+        where an sCMOS camera's gain and offset vary): a pixel of a frame at or above it says
+        only that its light reached that level, and the frame solver's fits leave it out of
+        their likelihood (a clipped peak would otherwise flatten the fitted image and move
+        its z). None: no pixel is taken as saturated. The windowed methods do not use it.
     """
 
     pixel_size: float
@@ -186,6 +200,7 @@ class LocalizeParams:
     second_start: bool = True
     regrow: bool = True
     haze: bool = False
+    saturation: float | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -218,6 +233,10 @@ class LocalizeParams:
         if not (np.isfinite(self.read_variance) and self.read_variance >= 0):
             raise ValueError(f"read_variance must be >= 0 photons^2, got {self.read_variance}")
         object.__setattr__(self, "qe", check_qe(self.qe))  # frozen: as a float
+        if self.saturation is not None and not (
+            np.isfinite(self.saturation) and self.saturation > 0
+        ):
+            raise ValueError(f"saturation must be > 0 photons, got {self.saturation}")
         if self.read_variance > 0 and self.noise == "poisson":
             raise ValueError(
                 "read_variance applies to noise='scmos' or 'emccd', not 'poisson' (a "
@@ -579,5 +598,24 @@ def build_job(
         sample = _spread_frames(movie)
         defects = find_defects(movie, cam, px, sample)
         clipped = clipping(sample, ignore=defects)
+    sat = saturation_photons(opts["saturation"], clipped, movie.frames(start, start + 1), cam)
+    params = replace(params, saturation=sat)
     read_map = read_var if read_var.ndim == 2 else None
     return LocalizeJob(model, cam, params, start, stop, read_map, defects, clipped)
+
+
+def saturation_photons(
+    given: float | None, clipped: tuple[float, int] | None, raw: NDArray, camera: Camera
+) -> float | None:
+    """The photons at which the movie's pixels reach the camera's saturation
+    (:attr:`LocalizeParams.saturation`): ``given`` ADU, else the level the movie looks
+    clipped at (``clipped``, :func:`~sparseloc.camera.clipping`), else its integer type's
+    largest value (``raw``: a frame in ADU), each in photons and the lowest over the pixels;
+    None for floating-point frames without a level given."""
+    if given is not None and not (np.isfinite(given) and given > 0):
+        raise ValueError(f"--saturation must be a positive number of ADU, got {given:g}")
+    adu = given if given is not None else clipped[0] if clipped else type_saturation(raw)
+    if adu is None:
+        return None
+    level = float(np.min(to_photons(np.full(np.shape(raw)[-2:], float(adu)), camera)))
+    return level if level > 0 else None

@@ -76,10 +76,12 @@ LOCALIZE_DEFAULTS: dict[str, Any] = {
     "overwrite": False,
     "relocate": None,  # LocalizeParams's default
     "frame_schedule": None,  # LocalizeParams's default
+    "saturation": None,  # the movie's clipping level, else its integer type's maximum (ADU)
 }
 
 _NUMBERS = ("pixel_size", "offset", "gain", "em_gain", "qe", "z_min", "z_max", "min_snr")
 _NUMBERS += ("n_sample", "focal_depth", "read_noise", "na", "wavelength", "mask_radius", "blur")
+_NUMBERS += ("saturation",)
 _WHOLE = ("window", "margin", "workers", "chunk_frames", "relocate")
 _FLAGS = ("refine", "second_start", "regrow", "haze", "overwrite")
 _TEXT = ("psf", "camera", "method", "background", "frames", "format", "engine", "scheduler")

@@ -61,7 +61,7 @@ from .solvers.frame_windows import background_shape, inside, light_pieces, sum_p
 from .solvers.halo import Halo, halo_of
 from .solvers.refine import LR_THRESHOLD, refine_solution
 from .solvers.two_tier import detection_match, detection_planes, solve_two_tier
-from .solvers.variance import noise_factor_of, read_variance_crop
+from .solvers.variance import PIXEL_MAPS, cropped_maps, noise_factor_of
 
 log = logging.getLogger(__name__)
 
@@ -375,9 +375,15 @@ class _FrameSolver:
             np.asarray(background, dtype=np.float64), self.templates.core_radius
         )
 
-    def fit_kwargs(self, read_variance: Any = None, shape: NDArray | None = None) -> dict:
+    def fit_kwargs(
+        self,
+        read_variance: Any = None,
+        shape: NDArray | None = None,
+        censored: NDArray | None = None,
+    ) -> dict:
         """Keywords of :func:`frame_fit` but the frame's own; the read variance is the run's
-        unless given (a crop's); ``shape``: the background's (:meth:`background_shape`)."""
+        unless given (a crop's); ``shape``: the background's (:meth:`background_shape`);
+        ``censored``: the frame's (or crop's) pixels at the camera's saturation."""
         p = self.p
         kw = dict(
             pixel_size=p.pixel_size,
@@ -394,26 +400,36 @@ class _FrameSolver:
             kw["read_variance"] = read_variance
         if shape is not None:
             kw["background_shape"] = shape
+        if censored is not None:
+            kw["censored"] = censored
         return kw
 
     def __call__(
-        self, frame: NDArray, background: NDArray, start: NDArray | None = None
+        self,
+        frame: NDArray,
+        background: NDArray,
+        start: NDArray | None = None,
+        censored: NDArray | None = None,
     ) -> FrameFit:
         """Solve one frame: by the run's schedule (:meth:`solve`), or the fits from ``start``
         (K, 4) if given. Where bright emitters' halos (:meth:`halo`) could be detected, the
         frame is solved again with them known (a spatial background estimated again from the
         frame less them). Where the background is the frame's own spatial
         estimate, then :meth:`residual_background` (without its search where ``start`` is
-        given)."""
-        fit = self.solved(frame, background, start)
+        given). ``censored`` (rows, cols; bool): pixels at the camera's saturation, left out
+        of every fit's likelihood, or None."""
+        if censored is not None and not np.any(censored):
+            censored = None
+        fit = self.solved(frame, background, start, censored=censored)
         halo = self.halo(fit, background)
         if halo is not None:
             if self.spatial:
                 background = _spatial_background_without(frame, halo, self.background_noise)
-            fit = self.solved(frame, background, start, halo)
+            fit = self.solved(frame, background, start, halo, censored)
         if not self.spatial:
             return fit
-        return self.residual_background(frame, fit, search=start is None, halo=halo)
+        search = start is None
+        return self.residual_background(frame, fit, search, halo=halo, censored=censored)
 
     def solved(
         self,
@@ -421,20 +437,26 @@ class _FrameSolver:
         background: NDArray,
         start: NDArray | None,
         fixed_light: NDArray | None = None,
+        censored: NDArray | None = None,
     ) -> FrameFit:
         """The frame's fit by the run's schedule, or from ``start`` (K, 4) if given, with the
-        light ``fixed_light`` (photons/pixel) known."""
+        light ``fixed_light`` (photons/pixel) known and the pixels ``censored`` left out."""
         shape = self.background_shape(background)
         if start is None:
-            return self.solve(frame, background, shape, fixed_light)
+            return self.solve(frame, background, shape, fixed_light, censored)
         emitters = Emitters.from_array(np.asarray(start, dtype=np.float64).reshape(-1, 4))
-        kw = self.fit_kwargs(shape=shape)
+        kw = self.fit_kwargs(shape=shape, censored=censored)
         return frame_fit(
             frame, self.model, emitters, background=background, fixed_light=fixed_light, **kw
         )
 
     def residual_background(
-        self, frame: NDArray, fit: FrameFit, search: bool = True, halo: NDArray | None = None
+        self,
+        frame: NDArray,
+        fit: FrameFit,
+        search: bool = True,
+        halo: NDArray | None = None,
+        censored: NDArray | None = None,
     ) -> FrameFit:
         """``fit`` refitted with the frame's spatial background estimated again from the frame
         less ``fit``'s light, from its emitters and those the pursuit finds in what that
@@ -447,7 +469,8 @@ class _FrameSolver:
         emitter's image sinks below the detection's threshold. Without the fitted light the
         same estimator sees the background (``docs/benchmarks/residual_background.txt``).
         The refit replaces ``fit`` without a likelihood comparison: the two are fits over
-        different backgrounds. ``search``: False refits ``fit``'s emitters alone.
+        different backgrounds. ``search``: False refits ``fit``'s emitters alone;
+        ``censored``: the frame's pixels at the camera's saturation (left out of the fits).
         """
         arr = fit.emitters.as_array().reshape(-1, 4)
         arr = arr[np.all(np.isfinite(arr), axis=1)]
@@ -461,7 +484,7 @@ class _FrameSolver:
         if search:
             arr = np.vstack([arr, self.start(f, seen).as_array().reshape(-1, 4)])
         emitters = Emitters.from_array(arr)
-        kw = self.fit_kwargs(shape=self.background_shape(background))
+        kw = self.fit_kwargs(shape=self.background_shape(background), censored=censored)
         return frame_fit(f, self.model, emitters, background=background, fixed_light=halo, **kw)
 
     def solve(
@@ -470,9 +493,11 @@ class _FrameSolver:
         background: NDArray,
         shape: NDArray | None,
         fixed_light: NDArray | None = None,
+        censored: NDArray | None = None,
     ) -> FrameFit:
         """The frame's fit by the run's schedule (``shape``: :meth:`background_shape`), with
-        the light ``fixed_light`` (photons/pixel) known."""
+        the light ``fixed_light`` (photons/pixel) known and the pixels ``censored`` left
+        out."""
         if self.p.frame_schedule in ("two-tier", "auto"):
             fit = solve_two_tier(
                 frame,
@@ -480,7 +505,7 @@ class _FrameSolver:
                 self.model,
                 self.templates,
                 pursuit=self.start,
-                fit_options=self.fit_kwargs(shape=shape),
+                fit_options=self.fit_kwargs(shape=shape, censored=censored),
                 min_snr=self.p.min_snr,
                 **self.background_noise,
                 cache=self.detection_cache,
@@ -490,7 +515,7 @@ class _FrameSolver:
             )
             if fit is not None:
                 return fit
-        return self.whole(frame, background, fixed_light, shape=shape)
+        return self.whole(frame, background, fixed_light, shape=shape, censored=censored)
 
     def whole(
         self,
@@ -499,19 +524,20 @@ class _FrameSolver:
         fixed_light: NDArray | None = None,
         read_variance: Any = None,
         shape: NDArray | None = None,
+        censored: NDArray | None = None,
     ) -> FrameFit:
         """The whole-frame solver on ``frame`` (or a crop of the frame, with its read
-        variance and background shape): the pursuit, the fits, the second start and the
-        regrown groups, with the light ``fixed_light`` (photons/pixel, the image's shape)
-        known."""
+        variance, background shape and censored pixels): the pursuit, the fits, the second
+        start and the regrown groups, with the light ``fixed_light`` (photons/pixel, the
+        image's shape) known."""
         seen = background if fixed_light is None else background + fixed_light
         start = self.start(frame, seen, read_variance)
-        kw = self.fit_kwargs(read_variance, shape)
+        kw = self.fit_kwargs(read_variance, shape, censored)
         fit = frame_fit(
             frame, self.model, start, background=background, fixed_light=fixed_light, **kw
         )
         if self.l1 is not None:
-            fit = self.second(frame, background, fit, fixed_light, read_variance, shape)
+            fit = self.second(frame, background, fit, fixed_light, kw)
         if self.p.regrow and self.p.refine:  # its growth is the count selection's
             fit = self.regrown(frame, background, fit, fixed_light, kw)
         return fit
@@ -522,14 +548,13 @@ class _FrameSolver:
         background: NDArray,
         first: FrameFit,
         fixed_light: NDArray | None = None,
-        read_variance: Any = None,
-        shape: NDArray | None = None,
+        kw: dict | None = None,
     ) -> FrameFit:
         """``first`` with each region where a fit from the L1 deconvolution's peaks places
         the emitters otherwise, and is likelier, replaced by that fit. Only the parts of the
         frame where ``first`` has groups of two or more are solved again (with a template's
         reach around them, the light of ``first``'s other emitters and ``fixed_light``
-        known)."""
+        known). ``kw``: :meth:`fit_kwargs` of the frame (or crop), the run's by default."""
         p = self.p
         px = p.pixel_size
         margin = self.templates.images.shape[-1] // 2
@@ -539,7 +564,7 @@ class _FrameSolver:
         arr = first.emitters.as_array().reshape(-1, 4)
         redone = np.zeros(len(arr), bool)
         second = None
-        kw = self.fit_kwargs(read_variance, shape)
+        kw = self.fit_kwargs() if kw is None else kw
         for box in boxes:
             mine = inside(arr, box, px)
             part = self.crop_fit(frame, background, box, arr[~mine], arr[mine], fixed_light, kw)
@@ -558,7 +583,7 @@ class _FrameSolver:
         """The keywords :func:`~sparseloc.solvers.frame_compose.likelier_per_region` and
         :func:`~sparseloc.solvers.frame_grow.grown_groups` share; ``kw``: :meth:`fit_kwargs`
         of the frame (or crop)."""
-        keys = ("noise", "qe", "read_variance", "background_shape")
+        keys = ("noise", "qe", *PIXEL_MAPS)
         return dict(
             pixel_size=self.p.pixel_size,
             group_distance=self.group_distance,
@@ -621,10 +646,7 @@ class _FrameSolver:
         )
         if fixed_light is not None:
             light = light + fixed_light[r0:r1, c0:c1]
-        kw = dict(kw)
-        for key in ("read_variance", "background_shape"):
-            if key in kw:
-                kw[key] = read_variance_crop(kw[key], np.shape(frame), box)
+        kw = cropped_maps(kw, np.shape(frame), box)
         starts = tiled_l1_starts(
             crop - light,
             bg,
@@ -1265,7 +1287,7 @@ class _FrameWork:
         ``start`` (K, 4) when one is given)."""
         p = self.p
         if p.method == "frame":
-            fit = self.solver(frame, bg, start)
+            fit = self.solver(frame, bg, start, censored_pixels(frame, p.saturation))
             # window ids: the group index here; localize() makes them unique over the movie
             rows = _frame_rows(fit, f, 0)
             labels, rows["window_id"] = np.unique(rows["window_id"], return_inverse=True)
@@ -1287,6 +1309,21 @@ class _FrameWork:
             window_id = f * len(self.tiling) + tile.index
             parts.append(_rows(sol, tile, f, window_id, p.pixel_size))
         return parts, len(todo)
+
+
+#: A pixel within this fraction of the saturation level is at it: the level and the frames
+#: are the same ADU converted to photons by the same arithmetic, and one ADU is a far larger
+#: step than this.
+SATURATION_TOLERANCE = 1e-9
+
+
+def censored_pixels(frame: NDArray, saturation: float | None) -> NDArray[np.bool_] | None:
+    """The pixels of ``frame`` (photons) at the camera's ``saturation`` (photons,
+    :attr:`LocalizeParams.saturation`), or None where none is or no level is known."""
+    if saturation is None:
+        return None
+    out = np.asarray(frame) >= saturation * (1.0 - SATURATION_TOLERANCE)
+    return out if out.any() else None
 
 
 def _frames_and_backgrounds(

@@ -95,7 +95,7 @@ def _model(coef, geo, theta, k, base, bg_basis, nb, img, der, derivs, mu):  # pr
 
 
 @_jit
-def _nll(mu, v, yv, weight):  # pragma: no cover - compiled
+def _nll(mu, v, yv, keep, weight):  # pragma: no cover - compiled
     s = 0.0
     rows, cols = mu.shape
     for r in range(rows):
@@ -103,7 +103,7 @@ def _nll(mu, v, yv, weight):  # pragma: no cover - compiled
             m = mu[r, c] + v[r, c]
             if not (m > 0.0) or not np.isfinite(m):
                 return np.inf
-            s += m - yv[r, c] * np.log(m)
+            s += keep[r, c] * (m - yv[r, c] * np.log(m))
     return weight * s
 
 
@@ -133,16 +133,17 @@ def _jacobian(theta, k, img, der, geo, bg_basis, nb, jac):  # pragma: no cover -
 
 
 @_jit
-def _scoring(mu, v, y_v, weight, jac, inv_mu, g_pix, wj, grad, fisher):  # pragma: no cover
-    """Gradient of the weighted negative log-likelihood and the Fisher matrix, in place."""
+def _scoring(mu, v, y_v, keep, weight, jac, inv_mu, g_pix, wj, grad, fisher):  # pragma: no cover
+    """Gradient of the weighted negative log-likelihood and the Fisher matrix, in place
+    (``keep``: each pixel's weight, 0 where censored)."""
     cols = mu.shape[1]
     npar, npix = jac.shape
     for p in range(npix):
         r = p // cols
         c = p - r * cols
         muv = mu[r, c] + v[r, c]
-        inv_mu[p] = 1.0 / muv
-        g_pix[p] = 1.0 - y_v[r, c] / muv
+        inv_mu[p] = keep[r, c] / muv
+        g_pix[p] = keep[r, c] * (1.0 - y_v[r, c] / muv)
     # parameter-major loops: contiguous rows of jac (vectorised)
     for q in range(npar):
         acc = 0.0
@@ -192,7 +193,8 @@ def _scoring(mu, v, y_v, weight, jac, inv_mu, g_pix, wj, grad, fisher):  # pragm
 
 # The fit's state is one tuple (built by lm_fit), by index: 0 coef, 1 geo, 2 y_v, 3 v, 4 base,
 # 5 bg_basis, 6 weight, 7 k, 8 lo, 9 hi, 10 min_bg, 11 theta, 12 trial, 13 img, 14 der, 15 cur,
-# 16 mu, 17 mu_t, 18 jac, 19 grad, 20 fisher, 21 a, 22 step, 23 inv_mu, 24 g_pix, 25 wj. The
+# 16 mu, 17 mu_t, 18 jac, 19 grad, 20 fisher, 21 a, 22 step, 23 inv_mu, 24 g_pix, 25 wj,
+# 26 keep (each pixel's weight in the likelihood, 0 where censored). The
 # images and derivatives are double-buffered (``cur[0]`` is the current one): trial steps are
 # rendered with their derivatives, so an accepted step (most are) is not rendered again.
 
@@ -204,7 +206,7 @@ def _evaluate(s):  # pragma: no cover - compiled
     nb = bg_basis.shape[0]
     c = cur[0]
     _model(coef, geo, theta, k, base, bg_basis, nb, img[c], der[c], True, mu)
-    f = _nll(mu, v, y_v, weight)
+    f = _nll(mu, v, y_v, s[26], weight)
     _jacobian(theta, k, img[c], der[c], geo, bg_basis, nb, jac)
     return f
 
@@ -213,7 +215,7 @@ def _evaluate(s):  # pragma: no cover - compiled
 def _score(s):  # pragma: no cover - compiled
     y_v, v, weight = s[2], s[3], s[6]
     mu, jac, grad, fisher, inv_mu, g_pix, wj = s[16], s[18], s[19], s[20], s[23], s[24], s[25]
-    _scoring(mu, v, y_v, weight, jac, inv_mu, g_pix, wj, grad, fisher)
+    _scoring(mu, v, y_v, s[26], weight, jac, inv_mu, g_pix, wj, grad, fisher)
 
 
 @_jit
@@ -229,7 +231,7 @@ def _trial(s, lam):  # pragma: no cover - compiled
     _clamp(trial, k, lo, hi, min_bg)
     t = 1 - cur[0]
     _model(coef, geo, trial, k, base, bg_basis, bg_basis.shape[0], img[t], der[t], True, mu_t)
-    return _nll(mu_t, v, y_v, weight)
+    return _nll(mu_t, v, y_v, s[26], weight)
 
 
 @_jit
@@ -246,10 +248,12 @@ def _accept(s):  # pragma: no cover - compiled
 _levenberg_marquardt = _jit(lm.make_levenberg_marquardt(_evaluate, _score, _trial, _accept))
 
 
-def lm_fit(coef, geo, y_v, v, base, bg_basis, weight, theta0, k, lo, hi, min_bg, max_iter, tol):
+def lm_fit(coef, geo, y_v, v, keep, base, bg_basis, weight, theta0, k, lo, hi, min_bg, max_iter,
+           tol):  # fmt: skip
     """The Levenberg-Marquardt fit of ``k`` emitters on a spline table (arrays as float64,
-    C-contiguous; ``geo``: :meth:`SplinePSF.node_geometry`); returns theta, mu, f, the Fisher
-    matrix at theta, converged, n_iter."""
+    C-contiguous; ``geo``: :meth:`SplinePSF.node_geometry`; ``keep``: each pixel's weight in
+    the likelihood, 0 where censored); returns theta, mu, f, the Fisher matrix at theta,
+    converged, n_iter."""
     rows, cols = y_v.shape
     npar = theta0.shape[0]
     kk = max(k, 1)
@@ -260,6 +264,7 @@ def lm_fit(coef, geo, y_v, v, base, bg_basis, weight, theta0, k, lo, hi, min_bg,
         np.empty((rows, cols)), np.empty((rows, cols)), np.empty((npar, rows * cols)),
         np.empty(npar), np.empty((npar, npar)), np.empty((npar, npar)), np.empty(npar),
         np.empty(rows * cols), np.empty(rows * cols), np.empty((npar, rows * cols)),
+        np.ascontiguousarray(keep, dtype=np.float64),
     )  # fmt: skip
     f, converged, n_iter = _levenberg_marquardt(state, int(max_iter), float(tol))
     return state[11], state[16], f, state[20], converged, n_iter
@@ -275,6 +280,7 @@ def warm_up():
         geo,
         np.full((2, 2), 5.0),
         np.zeros((2, 2)),
+        np.ones((2, 2)),
         np.zeros((2, 2)),
         np.ones((1, 2, 2)),
         1.0,

@@ -50,7 +50,7 @@ from .mle import LikelihoodProblem, check_qe, fit_emitters
 from .mp import MIN_PHOTONS
 from .refine import LR_THRESHOLD, fit_with_count_selection
 from .relocate import RELOCATE, RELOCATE_AFTER, relocation_pass
-from .variance import read_variance_crop
+from .variance import cropped_maps
 
 log = logging.getLogger(__name__)
 
@@ -208,10 +208,11 @@ def _response(model: PSFModel, y: NDArray, fit, kw: dict) -> NDArray[np.float64]
         kw.get("offset"),
         kw.get("qe", 1.0),
         fit.background_shape,
+        censored=kw.get("censored"),
     )
     theta = np.concatenate([fit.emitters.as_array().ravel(), fit.background])
     jac = prob.jacobian(theta)
-    wj = prob.weight * jac / (fit.model_image + prob.v).ravel()
+    wj = prob.weight * jac * (prob.keep / (fit.model_image + prob.v)).ravel()
     try:
         resp = -np.linalg.solve(prob.fisher(jac, fit.model_image), wj)
     except np.linalg.LinAlgError:
@@ -362,8 +363,9 @@ def frame_fit(
     rv = fit_kwargs.pop("read_variance", None)
     fixed = None if fixed_light is None else np.broadcast_to(fixed_light, f.shape)
     bg = np.broadcast_to(np.asarray(background, dtype=np.float64), f.shape)
-    if fit_kwargs.get("background_shape") is None:
-        fit_kwargs.pop("background_shape", None)
+    for key in ("background_shape", "censored"):
+        if fit_kwargs.get(key) is None:
+            fit_kwargs.pop(key, None)
     sweep = _Sweep(
         f,
         model,
@@ -506,9 +508,8 @@ class _Sweep:
             **self.fit_kwargs,
         )
         if self.rv is not None:
-            kw["read_variance"] = read_variance_crop(self.rv, self.f.shape, box)
-        if "background_shape" in kw:
-            kw["background_shape"] = read_variance_crop(kw["background_shape"], self.f.shape, box)
+            kw["read_variance"] = self.rv
+        kw = cropped_maps(kw, self.f.shape, box)
         start = Emitters.from_array(start_em)
         if o["count_selection"]:
             fit = fit_with_count_selection(

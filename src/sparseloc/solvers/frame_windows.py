@@ -7,7 +7,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..psf.base import PSFModel
-from .variance import read_variance_crop
+from .variance import cropped_maps
 
 __all__ = [
     "FLIP_MEMORY_NM",
@@ -318,12 +318,10 @@ def region_window(
 
 
 def window_kwargs(f, box, px, offset, background, fit_kwargs) -> dict:
-    """Keywords of :func:`fit_emitters` for a window of the frame; a read-variance map and
-    the background's shape in ``fit_kwargs`` (the frame's) are cropped to it."""
+    """Keywords of :func:`fit_emitters` for a window of the frame; the maps of
+    ``fit_kwargs`` (the frame's: read variance, background shape, censored pixels) are
+    cropped to it."""
     r0, _, c0, _ = box
-    kw = dict(fit_kwargs, pixel_size=px, origin=(c0 * px, r0 * px), offset=offset)
-    kw["background"] = background
-    for key in ("read_variance", "background_shape"):
-        if key in kw:
-            kw[key] = read_variance_crop(kw[key], f.shape, box)
+    kw = cropped_maps(fit_kwargs, f.shape, box)
+    kw.update(pixel_size=px, origin=(c0 * px, r0 * px), offset=offset, background=background)
     return kw

@@ -30,6 +30,10 @@ are modelled as ``w (y + v / w') ~ Poisson(w (mu + v / w'))`` with ``v / w' = w 
 ``y`` the variance ``mu / w + v``: ``F mu / qe`` of shot noise (``F`` = 2 behind EM gain, else 1)
 plus the read variance.
 
+Censored pixels (``censored``): a pixel at the camera's saturation says only that its light
+reached that level, not how far past it; it is left out of the likelihood (its terms carry
+the weight 0), so a bright emitter's clipped peak does not flatten its fitted image.
+
 Quantum efficiency (``qe``): a camera counts photoelectrons, ``e ~ Poisson(qe mu)``, and the
 frames hold ``e / qe`` photons, whose variance is ``mu / qe``, not ``mu``. The likelihood of
 the photoelectrons is ``qe`` times the Poisson objective in photons (times 1/2 for EMCCD), and
@@ -235,6 +239,15 @@ def check_read_variance(noise: str, read_variance: object) -> None:
         raise ValueError("read_variance is only used with noise='scmos' or 'emccd'")
 
 
+def censored_weights(censored: ArrayLike | None, shape: tuple[int, int]) -> NDArray[np.float64]:
+    """Each pixel's weight in the likelihood (rows, cols): 0 where ``censored`` (bool, a
+    window's), else 1."""
+    if censored is None:
+        return np.ones(shape)
+    c = np.broadcast_to(np.asarray(censored, dtype=bool), shape)
+    return np.where(c, 0.0, 1.0)
+
+
 def background_basis(
     shape: tuple[int, int], plane: bool, background_shape: ArrayLike | None = None
 ) -> list[NDArray[np.float64]]:
@@ -270,6 +283,7 @@ class LikelihoodProblem:
         offset=None,
         qe=1.0,
         background_shape=None,
+        censored=None,
     ):
         if noise not in NOISE_MODELS:
             raise ValueError(f"noise must be one of {', '.join(NOISE_MODELS)}; got {noise!r}")
@@ -290,6 +304,9 @@ class LikelihoodProblem:
             if np.any(self.v < 0):
                 raise ValueError("read_variance must be >= 0")
         self.yv = y + self.v
+        # 1 for each pixel the likelihood counts, 0 for a censored one (times 1.0 is exact:
+        # without censored pixels every sum is the plain one)
+        self.keep = censored_weights(censored, y.shape)
         # Known light that is not fitted (neighbours' emitters fitted elsewhere), photons/pixel.
         self.offset = 0.0 if offset is None else np.broadcast_to(np.asarray(offset, float), y.shape)
         rows, cols = y.shape
@@ -305,7 +322,7 @@ class LikelihoodProblem:
         # data-only constant so that the deviance is available: sum(y log y - y)
         yy = self.yv
         self._sat = float(
-            np.sum(np.where(yy > 0, yy * np.log(np.where(yy > 0, yy, 1.0)), 0.0) - yy)
+            np.sum(self.keep * (np.where(yy > 0, yy * np.log(np.where(yy > 0, yy, 1.0)), 0.0) - yy))
         )
 
     # theta = [x0, y0, z0, N0, x1, ..., b...]
@@ -331,7 +348,7 @@ class LikelihoodProblem:
         muv = mu + self.v
         if np.any(muv <= 0) or not np.all(np.isfinite(muv)):
             return np.inf
-        return float(self.weight * np.sum(muv - self.yv * np.log(muv)))
+        return float(self.weight * np.sum(self.keep * (muv - self.yv * np.log(muv))))
 
     def jacobian(self, theta):
         em, _ = self.split(theta)
@@ -347,7 +364,7 @@ class LikelihoodProblem:
 
     def fisher(self, jac, mu):
         muv = (mu + self.v).ravel()
-        return self.weight * (jac / muv) @ jac.T
+        return self.weight * (jac * (self.keep.ravel() / muv)) @ jac.T
 
     def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Lower and upper bounds of each emitter's x, y, z (nm) and photons."""
@@ -357,7 +374,13 @@ class LikelihoodProblem:
 
     def deviance(self, mu):
         muv = mu + self.v
-        return 2.0 * self.weight * (self._sat - float(np.sum(self.yv * np.log(muv) - muv)))
+        dev = self._sat - float(np.sum(self.keep * (self.yv * np.log(muv) - muv)))
+        return 2.0 * self.weight * dev
+
+    @property
+    def n_pixels(self) -> int:
+        """Pixels the likelihood counts (those not censored)."""
+        return int(np.count_nonzero(self.keep))
 
 
 def fit_emitters(
@@ -377,6 +400,7 @@ def fit_emitters(
     offset: ArrayLike | None = None,
     qe: float = 1.0,
     background_shape: ArrayLike | None = None,
+    censored: ArrayLike | None = None,
 ) -> FitResult:
     """Maximum-likelihood fit of K emitters plus a background in one window.
 
@@ -416,6 +440,8 @@ def fit_emitters(
         The background's shape over the window (photons/pixel; its scale does not matter):
         the fitted background scales it where the data choose it over a constant (see the
         module notes; :attr:`FitResult.background_shape` says which). Default: a constant.
+    censored : ndarray of bool, shape (rows, cols), optional
+        Pixels at the camera's saturation, left out of the likelihood (see the module notes).
 
     Returns
     -------
@@ -427,7 +453,7 @@ def fit_emitters(
     if np.any(y < -1e-9) and read_variance is None:
         raise ValueError("the window has negative photon counts; convert ADU to photons first")
     args = (y, model, pixel_size, origin, noise, read_variance, plane, xy_margin, offset, qe)
-    flat = LikelihoodProblem(*args)
+    flat = LikelihoodProblem(*args, censored=censored)
     fit = _fit(flat, emitters, background, max_iter, tol)
     if background_shape is None:
         return fit
@@ -438,10 +464,12 @@ def fit_emitters(
     from .refine import error_allowance_at  # refine imports this module
 
     kw = dict(pixel_size=pixel_size, origin=origin, noise=noise, qe=qe, read_variance=read_variance)
+    kw["censored"] = censored
     bar = SHAPE_MARGIN + 0.5 * error_allowance_at(fit, model, kw)
     if score <= bar:
         return fit
-    hazy = _fit(LikelihoodProblem(*args, background_shape), emitters, background, max_iter, tol)
+    hazy_prob = LikelihoodProblem(*args, background_shape, censored=censored)
+    hazy = _fit(hazy_prob, emitters, background, max_iter, tol)
     if hazy.log_likelihood > fit.log_likelihood + bar:
         hazy.background_shape = np.broadcast_to(background_shape, y.shape)
         return hazy
@@ -454,7 +482,8 @@ def _shape_score(prob: LikelihoodProblem, fit: FitResult, shape: ArrayLike) -> f
     much likelier the shape can make the window at most (see the module notes)."""
     s = background_basis(prob.shape, False, shape)[0]
     d = fit.background[0] * (s - 1.0)
-    return float(prob.weight * np.sum((prob.yv / (fit.model_image + prob.v) - 1.0) * d))
+    g = prob.keep * (prob.yv / (fit.model_image + prob.v) - 1.0)
+    return float(prob.weight * np.sum(g * d))
 
 
 def _fit(
@@ -499,7 +528,7 @@ def _numpy_evaluate(s: _NumpyFit) -> float:
 def _numpy_score(s: _NumpyFit) -> None:
     prob = s.prob
     muv = (s.mu + prob.v).ravel()
-    s.grad = prob.weight * s.jac @ (1.0 - prob.yv.ravel() / muv)
+    s.grad = prob.weight * s.jac @ (prob.keep.ravel() * (1.0 - prob.yv.ravel() / muv))
     s.fisher = prob.fisher(s.jac, s.mu)
 
 
@@ -547,6 +576,7 @@ def _numba_fit(prob: LikelihoodProblem, theta, lo, hi, max_iter: int, tol: float
         m.node_geometry(prob.origin, prob.px),
         np.ascontiguousarray(prob.yv, dtype=np.float64),
         np.ascontiguousarray(prob.v, dtype=np.float64),
+        prob.keep,
         base,
         np.ascontiguousarray(np.stack(prob.bg_basis), dtype=np.float64),
         float(prob.weight),
@@ -686,7 +716,7 @@ def _result(prob: LikelihoodProblem, theta, mu, f, fisher, converged, n_iter) ->
         prob.origin[0] + cols * prob.px,
         prob.origin[1] + rows * prob.px,
     )
-    dof = max(prob.y.size - theta.size, 1)
+    dof = max(prob.n_pixels - theta.size, 1)
     return FitResult(
         emitters=Emitters.from_array(em),
         background=b.copy(),

@@ -247,7 +247,11 @@ def error_allowance_at(null: FitResult, model: PSFModel, kw: dict) -> float:
     w = likelihood_weight(kw.get("noise", "poisson"), check_qe(kw.get("qe", 1.0)))
     noise_var = null.model_image / w + (0.0 if rv is None else np.asarray(rv, float))
     error_var = error_variance(null, model, kw)
-    return 0.0 if error_var is None else error_allowance(noise_var, error_var)
+    if error_var is None:
+        return 0.0
+    if kw.get("censored") is not None:  # a censored pixel's error moves no likelihood
+        error_var = np.where(kw["censored"], 0.0, error_var)
+    return error_allowance(noise_var, error_var)
 
 
 def removal_threshold(k: int, lr_threshold: float, single_threshold: float | None) -> float:

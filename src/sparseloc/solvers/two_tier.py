@@ -86,7 +86,7 @@ from .frame_windows import NeighbourLight, inside, window_box, window_data, wind
 from .mle import fit_emitters
 from .mp import MIN_PHOTONS
 from .refine import error_variance, weakest_removed
-from .variance import misfit, model_error_of, read_variance_crop
+from .variance import PIXEL_MAPS, cropped_maps, misfit, model_error_of, read_variance_crop
 
 log = logging.getLogger(__name__)
 
@@ -269,7 +269,7 @@ class _Tier1:
         self.f, self.bg, self.model, self.opts = f, bg, model, opts
         self.light = NeighbourLight(model, f.shape, opts["pixel_size"], fixed)
         self.px, self.pad = opts["pixel_size"], int(opts["pad"])
-        keys = ("noise", "read_variance", "qe", "plane", "background_shape")
+        keys = ("noise", "qe", "plane", *PIXEL_MAPS)
         kw = {k: opts[k] for k in keys if k in opts}
         if kw.get("read_variance") is None:
             kw.pop("read_variance", None)
@@ -321,7 +321,7 @@ class _Tier1:
         nf, _, rv = self.noise
         rv = rv[r0:r1, c0:c1] if np.ndim(rv) else rv
         rows = fit.emitters.as_array().reshape(-1, 4)
-        bad = misfit(y, fit.model_image, error_variance(fit, model, kw), nf, rv)
+        bad = misfit(y, fit.model_image, error_variance(fit, model, kw), nf, rv, kw.get("censored"))
         bg = float(fit.background[0])
         sd = np.sqrt(max(kw["background"], 1.0))
         # as the frame solver's memo: the linear response is computed when first needed
@@ -391,12 +391,12 @@ def solve_two_tier(
         then solves the frame whole (its pursuit and extra starts find more where images
         overlap than the crowds' fits).
     whole : callable, optional
-        ``whole(image, background, fixed_light, read_variance, background_shape) ->
-        FrameFit``: the whole-frame solver on a crop (with the crop's background shape, or
-        None). Where given, a crowd of more than :data:`SMALL_CROWD` starts is solved by it
-        on a crop around the crowd, with the kept units' light known, instead of sending
-        the frame whole (the frame's size then does not decide how much of it the
-        whole-frame solver sees).
+        ``whole(image, background, fixed_light, read_variance, background_shape, censored)
+        -> FrameFit``: the whole-frame solver on a crop (with the crop's background shape and
+        censored pixels, or None). Where given, a crowd of more than :data:`SMALL_CROWD`
+        starts is solved by it on a crop around the crowd, with the kept units' light known,
+        instead of sending the frame whole (the frame's size then does not decide how much
+        of it the whole-frame solver sees).
     fixed_light : ndarray, shape (rows, cols), optional
         Light known besides the emitters' (photons/pixel): in every window's known light and
         under every detection.
@@ -867,10 +867,12 @@ def _pursuit_crop(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv
     for r0, r1, c0, c1 in _crop_boxes(pts, opts, f.shape):
         win = (slice(r0, r1), slice(c0, c1))
         fixed = _light(light, known_rows, (r0, r1, c0, c1))
-        fit_rv = read_variance_crop(opts.get("read_variance"), f.shape, (r0, r1, c0, c1))
+        maps = {k: opts[k] for k in PIXEL_MAPS if k in opts}
+        maps = cropped_maps(maps, f.shape, (r0, r1, c0, c1))
         if whole is not None:
-            shape = opts.get("background_shape")
-            fit = whole(f[win], bg[win], fixed, fit_rv, None if shape is None else shape[win])
+            m = {k: maps.get(k) for k in PIXEL_MAPS}
+            fit = whole(f[win], bg[win], fixed, m["read_variance"], m["background_shape"],
+                        m["censored"])  # fmt: skip
             fits.append(shifted(fit, c0 * px, r0 * px))
             continue
         sub_rv = read_variance_crop(rv, f.shape, (r0, r1, c0, c1))
@@ -881,11 +883,7 @@ def _pursuit_crop(f, bg, model, pts, known_rows, light, pursuit, opts, crowd, rv
             start = start[d < crowd + pad]
         if len(start) == 0:
             continue
-        sub_opts = dict(opts)
-        if "read_variance" in opts:
-            sub_opts["read_variance"] = fit_rv
-        if opts.get("background_shape") is not None:
-            sub_opts["background_shape"] = opts["background_shape"][win]
+        sub_opts = {**opts, **maps}
         fit = frame_fit(
             f[win], model, Emitters.from_array(start), background=bg[win], fixed_light=fixed,
             **sub_opts,

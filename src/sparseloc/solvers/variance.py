@@ -24,6 +24,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 __all__ = [
+    "PIXEL_MAPS",
+    "cropped_maps",
     "error_allowance",
     "misfit",
     "model_error_of",
@@ -79,6 +81,21 @@ def error_allowance(noise_var: NDArray, error_var: NDArray) -> float:
     """
     v = np.maximum(noise_var, 1e-12)
     return float(np.sum(np.asarray(error_var) / v))
+
+
+#: Fit keywords that hold a map over the frame (or one number): a window's or a crop's fit
+#: takes each map cut to its pixels (:func:`cropped_maps`).
+PIXEL_MAPS = ("read_variance", "background_shape", "censored")
+
+
+def cropped_maps(kw: dict, shape: tuple[int, int], box: tuple) -> dict:
+    """``kw`` with each of :data:`PIXEL_MAPS` it holds cut to ``box`` (``r0, r1, c0, c1``) of
+    a frame of ``shape`` (:func:`read_variance_crop`)."""
+    out = dict(kw)
+    for key in PIXEL_MAPS:
+        if out.get(key) is not None:
+            out[key] = read_variance_crop(out[key], shape, box)
+    return out
 
 
 def read_variance_crop(
@@ -152,10 +169,17 @@ def noise_factor_of(noise: str) -> float:
     return 2.0 if noise == "emccd" else 1.0
 
 
-def misfit(y: NDArray, mu: NDArray, error_var: NDArray | None, noise_factor: float, rv) -> float:
+def misfit(
+    y: NDArray,
+    mu: NDArray,
+    error_var: NDArray | None,
+    noise_factor: float,
+    rv,
+    censored: NDArray | None = None,
+) -> float:
     """How far a window's Pearson chi-square ``X = sum((y - mu)^2 / V)`` lies above its
     expectation, in standard deviations: ``(X - n) / sqrt(sum(2 + 1 / mu))`` for ``n`` pixels
-    (the Poisson spread of ``X``).
+    (the Poisson spread of ``X``), censored pixels left out.
 
     Parameters
     ----------
@@ -170,6 +194,8 @@ def misfit(y: NDArray, mu: NDArray, error_var: NDArray | None, noise_factor: flo
         The camera's variance per expected photon (:func:`pixel_variance`).
     rv : float or ndarray
         Read-noise variance (photons^2), scalar or the window's map.
+    censored : ndarray of bool, shape (rows, cols), optional
+        Pixels at the camera's saturation (their values say nothing of ``mu``).
 
     Returns
     -------
@@ -179,6 +205,7 @@ def misfit(y: NDArray, mu: NDArray, error_var: NDArray | None, noise_factor: flo
     var = pixel_variance(mu, noise_factor) + rv
     if error_var is not None:
         var = var + error_var
-    x = float(np.sum((y - mu) ** 2 / var))
-    spread = float(np.sum(2.0 + 1.0 / np.maximum(mu, 1.0)))
-    return (x - y.size) / np.sqrt(spread)
+    keep = np.ones(np.shape(y), bool) if censored is None else ~np.asarray(censored, bool)
+    x = float(np.sum(((y - mu) ** 2 / var)[keep]))
+    spread = float(np.sum((2.0 + 1.0 / np.maximum(mu, 1.0))[keep]))
+    return (x - int(keep.sum())) / np.sqrt(max(spread, 1e-12))
