@@ -125,7 +125,8 @@ def test_a_run_folder_refusal_names_a_changed_camera(movie, tmp_path):
     res = run("localize", movie, "-o", tmp_path / "a.parquet", *args, "--offset", 100)
     assert res.exit_code == 0, res.output
     res = run("localize", movie, "-o", tmp_path / "b.parquet", *args, "--offset", 90)
-    refused(res, "changed: camera.offset)")
+    # the saturation, in photons, follows the offset
+    refused(res, "changed: camera.offset, params.saturation)")
 
 
 def test_too_little_noise_names_an_offset_set_too_low():

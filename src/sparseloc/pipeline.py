@@ -183,13 +183,18 @@ def _residual_spatial_background(
     reach: float,
     noise: dict,
     halo: NDArray | None = None,
+    censored: tuple[NDArray, NDArray] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The spatial background of ``frame`` less the light of ``emitters`` (K, 4; nm, photons;
     finite) within ``reach`` (nm) of each, as the frame solver's windows count it (a model's
     far halo stays in the background), and that light; both (rows, cols), photons per
     pixel. Where part of the far halo is known (``halo``, photons/pixel: the light of
     bright emitters' models beyond their spline table), it is taken away too, and the
-    emitters' light is the table's whole (the halo begins where the table ends)."""
+    emitters' light is the table's whole (the halo begins where the table ends).
+    ``censored``: the pixels at the camera's saturation and the background known before;
+    a clipped pixel less its fitted light would read far below the background and pull its
+    block's percentile down, so there the estimate reads that background, without the
+    light's shot noise in its noise correction."""
     f = np.asarray(frame, dtype=np.float64)
     em = np.asarray(emitters, dtype=np.float64).reshape(-1, 4)
     rows, cols = f.shape
@@ -198,6 +203,9 @@ def _residual_spatial_background(
     pieces = light_pieces(model, em, f.shape, pixel_size, (0.0, 0.0), reach)
     light = sum_pieces(pieces, (0, rows, 0, cols))
     known = light if halo is None else light + halo
+    if censored is not None:
+        mask, prior = censored
+        f, known = np.where(mask, prior, f), np.where(mask, 0.0, known)
     return _spatial_background_without(f, known, noise), light
 
 
@@ -428,8 +436,8 @@ class _FrameSolver:
             fit = self.solved(frame, background, start, halo, censored)
         if not self.spatial:
             return fit
-        search = start is None
-        return self.residual_background(frame, fit, search, halo=halo, censored=censored)
+        cens = None if censored is None else (censored, background)
+        return self.residual_background(frame, fit, search=start is None, halo=halo, censored=cens)
 
     def solved(
         self,
@@ -456,7 +464,7 @@ class _FrameSolver:
         fit: FrameFit,
         search: bool = True,
         halo: NDArray | None = None,
-        censored: NDArray | None = None,
+        censored: tuple[NDArray, NDArray] | None = None,
     ) -> FrameFit:
         """``fit`` refitted with the frame's spatial background estimated again from the frame
         less ``fit``'s light, from its emitters and those the pursuit finds in what that
@@ -470,7 +478,9 @@ class _FrameSolver:
         same estimator sees the background (``docs/benchmarks/residual_background.txt``).
         The refit replaces ``fit`` without a likelihood comparison: the two are fits over
         different backgrounds. ``search``: False refits ``fit``'s emitters alone;
-        ``censored``: the frame's pixels at the camera's saturation (left out of the fits).
+        ``censored``: the frame's pixels at the camera's saturation (left out of the fits)
+        and the background the frame was solved over (see
+        :func:`_residual_spatial_background`).
         """
         arr = fit.emitters.as_array().reshape(-1, 4)
         arr = arr[np.all(np.isfinite(arr), axis=1)]
@@ -478,13 +488,15 @@ class _FrameSolver:
             return fit
         f = np.asarray(frame, dtype=np.float64)
         background, light = _residual_spatial_background(
-            f, arr, self.model, self.p.pixel_size, self.reach, self.background_noise, halo
-        )
+            f, arr, self.model, self.p.pixel_size, self.reach, self.background_noise, halo,
+            censored,
+        )  # fmt: skip
         seen = background + light if halo is None else background + light + halo
         if search:
             arr = np.vstack([arr, self.start(f, seen).as_array().reshape(-1, 4)])
         emitters = Emitters.from_array(arr)
-        kw = self.fit_kwargs(shape=self.background_shape(background), censored=censored)
+        mask = None if censored is None else censored[0]
+        kw = self.fit_kwargs(shape=self.background_shape(background), censored=mask)
         return frame_fit(f, self.model, emitters, background=background, fixed_light=halo, **kw)
 
     def solve(
