@@ -934,10 +934,13 @@ def test_localize_names_a_movie_clipped_below_its_type_maximum(tmp_path):
         # offset 100 ADU, gain 1 e-/ADU: the level in photons
         assert meta["params"]["saturation"] == (top if noted else 65535) - 100.0
     res = run("localize", tmp_path / "raw.tif", "-o", tmp_path / "given.parquet", "--psf", "astig",
-              "--offset", 100, "--frames", "0:1", "--workers", 1, "--saturation", 3000)  # fmt: skip
+              "--offset", 100, "--frames", "0:1", "--workers", 1,
+              "--saturation", 65000)  # fmt: skip
     assert res.exit_code == 0, res.output
-    assert read_table_and_metadata(tmp_path / "given.parquet")[1]["params"]["saturation"] == 2900.0
-    res = run("localize", tmp_path / "raw.tif", "-o", tmp_path / "bad.parquet", "--psf", "astig",
-              "--offset", 100, "--saturation", -5)  # fmt: skip
-    assert res.exit_code != 0 and "--saturation must be a positive number" in res.output
-    assert not (tmp_path / "bad.parquet").exists()
+    meta = read_table_and_metadata(tmp_path / "given.parquet")[1]
+    assert meta["params"]["saturation"] == 64900.0
+    for bad, said in ((-5, "must be a positive number"), (top - 1, "lies below the movie's")):
+        res = run("localize", tmp_path / "clip.tif", "-o", tmp_path / "bad.parquet", "--psf",
+                  "astig", "--offset", 100, "--saturation", bad)  # fmt: skip
+        assert res.exit_code != 0 and said in res.output, res.output
+        assert not (tmp_path / "bad.parquet").exists()

@@ -899,10 +899,16 @@ def localize(
             top, ties = job.clipped
             typer.echo(
                 f"note: {ties} pixel values of the movie sit at exactly {top:g} ADU, its "
-                "largest: a camera that clips there (a 12-bit camera clips at 4095); the fits "
-                "leave such pixels out (--saturation sets the level), so the brightest emitters "
-                "are localized from their unclipped pixels, less precisely; lower the gain, EM "
-                "gain or exposure where this is not what you expect",
+                "largest, as where a camera clips (a 12-bit camera at 4095). "
+                + (
+                    "The fits leave such pixels out (--saturation sets the level), so the "
+                    "brightest emitters are localized from their unclipped pixels, less "
+                    "precisely"
+                    if job.params.method == "frame"
+                    else f"--method {job.params.method} takes them at face value, and the "
+                    "brightest emitters' flat peaks misplace their fits, in z most"
+                )
+                + "; lower the gain, EM gain or exposure where this is not what you expect",
                 err=True,
             )
         wide = _wide_window_note(job.params)

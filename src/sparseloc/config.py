@@ -551,12 +551,16 @@ def _check_frames_hold_a_window(shape: tuple[int, int], window: int, given: bool
 
 
 def build_job(
-    options: dict[str, Any], movie: Any, defects: NDArray[np.bool_] | str | None = "find"
+    options: dict[str, Any],
+    movie: Any,
+    defects: NDArray[np.bool_] | str | None = "find",
+    clipped: tuple[float, int] | None = None,
 ) -> LocalizeJob:
     """The run that ``options`` (:data:`LOCALIZE_DEFAULTS` keys) describe on ``movie`` (an
     object with ``len()``, ``frames(start, stop)`` in ADU and ``pixel_size``, nm or None).
     ``defects``: the movie's defective pixels where already found (:func:`find_defects` with
-    the same camera and pixel size: a viewer's previews of one movie), else "find".
+    the same camera and pixel size: a viewer's previews of one movie), else "find";
+    ``clipped``: where they were given, the :attr:`LocalizeJob.clipped` found with them.
 
     Raises ValueError in one sentence for options that do not fit the movie or each other.
     """
@@ -593,7 +597,6 @@ def build_job(
         regrow=opts["regrow"],
         haze=opts["haze"],
     )
-    clipped = None
     if isinstance(defects, str):
         sample = _spread_frames(movie)
         defects = find_defects(movie, cam, px, sample)
@@ -614,8 +617,18 @@ def saturation_photons(
     None for floating-point frames without a level given."""
     if given is not None and not (np.isfinite(given) and given > 0):
         raise ValueError(f"--saturation must be a positive number of ADU, got {given:g}")
+    if given is not None and given < float(np.max(raw)):
+        raise ValueError(
+            f"--saturation {given:g} ADU lies below the movie's largest value, "
+            f"{float(np.max(raw)):g} ADU: no pixel reads above its camera's saturation"
+        )
     adu = given if given is not None else clipped[0] if clipped else type_saturation(raw)
     if adu is None:
         return None
     level = float(np.min(to_photons(np.full(np.shape(raw)[-2:], float(adu)), camera)))
-    return level if level > 0 else None
+    if level <= 0:
+        raise ValueError(
+            f"the saturation, {adu:g} ADU, lies at or below the camera's offset: no pixel "
+            "could reach it; check --offset and --saturation"
+        )
+    return level

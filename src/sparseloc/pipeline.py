@@ -967,9 +967,11 @@ def check_frame(
         box = templates.images.shape[-1] // 2
         counted = _halo_light(gate, work, em, bg, noise, params, box)
     if params.method == "frame" and not _temporal(params, n) and len(rows):
+        cens = censored_pixels(frame, params.saturation)
         bg, _ = _residual_spatial_background(
-            frame, em, work, params.pixel_size, _reach(templates), noise, halo
-        )
+            frame, em, work, params.pixel_size, _reach(templates), noise, halo,
+            None if cens is None else (cens, bg),
+        )  # fmt: skip
     return frame_residual(
         frame,
         bg,

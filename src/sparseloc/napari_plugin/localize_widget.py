@@ -92,8 +92,8 @@ class LocalizeWidget(Container):
 
     def __init__(self, viewer: Any) -> None:
         self.viewer = viewer
-        # each movie's defective pixels, found once per camera and pixel size (a preview
-        # would otherwise read 50 frames on every click)
+        # each movie's defective pixels and clipping level, found once per camera and pixel
+        # size (a preview would otherwise read 50 frames on every click)
         self._defects: dict[tuple, Any] = {}
         d = LOCALIZE_DEFAULTS
         self.movie = ComboBox(
@@ -213,9 +213,9 @@ class LocalizeWidget(Container):
             f = current_frame(self.viewer, layer)
             opts = self.given_options()
             key = (id(layer.data), repr(sorted((k, str(v)) for k, v in opts.items())))
-            known = self._defects.get(key, "find")
-            job = build_job({**opts, "frames": f"{f}:{f + 1}"}, movie, known)
-            self._defects[key] = job.defects
+            known = self._defects.get(key, ("find", None))
+            job = build_job({**opts, "frames": f"{f}:{f + 1}"}, movie, *known)
+            self._defects[key] = (job.defects, job.clipped)
         except INPUT_ERRORS as exc:
             return self._refuse(exc, movie)
 

@@ -95,7 +95,7 @@ def _model(coef, geo, theta, k, base, bg_basis, nb, img, der, derivs, mu):  # pr
 
 
 @_jit
-def _nll(mu, v, yv, keep, weight):  # pragma: no cover - compiled
+def _nll(mu, v, yv, weight):  # pragma: no cover - compiled
     s = 0.0
     rows, cols = mu.shape
     for r in range(rows):
@@ -103,7 +103,21 @@ def _nll(mu, v, yv, keep, weight):  # pragma: no cover - compiled
             m = mu[r, c] + v[r, c]
             if not (m > 0.0) or not np.isfinite(m):
                 return np.inf
-            s += keep[r, c] * (m - yv[r, c] * np.log(m))
+            s += m - yv[r, c] * np.log(m)
+    return weight * s
+
+
+@_jit
+def _censored_nll(mu, v, yv, keep, weight):  # pragma: no cover - compiled
+    """The terms of :func:`_nll` at the censored pixels (``keep`` 0), taken out of it where
+    there are any (without, the likelihood is the plain loop's, bit for bit)."""
+    s = 0.0
+    rows, cols = mu.shape
+    for r in range(rows):
+        for c in range(cols):
+            if keep[r, c] == 0.0:
+                m = mu[r, c] + v[r, c]
+                s += m - yv[r, c] * np.log(m)
     return weight * s
 
 
@@ -142,8 +156,8 @@ def _scoring(mu, v, y_v, keep, weight, jac, inv_mu, g_pix, wj, grad, fisher):  #
         r = p // cols
         c = p - r * cols
         muv = mu[r, c] + v[r, c]
-        inv_mu[p] = keep[r, c] / muv
-        g_pix[p] = keep[r, c] * (1.0 - y_v[r, c] / muv)
+        inv_mu[p] = 1.0 / muv if keep[r, c] != 0.0 else 0.0
+        g_pix[p] = 1.0 - y_v[r, c] / muv if keep[r, c] != 0.0 else 0.0
     # parameter-major loops: contiguous rows of jac (vectorised)
     for q in range(npar):
         acc = 0.0
@@ -194,7 +208,7 @@ def _scoring(mu, v, y_v, keep, weight, jac, inv_mu, g_pix, wj, grad, fisher):  #
 # The fit's state is one tuple (built by lm_fit), by index: 0 coef, 1 geo, 2 y_v, 3 v, 4 base,
 # 5 bg_basis, 6 weight, 7 k, 8 lo, 9 hi, 10 min_bg, 11 theta, 12 trial, 13 img, 14 der, 15 cur,
 # 16 mu, 17 mu_t, 18 jac, 19 grad, 20 fisher, 21 a, 22 step, 23 inv_mu, 24 g_pix, 25 wj,
-# 26 keep (each pixel's weight in the likelihood, 0 where censored). The
+# 26 keep (each pixel's weight in the likelihood, 0 where censored), 27 whether any is. The
 # images and derivatives are double-buffered (``cur[0]`` is the current one): trial steps are
 # rendered with their derivatives, so an accepted step (most are) is not rendered again.
 
@@ -206,7 +220,9 @@ def _evaluate(s):  # pragma: no cover - compiled
     nb = bg_basis.shape[0]
     c = cur[0]
     _model(coef, geo, theta, k, base, bg_basis, nb, img[c], der[c], True, mu)
-    f = _nll(mu, v, y_v, s[26], weight)
+    f = _nll(mu, v, y_v, weight)
+    if s[27]:
+        f -= _censored_nll(mu, v, y_v, s[26], weight)
     _jacobian(theta, k, img[c], der[c], geo, bg_basis, nb, jac)
     return f
 
@@ -231,7 +247,10 @@ def _trial(s, lam):  # pragma: no cover - compiled
     _clamp(trial, k, lo, hi, min_bg)
     t = 1 - cur[0]
     _model(coef, geo, trial, k, base, bg_basis, bg_basis.shape[0], img[t], der[t], True, mu_t)
-    return _nll(mu_t, v, y_v, s[26], weight)
+    f = _nll(mu_t, v, y_v, weight)
+    if s[27]:
+        f -= _censored_nll(mu_t, v, y_v, s[26], weight)
+    return f
 
 
 @_jit
@@ -264,7 +283,7 @@ def lm_fit(coef, geo, y_v, v, keep, base, bg_basis, weight, theta0, k, lo, hi, m
         np.empty((rows, cols)), np.empty((rows, cols)), np.empty((npar, rows * cols)),
         np.empty(npar), np.empty((npar, npar)), np.empty((npar, npar)), np.empty(npar),
         np.empty(rows * cols), np.empty(rows * cols), np.empty((npar, rows * cols)),
-        np.ascontiguousarray(keep, dtype=np.float64),
+        np.ascontiguousarray(keep, dtype=np.float64), bool(np.any(keep == 0.0)),
     )  # fmt: skip
     f, converged, n_iter = _levenberg_marquardt(state, int(max_iter), float(tol))
     return state[11], state[16], f, state[20], converged, n_iter

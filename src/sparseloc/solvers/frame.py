@@ -212,7 +212,7 @@ def _response(model: PSFModel, y: NDArray, fit, kw: dict) -> NDArray[np.float64]
     )
     theta = np.concatenate([fit.emitters.as_array().ravel(), fit.background])
     jac = prob.jacobian(theta)
-    wj = prob.weight * jac * (prob.keep / (fit.model_image + prob.v)).ravel()
+    wj = prob.weight * jac * prob.keep.ravel() / (fit.model_image + prob.v).ravel()
     try:
         resp = -np.linalg.solve(prob.fisher(jac, fit.model_image), wj)
     except np.linalg.LinAlgError:

@@ -304,8 +304,8 @@ class LikelihoodProblem:
             if np.any(self.v < 0):
                 raise ValueError("read_variance must be >= 0")
         self.yv = y + self.v
-        # 1 for each pixel the likelihood counts, 0 for a censored one (times 1.0 is exact:
-        # without censored pixels every sum is the plain one)
+        # 1 for each pixel the likelihood counts, 0 for a censored one (each product with it
+        # is placed so that, times 1.0, every sum is bit for bit the one without it)
         self.keep = censored_weights(censored, y.shape)
         # Known light that is not fitted (neighbours' emitters fitted elsewhere), photons/pixel.
         self.offset = 0.0 if offset is None else np.broadcast_to(np.asarray(offset, float), y.shape)
@@ -364,7 +364,7 @@ class LikelihoodProblem:
 
     def fisher(self, jac, mu):
         muv = (mu + self.v).ravel()
-        return self.weight * (jac * (self.keep.ravel() / muv)) @ jac.T
+        return self.weight * ((jac * self.keep.ravel()) / muv) @ jac.T
 
     def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Lower and upper bounds of each emitter's x, y, z (nm) and photons."""

@@ -205,7 +205,10 @@ def misfit(
     var = pixel_variance(mu, noise_factor) + rv
     if error_var is not None:
         var = var + error_var
-    keep = np.ones(np.shape(y), bool) if censored is None else ~np.asarray(censored, bool)
-    x = float(np.sum(((y - mu) ** 2 / var)[keep]))
-    spread = float(np.sum((2.0 + 1.0 / np.maximum(mu, 1.0))[keep]))
-    return (x - int(keep.sum())) / np.sqrt(max(spread, 1e-12))
+    chi = (y - mu) ** 2 / var
+    spread = 2.0 + 1.0 / np.maximum(mu, 1.0)
+    n = np.size(y)
+    if censored is not None:
+        keep = ~np.asarray(censored, bool)
+        chi, spread, n = chi[keep], spread[keep], int(keep.sum())
+    return (float(np.sum(chi)) - n) / np.sqrt(max(float(np.sum(spread)), 1e-12))
