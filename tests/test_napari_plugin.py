@@ -282,6 +282,30 @@ def test_previews_of_one_movie_look_for_defective_pixels_once(qtbot, viewer, mov
     assert len(calls) == 2
 
 
+def test_previews_keep_the_clipping_level_they_found(qtbot, viewer, movie, tmp_path, monkeypatch):
+    """The first preview finds a clipped movie's level with its defective pixels; the next
+    previews reuse both, so every preview leaves out the same pixels as the command line."""
+    import tifffile
+
+    import sparseloc.config as config
+    from sparseloc.io.tiff import write_tiff
+
+    raw = tifffile.imread(movie)
+    top = int(np.percentile(raw, 99.5))
+    clipped = write_tiff(tmp_path / "clip.tif", np.minimum(raw, top).astype(np.uint16),
+                         pixel_size=160.0)  # fmt: skip
+    levels = []
+    real = config.build_job
+    monkeypatch.setattr(
+        config, "build_job", lambda *a: levels.append((job := real(*a)).params.saturation) or job
+    )
+    w = _localize_widget(viewer, _movie_layer(viewer, clipped))
+    for frame in (0, 1):
+        viewer.dims.set_point(0, frame)
+        _finish(qtbot, w.preview())
+    assert levels == [top - 100.0] * 2  # the offset of LOCALIZE_ARGS' camera: 100 ADU
+
+
 def test_run_writes_the_cli_table_and_cancel_writes_nothing(
     qtbot, viewer, movie, tmp_path, monkeypatch
 ):
