@@ -48,6 +48,7 @@ __all__ = [
     "offset_mismatch",
     "photon_noise",
     "photon_transfer",
+    "saturation_level",
     "to_photons",
     "type_saturation",
 ]
@@ -1058,6 +1059,14 @@ def type_saturation(frames: NDArray) -> float | None:
     """The saturation (ADU) that frames' integer type implies, its largest value; None for
     floating-point frames."""
     return float(np.iinfo(frames.dtype).max) if frames.dtype.kind in "ui" else None
+
+
+def saturation_level(adu: float, camera: Camera, shape: tuple[int, int]) -> float:
+    """The photons at which a frame's pixels (``shape``) reach ``adu`` ADU, the largest over
+    them (sCMOS gain and offset maps give each pixel its own): a pixel at its camera's
+    saturation is lifted to it when its frame is converted
+    (:class:`sparseloc.distributed.CameraFrames`), and no other pixel reaches it."""
+    return float(np.max(to_photons(np.full(tuple(shape), float(adu)), camera)))
 
 
 def clipping(

@@ -934,7 +934,6 @@ def _frame_check(path: Path, table_path: Path, table, mov, job) -> None:
     """``localize --check``: the frame check of the run's first frame
     (:func:`sparseloc.pipeline.check_frame`) on the run's table (``table``, else the file
     written), printed and drawn. The table is written already: a failure says so."""
-    from .distributed import CameraFrames
     from .frame_residual import residual_figure
     from .messages import INPUT_ERRORS, one_sentence
     from .pipeline import addition_bar, check_frame
@@ -943,7 +942,7 @@ def _frame_check(path: Path, table_path: Path, table, mov, job) -> None:
         table, _ = _read_locs(table_path)
     p = job.params
     try:
-        frames = CameraFrames(mov, job.camera, job.defects)
+        frames = job.frames(mov)
         res = check_frame(frames, job.start, table, job.model, p, job.read_variance_map)
         typer.echo(f"check of frame {job.start}: {res.summary(addition_bar(p), p.min_snr)}")
         title = f"frame {job.start}: localizations, their model and the residual"
@@ -1076,7 +1075,7 @@ def _wide_window_note(params) -> str:
 def _localize_in_processes(mov, job, workers: int):
     """The unchunked path of ``localize``: one process or a pool, with a progress bar (or
     progress lines in a log file). Ctrl-C ends it with one sentence and exit code 130."""
-    from .distributed import CHUNK_FRAMES, CameraFrames
+    from .distributed import CHUNK_FRAMES
     from .pipeline import localize as run_localize
     from .progress import Progress
 
@@ -1084,7 +1083,7 @@ def _localize_in_processes(mov, job, workers: int):
         try:
             return _run(
                 run_localize,
-                CameraFrames(mov, job.camera, job.defects),
+                job.frames(mov),
                 job.model,
                 job.params,
                 start=job.start,
@@ -1110,7 +1109,7 @@ def _localize_chunked(opts, out, mov, job, auto: bool = False) -> None:
     ``auto``: chunked because the movie is long, not because the user asked (the workers
     then default to the cores). The run folder beside the output (no ``--run-dir``) is
     removed once the table is written."""
-    from .distributed import CameraFrames, localize_chunked
+    from .distributed import localize_chunked
     from .progress import Progress
 
     run_dir = Path(opts["run_dir"]) if opts["run_dir"] else out.with_name(out.name + ".parts")
@@ -1125,7 +1124,7 @@ def _localize_chunked(opts, out, mov, job, auto: bool = False) -> None:
         with bar:
             res = _run(
                 localize_chunked,
-                CameraFrames(mov, job.camera, job.defects),
+                job.frames(mov),
                 job.model,
                 job.params,
                 run_dir,

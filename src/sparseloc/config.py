@@ -25,7 +25,7 @@ from .camera import (
     camera_from_options,
     clipping,
     noise_variance,
-    to_photons,
+    saturation_level,
     type_saturation,
 )
 from .engine import check_engine
@@ -48,7 +48,7 @@ __all__ = [
     "frame_range",
     "noise_model",
     "read_variance_photons",
-    "saturation_photons",
+    "saturation_adu",
     "window_for",
 ]
 
@@ -169,11 +169,13 @@ class LocalizeParams:
         to 1.5 points of Jaccard on some dense sets and gains on others, and each window with a
         slope along the shape is fitted twice (``docs/benchmarks/haze.txt``).
     saturation : float or None
-        Photons at which a pixel reaches the camera's saturation (the lowest over the pixels
-        where an sCMOS camera's gain and offset vary): a pixel of a frame at or above it says
-        only that its light reached that level, and the frame solver's fits leave it out of
-        their likelihood (a clipped peak would otherwise flatten the fitted image and move
-        its z). None: no pixel is taken as saturated. The windowed methods do not use it.
+        Photons at which a pixel reaches the camera's saturation (the largest over the
+        pixels where an sCMOS camera's gain and offset maps give each its own; the frames'
+        reader lifts every saturated pixel to it, :meth:`LocalizeJob.frames`): a pixel of a
+        frame at or above it says only that its light reached that level, and the frame
+        solver's fits leave it out of their likelihood (a clipped peak would otherwise
+        flatten the fitted image and move its z). None: no pixel is taken as saturated. The
+        windowed methods do not use it.
     """
 
     pixel_size: float
@@ -350,6 +352,17 @@ class LocalizeJob:
     #: (ADU, values) where the movie's largest value looks clipped below its type's maximum
     #: (:func:`~sparseloc.camera.clipping`), else None.
     clipped: tuple[float, int] | None = None
+    #: ADU at which the camera saturates (``params.saturation`` is that level in photons),
+    #: or None.
+    saturation_adu: float | None = None
+
+    def frames(self, movie: Any) -> Any:
+        """The movie's frames in photons as this run reads them
+        (:class:`~sparseloc.distributed.CameraFrames`: the camera, the defective pixels
+        replaced, saturated pixels at the run's level)."""
+        from .distributed import CameraFrames
+
+        return CameraFrames(movie, self.camera, self.defects, self.saturation_adu)
 
 
 #: Built-in pupil models (:data:`sparseloc.psf.PSF_NAMES`), which take the pupil's optics.
@@ -601,20 +614,25 @@ def build_job(
         sample = _spread_frames(movie)
         defects = find_defects(movie, cam, px, sample)
         clipped = clipping(sample, ignore=defects)
-    sat = saturation_photons(opts["saturation"], clipped, movie.frames(start, start + 1), cam)
+    adu = saturation_adu(opts["saturation"], clipped, movie.frames(start, start + 1))
+    sat = None if adu is None else saturation_level(adu, cam, shape)
+    if sat is not None and sat <= 0:
+        raise ValueError(
+            f"the saturation, {adu:g} ADU, lies at or below the camera's offset: no pixel "
+            "could reach it; check --offset and --saturation"
+        )
     params = replace(params, saturation=sat)
     read_map = read_var if read_var.ndim == 2 else None
-    return LocalizeJob(model, cam, params, start, stop, read_map, defects, clipped)
+    return LocalizeJob(model, cam, params, start, stop, read_map, defects, clipped, adu)
 
 
-def saturation_photons(
-    given: float | None, clipped: tuple[float, int] | None, raw: NDArray, camera: Camera
+def saturation_adu(
+    given: float | None, clipped: tuple[float, int] | None, raw: NDArray
 ) -> float | None:
-    """The photons at which the movie's pixels reach the camera's saturation
-    (:attr:`LocalizeParams.saturation`): ``given`` ADU, else the level the movie looks
-    clipped at (``clipped``, :func:`~sparseloc.camera.clipping`), else its integer type's
-    largest value (``raw``: a frame in ADU), each in photons and the lowest over the pixels;
-    None for floating-point frames without a level given."""
+    """The ADU at which the movie's camera saturates: ``given``, else the level the movie
+    looks clipped at (``clipped``, :func:`~sparseloc.camera.clipping`), else its integer
+    type's largest value (``raw``: a frame in ADU); None for floating-point frames without a
+    level given."""
     if given is not None and not (np.isfinite(given) and given > 0):
         raise ValueError(f"--saturation must be a positive number of ADU, got {given:g}")
     if given is not None and given < float(np.max(raw)):
@@ -622,13 +640,4 @@ def saturation_photons(
             f"--saturation {given:g} ADU lies below the movie's largest value, "
             f"{float(np.max(raw)):g} ADU: no pixel reads above its camera's saturation"
         )
-    adu = given if given is not None else clipped[0] if clipped else type_saturation(raw)
-    if adu is None:
-        return None
-    level = float(np.min(to_photons(np.full(np.shape(raw)[-2:], float(adu)), camera)))
-    if level <= 0:
-        raise ValueError(
-            f"the saturation, {adu:g} ADU, lies at or below the camera's offset: no pixel "
-            "could reach it; check --offset and --saturation"
-        )
-    return level
+    return given if given is not None else clipped[0] if clipped else type_saturation(raw)

@@ -56,7 +56,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from . import __version__
-from .camera import Camera, to_photons
+from .camera import Camera, saturation_level, to_photons
 from .defects import replace_defects
 from .digest import array_digest, psf_hash
 from .io.atomic import write_text_atomic
@@ -140,12 +140,23 @@ class CameraFrames:
     defects : ndarray of bool, shape (rows, cols), optional
         Defective pixels, each replaced in every frame by the median of its neighbours
         (:func:`sparseloc.defects.replace_defects`).
+    saturation : float, optional
+        ADU at which the camera saturates: a pixel at it is lifted to the level in photons
+        that every saturated pixel reaches (:func:`sparseloc.camera.saturation_level`, where
+        sCMOS maps give the pixels different levels), so that the run's one level
+        (:attr:`~sparseloc.config.LocalizeParams.saturation`) finds each such pixel, and no
+        other.
     """
 
     def __init__(
-        self, movie: Any, camera: Camera | None = None, defects: NDArray[np.bool_] | None = None
+        self,
+        movie: Any,
+        camera: Camera | None = None,
+        defects: NDArray[np.bool_] | None = None,
+        saturation: float | None = None,
     ) -> None:
         self.movie, self.camera, self.defects = movie, camera, defects
+        self.saturation = saturation
 
     def __len__(self) -> int:
         return len(self.movie)
@@ -164,6 +175,11 @@ class CameraFrames:
             photons = np.asarray(raw, dtype=np.float64)
         else:
             photons = to_photons(raw, self.camera)
+            if self.saturation is not None:
+                at = np.asarray(raw) >= self.saturation
+                if at.any():
+                    level = saturation_level(self.saturation, self.camera, self.shape)
+                    photons = np.where(at, np.maximum(photons, level), photons)
         if self.defects is not None:
             photons = replace_defects(photons, self.defects)
         return photons

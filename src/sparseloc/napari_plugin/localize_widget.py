@@ -47,11 +47,10 @@ def localize_job(job: Any, movie: Any, progress: Any) -> Any:
     -------
     LocalizeResult
     """
-    from ..distributed import CameraFrames
     from ..pipeline import localize
 
     return localize(
-        CameraFrames(movie, job.camera, job.defects),
+        job.frames(movie),
         job.model,
         job.params,
         start=job.start,
@@ -65,10 +64,9 @@ def localize_job(job: Any, movie: Any, progress: Any) -> Any:
 def check_job_frame(job: Any, movie: Any, index: int, table: Any) -> Any:
     """The frame check (:func:`sparseloc.pipeline.check_frame`) of frame ``index`` of
     ``job``'s run that gave ``table``: what the localizations leave unexplained."""
-    from ..distributed import CameraFrames
     from ..pipeline import check_frame
 
-    frames = CameraFrames(movie, job.camera, job.defects)
+    frames = job.frames(movie)
     return check_frame(frames, index, table, job.model, job.params, job.read_variance_map)
 
 
