@@ -614,7 +614,8 @@ def build_job(
         sample = _spread_frames(movie)
         defects = find_defects(movie, cam, px, sample)
         clipped = clipping(sample, ignore=defects)
-    adu = saturation_adu(opts["saturation"], clipped, movie.frames(start, start + 1))
+    first = movie.frames(start, start + 1)
+    adu = saturation_adu(opts["saturation"], clipped, first, start, defects)
     sat = None if adu is None else saturation_level(adu, cam, shape)
     if sat is not None and sat <= 0:
         raise ValueError(
@@ -623,21 +624,32 @@ def build_job(
         )
     params = replace(params, saturation=sat)
     read_map = read_var if read_var.ndim == 2 else None
-    return LocalizeJob(model, cam, params, start, stop, read_map, defects, clipped, adu)
+    # the windowed methods take clipped pixels at face value: their frames are not lifted
+    lifted = adu if params.method == "frame" else None
+    return LocalizeJob(model, cam, params, start, stop, read_map, defects, clipped, lifted)
 
 
 def saturation_adu(
-    given: float | None, clipped: tuple[float, int] | None, raw: NDArray
+    given: float | None,
+    clipped: tuple[float, int] | None,
+    raw: NDArray,
+    index: int = 0,
+    defects: NDArray[np.bool_] | None = None,
 ) -> float | None:
     """The ADU at which the movie's camera saturates: ``given``, else the level the movie
     looks clipped at (``clipped``, :func:`~sparseloc.camera.clipping`), else its integer
-    type's largest value (``raw``: a frame in ADU); None for floating-point frames without a
-    level given."""
+    type's largest value (``raw``: frame ``index`` in ADU, its ``defects`` left out of the
+    check that ``given`` is no lower than its pixels); None for floating-point frames without
+    a level given."""
     if given is not None and not (np.isfinite(given) and given > 0):
         raise ValueError(f"--saturation must be a positive number of ADU, got {given:g}")
-    if given is not None and given < float(np.max(raw)):
+    values = np.asarray(raw).reshape(-1, *np.shape(raw)[-2:])
+    if defects is not None:
+        values = values[:, ~np.asarray(defects, dtype=bool)]
+    top = float(np.max(values)) if values.size else -np.inf
+    if given is not None and given < top:
         raise ValueError(
-            f"--saturation {given:g} ADU lies below the movie's largest value, "
-            f"{float(np.max(raw)):g} ADU: no pixel reads above its camera's saturation"
+            f"--saturation {given:g} ADU lies below frame {index}'s largest value, {top:g} "
+            "ADU: no pixel reads above its camera's saturation"
         )
     return given if given is not None else clipped[0] if clipped else type_saturation(raw)

@@ -210,6 +210,8 @@ class CameraFrames:
         ident["camera"] = self.camera.to_dict() if self.camera is not None else None
         if self.defects is not None:
             ident["defects"] = array_digest(np.packbits(self.defects))
+        if self.saturation is not None:
+            ident["saturation"] = float(self.saturation)
         return ident
 
 
